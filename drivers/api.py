@@ -1,0 +1,93 @@
+"""What the bench needs from a drive and from a load machine, whatever the transport.
+
+drivers.canopen_link and drivers.serial_link implement DriveLink; drivers.modbus_load implements
+LoadLink. The bench talks only to these protocols, so a real rig and the simulator run the same code.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import Protocol, Sequence
+
+import numpy as np
+
+
+class LinkError(RuntimeError):
+    """A protocol-level failure: timeout, abort, CRC error, lost heartbeat. The message says which."""
+
+
+@dataclass(frozen=True)
+class DriveIdentity:
+    vendor_id: int
+    product_code: int
+    revision: int
+    serial: int
+    device_name: str
+    firmware_version: str
+    has_trace_recorder: bool
+
+
+@dataclass(frozen=True)
+class LiveSample:
+    """One decimated live sample; t_s is the drive's own clock."""
+
+    t_s: float
+    values: dict[str, float]
+
+
+@dataclass
+class DriveStatus:
+    state: str                  # CiA 402 state name, e.g. "OPERATION ENABLED", "FAULT"
+    fault: bool
+    heartbeat_ok: bool
+    emcy: list[tuple[int, str]] = field(default_factory=list)  # (error code, text) received since last call
+
+
+class DriveLink(Protocol):
+    def open(self) -> DriveIdentity: ...
+    def configure(self, live_signals: Sequence[str], trace_signals: Sequence[str], trace_decimation: int) -> None: ...
+    def enable_velocity_mode(self) -> None: ...
+    def set_speed_ref(self, speed_mech_rad_s: float) -> None: ...
+    def write_parameter(self, name: str, value: float) -> None:
+        """Write a named manufacturer object (test hook, firmware parameter, simulator plant injection)."""
+        ...
+    def sync(self) -> list[LiveSample]:
+        """Lockstep: send one SYNC and return its samples. Real time: return samples received since last call."""
+        ...
+    def fetch_trace(self) -> dict[str, np.ndarray] | None:
+        """New trace-recorder rows since the last call (columns: t_s + signals); None without a recorder."""
+        ...
+    def status(self) -> DriveStatus: ...
+    def quick_stop(self) -> None: ...
+    def disable(self) -> None: ...
+    def close(self) -> None: ...
+
+
+class LoadMode(enum.IntEnum):
+    """Load machine modes (Modbus register map in config/od/load-machine-registers.toml).
+
+    Sign convention everywhere: the load torque T_L opposes positive rotation,
+    J*dw/dt = T_e - T_L - B*w.
+    """
+
+    TORQUE = 0      # active: T_L = value, keeps its sign whatever the speed (hanging mass on a drum)
+    VISCOUS = 1     # T_L = value * w, value in N*m/(rad/s) (DC generator into a resistor)
+    BRAKE = 2       # passive: T_L = value * sign(w), zero at standstill (powder brake, friction)
+
+
+@dataclass(frozen=True)
+class LoadFeedback:
+    speed_mech_rad_s: float
+    torque_nm: float
+    enabled: bool
+    fault: bool
+
+
+class LoadLink(Protocol):
+    def open(self) -> str: ...
+    def set_load(self, mode: LoadMode, value: float) -> None: ...
+    def enable(self, on: bool) -> None: ...
+    def feedback(self) -> LoadFeedback: ...
+    def zero_and_disable(self) -> None: ...
+    def close(self) -> None: ...

@@ -1,0 +1,1 @@
+"""Simulated drives (plant, inverter, firmware) and the protocol servers in front of them."""
