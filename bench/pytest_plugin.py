@@ -1,0 +1,1 @@
+"""pytest plugin: the `drivebench` fixture (being written)."""

@@ -1,0 +1,88 @@
+"""The drive-side trace recorder: a ring buffer of control-rate samples the bench uploads in blocks."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from drivers.signals import SIGNAL_NAMES
+from drivers.trace_format import encode_rows, row_dtype
+
+TRIGGER_IMMEDIATE = 0       # records from start()
+TRIGGER_ON_ENABLE = 1       # records from the first sample with the power stage enabled
+
+
+class TraceRecorder:
+    def __init__(self, capacity_rows: int = 200_000):
+        self.capacity_rows = capacity_rows
+        self.mask = (1 << len(SIGNAL_NAMES)) - 1
+        self.decimation = 1
+        self.trigger = TRIGGER_IMMEDIATE
+        self.running = False
+        self.triggered = False
+        self.lost_rows = 0
+        self._steps = np.zeros(capacity_rows, dtype=np.uint32)
+        self._rows = np.zeros((capacity_rows, len(SIGNAL_NAMES)), dtype=np.float32)
+        self._head = 0      # next row to read
+        self._count = 0     # rows held
+
+    def configure(self, mask: int, decimation: int, trigger: int = TRIGGER_IMMEDIATE) -> None:
+        if mask <= 0 or mask >> len(SIGNAL_NAMES):
+            raise ValueError(f"signal mask 0x{mask:x} selects no or unknown signals")
+        if decimation < 1:
+            raise ValueError("decimation must be >= 1")
+        self.mask, self.decimation, self.trigger = mask, decimation, trigger
+        self.clear()
+
+    def clear(self) -> None:
+        self._head = self._count = 0
+        self.lost_rows = 0
+        self.triggered = False
+
+    def start(self) -> None:
+        self.running = True
+        self.triggered = self.trigger == TRIGGER_IMMEDIATE
+
+    def stop(self) -> None:
+        self.running = False
+
+    @property
+    def row_size(self) -> int:
+        return row_dtype(self.mask).itemsize
+
+    @property
+    def rows_available(self) -> int:
+        return self._count
+
+    def push(self, first_step: int, block: np.ndarray, enabled: bool) -> None:
+        """block row k is the sample after drive step first_step + k."""
+        if not self.running:
+            return
+        if not self.triggered:
+            if self.trigger == TRIGGER_ON_ENABLE and enabled:
+                self.triggered = True
+            else:
+                return
+        steps = np.arange(first_step, first_step + len(block), dtype=np.int64)
+        keep = steps % self.decimation == 0
+        steps, block = steps[keep], block[keep]
+        n = len(steps)
+        if n > self.capacity_rows:     # more than the ring holds: only the newest rows survive
+            self.lost_rows += n - self.capacity_rows
+            steps, block, n = steps[-self.capacity_rows:], block[-self.capacity_rows:], self.capacity_rows
+        overflow = self._count + n - self.capacity_rows
+        if overflow > 0:               # ring full: the oldest rows are overwritten
+            self._head = (self._head + overflow) % self.capacity_rows
+            self._count -= overflow
+            self.lost_rows += overflow
+        idx = (self._head + self._count + np.arange(n)) % self.capacity_rows
+        self._steps[idx] = steps
+        self._rows[idx] = block
+        self._count += n
+
+    def read(self, max_rows: int) -> bytes:
+        """Remove and return up to max_rows of the oldest rows, encoded (drivers.trace_format)."""
+        n = min(max_rows, self._count)
+        idx = (self._head + np.arange(n)) % self.capacity_rows
+        self._head = (self._head + n) % self.capacity_rows
+        self._count -= n
+        return encode_rows(self._steps[idx], self._rows[idx].astype(np.float64), self.mask)

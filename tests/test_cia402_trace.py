@@ -1,0 +1,64 @@
+import numpy as np
+import pytest
+
+from drivers.signals import SIGNAL_NAMES
+from drivers.trace_format import decode_rows, mask_for
+from sim_backend.cia402 import Cia402Device, State
+from sim_backend.trace import TRIGGER_ON_ENABLE, TraceRecorder
+
+
+def test_enable_sequence_statuswords():
+    dev = Cia402Device()
+    assert dev.statusword & 0x6F == 0x40
+    for cw, state, sw in [(0x06, State.READY_TO_SWITCH_ON, 0x21), (0x07, State.SWITCHED_ON, 0x23),
+                          (0x0F, State.OPERATION_ENABLED, 0x27)]:
+        dev.write_controlword(cw)
+        assert dev.state is state
+        assert dev.statusword & 0x6F == sw
+    assert dev.power_enabled
+
+
+def test_quick_stop_then_disable_voltage():
+    dev = Cia402Device(state=State.OPERATION_ENABLED)
+    dev.write_controlword(0x02)
+    assert dev.state is State.QUICK_STOP_ACTIVE and dev.statusword & 0x6F == 0x07
+    dev.write_controlword(0x00)
+    assert dev.state is State.SWITCH_ON_DISABLED and not dev.power_enabled
+
+
+def test_fault_needs_rising_edge_reset_and_cleared_cause():
+    dev = Cia402Device(state=State.OPERATION_ENABLED)
+    dev.fault(0x2310)
+    assert dev.statusword & 0x4F == 0x08 and not dev.power_enabled
+    dev.write_controlword(0x80, fault_active=True)
+    assert dev.state is State.FAULT
+    dev.write_controlword(0x00)
+    dev.write_controlword(0x80, fault_active=False)
+    assert dev.state is State.SWITCH_ON_DISABLED and dev.error_code == 0
+
+
+def test_trace_decimation_ring_and_roundtrip():
+    rec = TraceRecorder(capacity_rows=8)
+    names = ["speed_est_mech_rad_s", "i_sy_a"]
+    mask = mask_for(names)
+    rec.configure(mask, decimation=2)
+    rec.start()
+    block = np.arange(20 * len(SIGNAL_NAMES), dtype=float).reshape(20, len(SIGNAL_NAMES))
+    rec.push(first_step=100, block=block, enabled=True)
+    assert rec.rows_available == 8 and rec.lost_rows == 2          # 10 decimated rows, ring of 8
+    cols = decode_rows(rec.read(5), mask, control_period_s=1e-4)
+    np.testing.assert_allclose(cols["t_s"], np.array([104, 106, 108, 110, 112]) * 1e-4)
+    np.testing.assert_array_equal(cols["i_sy_a"], block[[4, 6, 8, 10, 12], SIGNAL_NAMES.index("i_sy_a")])
+    assert rec.rows_available == 3
+    with pytest.raises(ValueError):
+        decode_rows(b"\x00" * 5, mask, 1e-4)
+
+
+def test_trace_waits_for_enable_trigger():
+    rec = TraceRecorder(capacity_rows=100)
+    rec.configure(mask_for(["speed_est_mech_rad_s"]), decimation=1, trigger=TRIGGER_ON_ENABLE)
+    rec.start()
+    rec.push(0, np.zeros((5, len(SIGNAL_NAMES))), enabled=False)
+    assert rec.rows_available == 0
+    rec.push(5, np.zeros((5, len(SIGNAL_NAMES))), enabled=True)
+    assert rec.rows_available == 5
