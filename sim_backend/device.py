@@ -1,0 +1,102 @@
+"""Device-side logic every protocol front end of a simulated drive shares.
+
+A SimulatedDevice wraps one DriveModel with what the drive's communication firmware does: the CiA 402
+state machine, profile velocity mode, the trace recorder, fault detection and the load machine's
+registers. The CANopen node, the serial server and the Modbus server all call into one instance; the
+lock serialises them (each server runs in its own thread).
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivers.signals import SIGNAL_NAMES
+from sim_backend.cia402 import MODE_PROFILE_VELOCITY, Cia402Device, State
+from sim_backend.model import DriveModel
+from sim_backend.trace import TraceRecorder
+
+FIRMWARE_VERSION = "drivebench-sim 0.1.0"
+
+
+@dataclass
+class LoadMachineRegisters:
+    mode: int = 0
+    value: float = 0.0
+    enabled: bool = False
+    fault: int = 0
+
+
+@dataclass
+class SimulatedDevice:
+    model: DriveModel
+    trace: TraceRecorder = field(default_factory=TraceRecorder)
+    device: Cia402Device = field(default_factory=Cia402Device)
+    mode_of_operation: int = MODE_PROFILE_VELOCITY
+    target_speed_mech_rad_s: float = 0.0
+    load: LoadMachineRegisters = field(default_factory=LoadMachineRegisters)
+    step_count: int = 0
+    lock: threading.RLock = field(default_factory=threading.RLock)
+    pending_emcy: list[int] = field(default_factory=list)
+    latest: np.ndarray = field(default_factory=lambda: np.zeros(len(SIGNAL_NAMES)))
+
+    @property
+    def time_s(self) -> float:
+        return self.step_count * self.model.control_period_s
+
+    def write_controlword(self, word: int) -> None:
+        with self.lock:
+            self.device.write_controlword(word, fault_active=self.model.fault_code() != 0)
+            self._apply_outputs()
+
+    def reset_fault(self) -> None:
+        with self.lock:
+            self.model.reset_fault()
+
+    def set_load(self, mode: int | None = None, value: float | None = None, enabled: bool | None = None) -> None:
+        with self.lock:
+            if mode is not None:
+                self.load.mode = mode
+            if value is not None:
+                self.load.value = value
+            if enabled is not None:
+                self.load.enabled = enabled
+            self.model.set_load(self.load.mode, self.load.value, self.load.enabled)
+
+    def write_named(self, name: str, value: float) -> None:
+        """A manufacturer object: test hook / firmware parameter / simulator plant injection."""
+        with self.lock:
+            if name in self.model.plant_param_names():
+                self.model.set_plant_param(name, value)
+            else:
+                self.model.set_hook(name, value)
+
+    def _apply_outputs(self) -> None:
+        self.model.set_enabled(self.device.power_enabled)
+        running = self.device.state is State.OPERATION_ENABLED and self.mode_of_operation == MODE_PROFILE_VELOCITY
+        self.model.set_speed_ref(self.target_speed_mech_rad_s if running else 0.0)
+
+    def advance(self, n_steps: int) -> np.ndarray:
+        """Run n control periods; feed the trace recorder; detect faults. Returns the telemetry block."""
+        with self.lock:
+            self._apply_outputs()
+            block = self.model.step(n_steps)
+            self.trace.push(self.step_count + 1, block, self.device.power_enabled)
+            self.step_count += n_steps
+            self.latest = block[-1]
+            code = self.model.fault_code()
+            if code and self.device.state is not State.FAULT:
+                self.device.fault(code)
+                self.pending_emcy.append(code)
+                self._apply_outputs()
+            speed = self.latest[SIGNAL_NAMES.index("speed_est_mech_rad_s")]
+            self.device.target_reached = abs(speed - self.target_speed_mech_rad_s) <= 0.01 * max(
+                1.0, abs(self.target_speed_mech_rad_s))
+            return block
+
+    def take_emcy(self) -> list[int]:
+        with self.lock:
+            codes, self.pending_emcy = self.pending_emcy, []
+            return codes
