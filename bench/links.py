@@ -1,0 +1,75 @@
+"""From a bench config to link objects: transport name -> class, and the optional [services] starter.
+
+Link classes are constructed as `Class(section, base_dir)` with the config's [drive] or [load] table.
+A service is `module:function`, called as `function(bench_cfg, seed)`; it is a context manager that
+yields endpoint overrides {"drive": {...}, "load": {...}} merged into the config before connecting.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import importlib
+from pathlib import Path
+from typing import Any, Callable, ContextManager, Iterator
+
+from bench.errors import InputError
+
+DRIVE_TRANSPORTS: dict[str, str] = {
+    "canopen": "drivers.canopen_link:CanopenDriveLink",
+    "serial": "drivers.serial_link:SerialDriveLink",
+}
+LOAD_TRANSPORTS: dict[str, str] = {
+    "modbus-tcp": "drivers.modbus_load:ModbusLoadLink",
+    "modbus-rtu": "drivers.modbus_load:ModbusLoadLink",
+}
+
+
+def import_object(spec: str, what: str) -> Any:
+    """`package.module:name` -> the object; InputError naming `what` if it cannot be imported."""
+    module_name, _, attr = spec.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        raise InputError([f"{what}: cannot import module {module_name!r} ({exc})"]) from None
+    try:
+        return getattr(module, attr)
+    except AttributeError:
+        raise InputError([f"{what}: module {module_name!r} has no {attr!r}"]) from None
+
+
+def _link_class(section: dict, table: dict[str, str], where: str, cfg_path: str) -> Callable:
+    transport = section.get("transport")
+    spec = table.get(transport)
+    if spec is None:
+        raise InputError([f"{cfg_path}: {where}.transport: unknown transport {transport!r} "
+                          f"(known: {', '.join(table)})"])
+    return import_object(spec, f"{cfg_path}: {where}.transport {transport!r}")
+
+
+def make_links(cfg: dict, base_dir: Path) -> tuple[Any, Any]:
+    """(drive link, load link), constructed but not opened."""
+    path = cfg.get("_path", "bench config")
+    drive_cls = _link_class(cfg["drive"], DRIVE_TRANSPORTS, "drive", path)
+    load_cls = _link_class(cfg["load"], LOAD_TRANSPORTS, "load", path)
+    return drive_cls(dict(cfg["drive"]), base_dir), load_cls(dict(cfg["load"]), base_dir)
+
+
+@contextlib.contextmanager
+def started_services(cfg: dict, seed: int) -> Iterator[dict]:
+    """Start [services] if the config names one; yield the config with its endpoint overrides merged."""
+    spec = cfg.get("services", {}).get("start")
+    if not spec:
+        yield cfg
+        return
+    start = import_object(spec, f"{cfg.get('_path', 'bench config')}: services.start")
+    manager: ContextManager = start(cfg, seed)
+    with manager as overrides:
+        yield merge_overrides(cfg, overrides or {})
+
+
+def merge_overrides(cfg: dict, overrides: dict) -> dict:
+    merged = copy.deepcopy(cfg)
+    for section, values in overrides.items():
+        merged.setdefault(section, {}).update(values or {})
+    return merged

@@ -1,0 +1,196 @@
+"""Rerun stream of a run: live to a viewer and/or saved to run.rrd, batched with send_columns.
+
+Entity paths are the signal names (`/speed_est_mech_rad_s`); the timeline `t_s` is the drive clock.
+`/flux_vector/true` and `/flux_vector/estimated` are 2D arrows derived from the flux magnitudes and
+field angles, for a phasor view of how far the estimate is off.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+from pathlib import Path
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+
+RERUN_MODES = ("spawn", "connect", "save", "off")
+APPLICATION_ID = "drivebench"
+FLUX_VECTOR_PERIOD_S = 0.01  # arrows are decimated to 100 Hz of drive time: a phasor view needs no more
+
+PLOTS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("speed", ("speed_ref_mech_rad_s", "speed_est_mech_rad_s", "speed_true_mech_rad_s")),
+    ("position error", ("pos_err_elec_rad",)),
+    ("flux", ("flux_est_wb", "flux_true_wb")),
+    ("currents", ("i_sx_a", "i_sy_a", "i_sx_ref_a", "i_sy_ref_a")),
+    ("voltages", ("u_sx_v", "u_sy_v")),
+    ("torque", ("torque_load_nm", "torque_est_nm")),
+)
+
+
+def display_available() -> bool:
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def default_blueprint():
+    import rerun.blueprint as rrb
+
+    plots = [
+        rrb.TimeSeriesView(name=title, origin="/", contents=[f"/{name}" for name in names])
+        for title, names in PLOTS
+    ]
+    phasor = rrb.Spatial2DView(name="flux vector (true vs estimated)", origin="/flux_vector")
+    return rrb.Blueprint(rrb.Grid(*plots, phasor), collapse_panels=True)
+
+
+def _warn(message: str) -> None:
+    print(message, file=sys.stderr)
+
+
+class RerunStream:
+    """Buffers samples and sends them in batches of at least `batch_s` of drive time."""
+
+    def __init__(
+        self,
+        mode: str,
+        rrd_path: Path | None,
+        *,
+        url: str | None = None,
+        recording_name: str = "run",
+        batch_s: float = 0.1,
+        warn: Callable[[str], None] = _warn,
+    ):
+        if mode not in RERUN_MODES:
+            raise ValueError(f"rerun mode must be one of {', '.join(RERUN_MODES)}, not {mode!r}")
+        self.mode = mode
+        self.batch_s = batch_s
+        self.rrd_path = rrd_path
+        self._rec = None
+        self._times: list[float] = []
+        self._rows: list[Mapping[str, float]] = []
+        self._last_arrow_t = -math.inf
+        self._styled: set[str] = set()
+        if mode == "off":
+            return
+
+        import rerun as rr
+
+        self._rr = rr
+        self._rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_name)
+        sinks: list = []
+        if rrd_path is not None:
+            sinks.append(rr.FileSink(str(rrd_path)))
+        if mode == "spawn":
+            if not display_available():
+                warn("rerun: no display (DISPLAY/WAYLAND_DISPLAY unset); not spawning a viewer, saving run.rrd only")
+            else:
+                try:
+                    self._rec.spawn(connect=False, detach_process=True)
+                    sinks.append(rr.GrpcSink())
+                except Exception as exc:  # the viewer binary or its window may be missing
+                    warn(f"rerun: could not spawn the viewer ({exc}); saving run.rrd only")
+        elif mode == "connect":
+            sinks.append(rr.GrpcSink(url) if url else rr.GrpcSink())
+        if not sinks:
+            self._rec = None
+            return
+        self._rec.set_sinks(*sinks, default_blueprint=default_blueprint())
+        self._rec.send_recording_name(recording_name)
+        self._style()
+
+    @property
+    def enabled(self) -> bool:
+        return self._rec is not None
+
+    def _style(self) -> None:
+        rr = self._rr
+        for _, names in PLOTS:
+            for name in names:
+                self._rec.log(name, rr.SeriesLines(names=name), static=True)
+
+    def log_rows(self, t_s: Sequence[float], values: Sequence[Mapping[str, float]]) -> None:
+        """Append samples (one mapping of signal -> value per time) and send once a batch is full."""
+        if self._rec is None:
+            return
+        self._times.extend(t_s)
+        self._rows.extend(values)
+        if self._times and self._times[-1] - self._times[0] >= self.batch_s:
+            self.flush()
+
+    def log_columns(self, t_s: np.ndarray, columns: Mapping[str, np.ndarray]) -> None:
+        """Send a block of columns at once (already a batch)."""
+        if self._rec is None or len(t_s) == 0:
+            return
+        self.flush()
+        self._send(np.asarray(t_s, dtype=np.float64), {k: np.asarray(v, dtype=np.float64) for k, v in columns.items()})
+
+    def flush(self) -> None:
+        if self._rec is None or not self._times:
+            return
+        t = np.asarray(self._times, dtype=np.float64)
+        rows = self._rows
+        names = dict.fromkeys(name for row in (rows[0], rows[-1]) for name in row)
+        columns = {
+            name: np.fromiter((row.get(name, math.nan) for row in rows), dtype=np.float64, count=len(rows))
+            for name in names
+        }
+        self._times = []
+        self._rows = []
+        self._send(t, columns)
+
+    def _send(self, t: np.ndarray, columns: Mapping[str, np.ndarray]) -> None:
+        rr = self._rr
+        index = [rr.TimeColumn("t_s", duration=t)]
+        for name, values in columns.items():
+            self._rec.send_columns(name, indexes=index, columns=rr.Scalars.columns(scalars=values))
+        self._send_flux_vectors(t, columns)
+
+    def _send_flux_vectors(self, t: np.ndarray, columns: Mapping[str, np.ndarray]) -> None:
+        needed = ("flux_est_wb", "flux_true_wb", "pos_est_elec_rad", "pos_err_elec_rad")
+        if not all(name in columns for name in needed):
+            return
+        keep = []
+        for k, tk in enumerate(t):
+            if tk - self._last_arrow_t >= FLUX_VECTOR_PERIOD_S:
+                keep.append(k)
+                self._last_arrow_t = tk
+        if not keep:
+            return
+        idx = np.asarray(keep)
+        angle_est = columns["pos_est_elec_rad"][idx]
+        angle_true = angle_est + columns["pos_err_elec_rad"][idx]
+        rr = self._rr
+        index = [rr.TimeColumn("t_s", duration=t[idx])]
+        for entity, magnitude, angle in (
+            ("flux_vector/estimated", columns["flux_est_wb"][idx], angle_est),
+            ("flux_vector/true", columns["flux_true_wb"][idx], angle_true),
+        ):
+            vectors = np.stack([magnitude * np.cos(angle), magnitude * np.sin(angle)], axis=1)
+            vectors = np.nan_to_num(vectors)
+            self._rec.send_columns(
+                entity, indexes=index, columns=rr.Arrows2D.columns(vectors=vectors, origins=np.zeros_like(vectors))
+            )
+
+    def close(self) -> None:
+        if self._rec is None:
+            return
+        try:
+            self.flush()
+            self._rec.flush()
+        finally:
+            self._rec.disconnect()  # writes the .rrd footer
+            self._rec = None
+
+
+def rrd_entity_paths(path: Path) -> set[str]:
+    """Entity paths present in a saved .rrd (for checks and tests)."""
+    from rerun.chunk import RrdReader
+
+    store = RrdReader(path).store()
+    paths = set()
+    for line in store.summary().splitlines():
+        entity = line.split(" ", 1)[0]
+        if entity.startswith("/"):
+            paths.add(entity)
+    return paths

@@ -1,0 +1,186 @@
+"""Safety supervisor: judges live samples and link status against the scenario's limits in its own thread.
+
+It never touches a link. The run loop feeds it (a queue) and polls `tripped`; on the first trip the
+supervisor records what tripped, at which drive time and with which values, and stops judging. The
+orchestrator then runs the safe-stop sequence (once: see SafeStop).
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from dataclasses import dataclass, field
+from typing import Callable, Iterable, Protocol
+
+from drivers.api import DriveStatus, LiveSample
+
+
+class SupervisorLimits(Protocol):
+    overspeed_mech_rad_s: float
+    overcurrent_a: float
+    max_duration_s: float
+    pos_err_max_elec_rad: float | None
+    vdc_max_v: float | None
+
+
+@dataclass(frozen=True)
+class Trip:
+    reason: str                  # overspeed | overcurrent | position_error | dc_link_overvoltage | max_duration | fault | emcy | heartbeat
+    t_s: float | None            # drive time of the sample or status that tripped
+    values: dict[str, float] = field(default_factory=dict)
+    message: str = ""
+
+    def as_dict(self) -> dict:
+        return {"reason": self.reason, "t_s": self.t_s, "values": dict(self.values), "message": self.message}
+
+
+def check_sample(limits: SupervisorLimits, t_s: float, values: dict[str, float]) -> Trip | None:
+    """The first limit this sample violates, or None. Missing signals are not judged."""
+    for name in ("speed_true_mech_rad_s", "speed_est_mech_rad_s"):
+        value = values.get(name)
+        if value is not None and abs(value) > limits.overspeed_mech_rad_s:
+            return Trip("overspeed", t_s, {name: value, "limit": limits.overspeed_mech_rad_s},
+                        f"overspeed at t={t_s:.4f} s: |{name}| = {abs(value):.2f} > {limits.overspeed_mech_rad_s:g} rad/s")
+    for name in ("i_sx_a", "i_sy_a"):
+        value = values.get(name)
+        if value is not None and abs(value) > limits.overcurrent_a:
+            return Trip("overcurrent", t_s, {name: value, "limit": limits.overcurrent_a},
+                        f"overcurrent at t={t_s:.4f} s: |{name}| = {abs(value):.2f} > {limits.overcurrent_a:g} A")
+    if limits.pos_err_max_elec_rad is not None:
+        value = values.get("pos_err_elec_rad")
+        if value is not None and abs(value) > limits.pos_err_max_elec_rad:
+            return Trip("position_error", t_s, {"pos_err_elec_rad": value, "limit": limits.pos_err_max_elec_rad},
+                        f"position error at t={t_s:.4f} s: |pos_err_elec_rad| = {abs(value):.3f} > "
+                        f"{limits.pos_err_max_elec_rad:g} rad")
+    if limits.vdc_max_v is not None:
+        value = values.get("vdc_v")
+        if value is not None and value > limits.vdc_max_v:
+            return Trip("dc_link_overvoltage", t_s, {"vdc_v": value, "limit": limits.vdc_max_v},
+                        f"DC-link overvoltage at t={t_s:.4f} s: vdc_v = {value:.1f} > {limits.vdc_max_v:g} V")
+    if t_s > limits.max_duration_s:
+        return Trip("max_duration", t_s, {"t_s": t_s, "limit": limits.max_duration_s},
+                    f"run time limit at t={t_s:.4f} s: > {limits.max_duration_s:g} s")
+    return None
+
+
+def check_status(t_s: float | None, status: DriveStatus) -> Trip | None:
+    when = "" if t_s is None else f" at t={t_s:.4f} s"
+    if status.fault:
+        return Trip("fault", t_s, {}, f"drive fault{when} (state {status.state})"
+                    + "".join(f"; EMCY 0x{code:04X} {text}" for code, text in status.emcy))
+    errors = [(code, text) for code, text in status.emcy if code != 0]  # 0x0000 = error reset
+    if errors:
+        code, text = errors[0]
+        return Trip("emcy", t_s, {"emcy_code": float(code)}, f"EMCY 0x{code:04X} {text}{when}")
+    if not status.heartbeat_ok:
+        return Trip("heartbeat", t_s, {}, f"drive heartbeat lost{when}")
+    return None
+
+
+_STOP = object()
+
+
+class Supervisor:
+    """Runs check_sample/check_status on everything fed to it, in a daemon thread."""
+
+    def __init__(self, limits: SupervisorLimits, on_trip: Callable[[Trip], None] | None = None):
+        self.limits = limits
+        self.on_trip = on_trip
+        self.tripped = threading.Event()
+        self.trip: Trip | None = None
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._run, name="drivebench-supervisor", daemon=True)
+        self._idle = threading.Condition()
+        self._pending = 0
+
+    def start(self) -> "Supervisor":
+        self._thread.start()
+        return self
+
+    def feed(self, samples: Iterable[LiveSample]) -> None:
+        samples = list(samples)
+        if samples and not self.tripped.is_set():
+            self._put(("samples", samples))
+
+    def feed_status(self, t_s: float | None, status: DriveStatus) -> None:
+        if not self.tripped.is_set():
+            self._put(("status", (t_s, status)))
+
+    def _put(self, item) -> None:
+        with self._idle:
+            self._pending += 1
+        self._queue.put(item)
+
+    def drain(self, timeout_s: float = 5.0) -> bool:
+        """Wait until everything fed so far has been judged (tests; and before the final verdict)."""
+        with self._idle:
+            return self._idle.wait_for(lambda: self._pending == 0, timeout=timeout_s)
+
+    def stop(self) -> None:
+        if self._thread.is_alive():
+            self._queue.put(_STOP)
+            self._thread.join(timeout=5.0)
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is _STOP:
+                return
+            try:
+                if not self.tripped.is_set():
+                    trip = self._judge(item)
+                    if trip is not None:
+                        self.trip = trip
+                        self.tripped.set()
+                        if self.on_trip is not None:
+                            self.on_trip(trip)
+            finally:
+                with self._idle:
+                    self._pending -= 1
+                    self._idle.notify_all()
+
+    def _judge(self, item) -> Trip | None:
+        kind, payload = item
+        if kind == "status":
+            return check_status(*payload)
+        for sample in payload:
+            trip = check_sample(self.limits, sample.t_s, sample.values)
+            if trip is not None:
+                return trip
+        return None
+
+
+class SafeStop:
+    """The end-of-run sequence: load to zero torque and disabled, drive quick stop, drive disabled.
+
+    Runs at most once however often it is requested (trip, Ctrl-C, SIGTERM, normal end). Every step is
+    tried even if an earlier one fails; the failures are returned so the record can say so.
+    """
+
+    def __init__(self, drive, load):
+        self.drive = drive
+        self.load = load
+        self._lock = threading.Lock()
+        self.done = False
+        self.errors: list[str] = []
+        self.steps: list[str] = []
+
+    def run(self) -> list[str]:
+        with self._lock:
+            if self.done:
+                return self.errors
+            self.done = True
+            steps: list[tuple[str, Callable[[], None]]] = []
+            if self.load is not None:
+                steps.append(("load zero torque and disabled", self.load.zero_and_disable))
+            if self.drive is not None:
+                steps.append(("drive quick stop", self.drive.quick_stop))
+                steps.append(("drive disabled", self.drive.disable))
+            for label, action in steps:
+                try:
+                    action()
+                    self.steps.append(label)
+                except BaseException as exc:  # keep going: the remaining steps matter more than this error
+                    self.errors.append(f"{label}: {type(exc).__name__}: {exc}")
+            return self.errors
+
