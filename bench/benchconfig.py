@@ -1,0 +1,178 @@
+"""Bench config files (config/benches/*.toml): which drive and load machine, over which transport.
+
+The bench reads [bench], [services], [drive] and [load]; [simulator] belongs to sim_backend and is only
+checked for being a table (its `motor` path is resolved like every other path). Relative paths are resolved
+against the repo root (the directory holding pyproject.toml) and rewritten as absolute strings; the
+config's own path is kept in cfg["_path"]. Defaults are filled in, so readers can index without .get().
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from bench.errors import InputError, Problems, find_repo_root
+
+DRIVE_KINDS = ("pmsm", "spim")
+
+_BENCH_KEYS = {"name", "description", "timing", "plant_injections", "fault_reset"}
+_SERVICES_KEYS = {"start"}
+_DRIVE_COMMON = {"transport", "kind", "sync_period_s", "heartbeat_timeout_s", "trace_decimation"}
+_DRIVE_KEYS = {
+    "canopen": _DRIVE_COMMON | {"interface", "channel", "bitrate", "node_id", "eds", "sdo_timeout_s"},
+    "serial": _DRIVE_COMMON | {"port", "baudrate", "timeout_s"},
+}
+_LOAD_KEYS = {
+    "modbus-tcp": {"transport", "host", "port", "unit_id", "timeout_s"},
+    "modbus-rtu": {"transport", "port", "baudrate", "unit_id", "timeout_s"},
+}
+_TOP_KEYS = {"bench", "services", "drive", "load", "simulator"}
+
+
+def load_bench_config(path: str | Path) -> dict[str, Any]:
+    """Read and validate a bench config; InputError lists every problem as `file: field: reason`."""
+    path = Path(path)
+    raw = read_toml(path)
+    problems = Problems(path)
+    root = find_repo_root(path)
+    problems.unknown_keys(raw, _TOP_KEYS, "")
+    cfg: dict[str, Any] = {"_path": str(path.resolve())}
+
+    bench = problems.table(raw, "bench", "") or {}
+    problems.unknown_keys(bench, _BENCH_KEYS, "bench")
+    cfg["bench"] = {
+        "name": problems.string(bench, "name", "bench"),
+        "description": problems.string(bench, "description", "bench", required=False, default=""),
+        "timing": problems.string(bench, "timing", "bench", required=False, default="lockstep",
+                                  choices=("lockstep", "realtime")),
+        "plant_injections": problems.boolean(bench, "plant_injections", "bench", required=False, default=False),
+        "fault_reset": problems.string(bench, "fault_reset", "bench", required=False, default="once",
+                                       choices=("never", "once")),
+    }
+
+    services = problems.table(raw, "services", "", required=False) or {}
+    problems.unknown_keys(services, _SERVICES_KEYS, "services")
+    start = problems.string(services, "start", "services", required=False)
+    if start is not None and (start.count(":") != 1 or not all(start.split(":"))):
+        problems.add("services.start", f"must be 'module:function', got {start!r}")
+    cfg["services"] = {"start": start}
+
+    cfg["drive"] = _drive(problems, problems.table(raw, "drive", ""), root)
+    cfg["load"] = _load(problems, problems.table(raw, "load", ""))
+
+    simulator = problems.table(raw, "simulator", "", required=False)
+    if simulator is not None:
+        simulator = dict(simulator)
+        if "motor" in simulator:
+            motor = problems.string(simulator, "motor", "simulator")
+            simulator["motor"] = _existing_path(problems, "simulator.motor", motor, root) if motor else None
+        cfg["simulator"] = simulator
+    problems.raise_if_any()
+    return cfg
+
+
+def drive_kind(cfg: dict[str, Any]) -> str | None:
+    """'pmsm' or 'spim' when the config says so ([drive].kind, or `kind` in the simulator's motor file)."""
+    kind = cfg.get("drive", {}).get("kind")
+    if kind:
+        return kind
+    motor = cfg.get("simulator", {}).get("motor")
+    if motor:
+        try:
+            with open(motor, "rb") as f:
+                data = tomllib.load(f)
+        except (OSError, tomllib.TOMLDecodeError):
+            return None
+        for table in (data, data.get("motor", {})):
+            if isinstance(table, dict):
+                for key in ("kind", "type"):
+                    if table.get(key) in DRIVE_KINDS:
+                        return table[key]
+    return None
+
+
+def read_toml(path: Path) -> dict[str, Any]:
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError:
+        raise InputError([f"{path}: (file): not found"]) from None
+    except IsADirectoryError:
+        raise InputError([f"{path}: (file): is a directory, not a TOML file"]) from None
+    except OSError as e:
+        raise InputError([f"{path}: (file): cannot read: {e.strerror or e}"]) from None
+    except tomllib.TOMLDecodeError as e:
+        raise InputError([f"{path}: (file): not valid TOML: {e}"]) from None
+    except UnicodeDecodeError:
+        raise InputError([f"{path}: (file): not valid TOML: not UTF-8 text"]) from None
+
+
+def resolve_path(value: str, root: Path, also: Path | None = None) -> Path | None:
+    """An existing file for `value`: absolute, else under the repo root, else under `also`."""
+    p = Path(value).expanduser()
+    if p.is_absolute():
+        return p if p.exists() else None
+    for base in (root, also):
+        if base is not None and (base / p).exists():
+            return (base / p).resolve()
+    return None
+
+
+def _existing_path(problems: Problems, field: str, value: str, root: Path) -> str | None:
+    found = resolve_path(value, root)
+    if found is None:
+        problems.add(field, f"file not found: {value!r} (relative paths are taken from the repo root {root})")
+        return None
+    return str(found)
+
+
+def _drive(problems: Problems, drive: dict | None, root: Path) -> dict[str, Any]:
+    if drive is None:
+        return {}
+    w = "drive"
+    transport = problems.string(drive, "transport", w, choices=tuple(_DRIVE_KEYS))
+    if transport is not None:
+        problems.unknown_keys(drive, _DRIVE_KEYS[transport], w)
+    out: dict[str, Any] = {
+        "transport": transport,
+        "kind": problems.string(drive, "kind", w, required=False, choices=DRIVE_KINDS),
+        "sync_period_s": problems.number(drive, "sync_period_s", w, required=False, default=0.001, positive=True),
+        "heartbeat_timeout_s": problems.number(drive, "heartbeat_timeout_s", w, required=False, default=0.5,
+                                               positive=True),
+        "trace_decimation": problems.integer(drive, "trace_decimation", w, required=False, default=1, min_value=1),
+    }
+    if transport == "canopen":
+        out["interface"] = problems.string(drive, "interface", w)
+        out["channel"] = problems.string(drive, "channel", w)
+        out["bitrate"] = problems.integer(drive, "bitrate", w, required=False, default=1_000_000, min_value=1)
+        out["node_id"] = problems.integer(drive, "node_id", w, min_value=1, max_value=127)
+        out["sdo_timeout_s"] = problems.number(drive, "sdo_timeout_s", w, required=False, default=0.5, positive=True)
+        eds = problems.string(drive, "eds", w)
+        out["eds"] = _existing_path(problems, "drive.eds", eds, root) if eds else None
+    elif transport == "serial":
+        out["port"] = problems.string(drive, "port", w)
+        out["baudrate"] = problems.integer(drive, "baudrate", w, required=False, default=115200, min_value=1)
+        out["timeout_s"] = problems.number(drive, "timeout_s", w, required=False, default=0.5, positive=True)
+    return out
+
+
+def _load(problems: Problems, load: dict | None) -> dict[str, Any]:
+    if load is None:
+        return {}
+    w = "load"
+    transport = problems.string(load, "transport", w, choices=tuple(_LOAD_KEYS))
+    if transport is not None:
+        problems.unknown_keys(load, _LOAD_KEYS[transport], w)
+    out: dict[str, Any] = {
+        "transport": transport,
+        "unit_id": problems.integer(load, "unit_id", w, required=False, default=1, min_value=0, max_value=247),
+        "timeout_s": problems.number(load, "timeout_s", w, required=False, default=0.5, positive=True),
+    }
+    if transport == "modbus-tcp":
+        out["host"] = problems.string(load, "host", w)
+        out["port"] = problems.integer(load, "port", w, min_value=0, max_value=65535)
+    elif transport == "modbus-rtu":
+        out["port"] = problems.string(load, "port", w)
+        out["baudrate"] = problems.integer(load, "baudrate", w, required=False, default=19200, min_value=1)
+    return out

@@ -1,0 +1,379 @@
+"""Acceptance criteria: one number per criterion from telemetry arrays, compared with a limit.
+
+Every kind computes a `value` where smaller is better; a criterion passes when value <= limit. A criterion
+fails (never raises) when its window holds no samples, the telemetry does not cover the window, a signal it
+needs was not recorded or is NaN in the window; `detail` says which. Angles (names ending in `_rad`) are
+compared through wrapped differences and averaged on the circle.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from drivers.signals import SIGNAL_NAMES
+
+
+@dataclass(frozen=True)
+class CriterionSpec:
+    name: str
+    kind: str
+    signal: str
+    window_s: tuple[float, float]
+    limit: float
+    params: dict = field(default_factory=dict)
+    known_gap: str | None = None
+
+
+@dataclass
+class CriterionResult:
+    name: str
+    kind: str
+    signal: str
+    window_s: tuple[float, float]
+    value: float
+    limit: float
+    passed: bool
+    known_gap: str | None
+    detail: str
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["window_s"] = list(self.window_s)
+        return d
+
+
+class _Unusable(Exception):
+    """The criterion cannot be computed from this telemetry; the message becomes the result's detail."""
+
+
+@dataclass(frozen=True)
+class Param:
+    type: str                 # "signal" | "number" | "bool"
+    default: Any = None
+    required: bool = False
+    help: str = ""
+
+
+@dataclass(frozen=True)
+class Kind:
+    compute: Callable[["_Window", CriterionSpec], tuple[float, str]]
+    unit: str                 # unit of value and limit; "signal" = the unit of the criterion's signal
+    params: dict[str, Param]
+    help: str
+    exclusive: tuple[tuple[str, ...], ...] = ()   # at most one of each group
+    one_of: tuple[str, ...] = ()                  # exactly one of these is required
+
+
+def is_angle(signal: str) -> bool:
+    return signal.endswith("_rad")
+
+
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    """Wrap to [-pi, pi)."""
+    return (np.asarray(a, dtype=np.float64) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+class _Window:
+    """The samples of one criterion's time window, with coverage and NaN checks on access."""
+
+    def __init__(self, t_s: np.ndarray, columns: dict[str, np.ndarray], window_s: tuple[float, float]):
+        a, b = window_s
+        t = np.asarray(t_s, dtype=np.float64)
+        if t.size == 0:
+            raise _Unusable("no telemetry recorded")
+        dt = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+        tol = 1.5 * dt + 1e-9
+        if t[-1] < b - tol:
+            raise _Unusable(f"telemetry ends at {t[-1]:.6g} s, before the window end {b:g} s")
+        if t[0] > a + tol:
+            raise _Unusable(f"telemetry starts at {t[0]:.6g} s, after the window start {a:g} s")
+        self.mask = (t >= a) & (t <= b)
+        self.t = t[self.mask]
+        if self.t.size == 0:
+            raise _Unusable(f"no samples in window [{a:g}, {b:g}] s")
+        self.columns = columns
+        self.window_s = window_s
+
+    def signal(self, name: str) -> np.ndarray:
+        if name not in self.columns:
+            raise _Unusable(f"signal {name} was not recorded")
+        x = np.asarray(self.columns[name], dtype=np.float64)[self.mask]
+        nans = int(np.count_nonzero(~np.isfinite(x)))
+        if nans == x.size:
+            raise _Unusable(f"signal {name} is NaN throughout the window (not measured on this bench?)")
+        if nans:
+            raise _Unusable(f"signal {name} has {nans} NaN/inf samples in the window")
+        return x
+
+    def after(self, spec: CriterionSpec) -> float:
+        return float(spec.params.get("after_s", self.window_s[0]))
+
+
+# --- helpers -------------------------------------------------------------------------------------------
+
+def _difference(w: _Window, spec: CriterionSpec) -> np.ndarray:
+    """signal - reference (signal) or - target (number), or the signal itself; wrapped for angles."""
+    x = w.signal(spec.signal)
+    ref = _reference(w, spec, required=False)
+    d = x if ref is None else x - ref
+    return wrap_angle(d) if is_angle(spec.signal) else d
+
+
+def _reference(w: _Window, spec: CriterionSpec, required: bool = True) -> np.ndarray | None:
+    p = spec.params
+    if "reference" in p:
+        return w.signal(p["reference"])
+    if "target" in p:
+        return np.full(w.t.size, float(p["target"]))
+    if required:
+        raise _Unusable("needs `reference` (a signal) or `target` (a number)")
+    return None
+
+
+def _settle_time(t: np.ndarray, inside: np.ndarray, t0: float) -> tuple[float, str]:
+    """Time from t0 until `inside` holds at every later sample of the window; inf if it never does."""
+    sel = t >= t0
+    t, inside = t[sel], inside[sel]
+    if t.size == 0:
+        raise _Unusable(f"no samples after {t0:g} s in the window")
+    if not inside[-1]:
+        return math.inf, "never settles inside the band before the window end"
+    outside = np.flatnonzero(~inside)
+    t_in = t[0] if outside.size == 0 else t[outside[-1] + 1]
+    return float(t_in - t0), f"inside the band from {t_in:.6g} s"
+
+
+def _pct_band(spec: CriterionSpec, level: float, default_pct: float) -> float:
+    if "band_abs" in spec.params:
+        return float(spec.params["band_abs"])
+    return float(spec.params.get("band_pct", default_pct)) / 100.0 * abs(level)
+
+
+# --- kinds ---------------------------------------------------------------------------------------------
+
+def _speed_error_pct(w: _Window, spec: CriterionSpec) -> np.ndarray:
+    p = spec.params
+    err = w.signal(spec.signal) - w.signal(p.get("true_signal", "speed_true_mech_rad_s"))
+    if "base_mech_rad_s" in p:
+        base = float(p["base_mech_rad_s"])
+    elif "base_rpm" in p:
+        base = float(p["base_rpm"]) * math.pi / 30.0
+    else:
+        base = float(np.max(np.abs(w.signal(p.get("ref_signal", "speed_ref_mech_rad_s")))))
+    if base <= 0:
+        raise _Unusable("the speed reference is zero in the window: give base_mech_rad_s or base_rpm")
+    return err / base * 100.0
+
+
+def speed_error_max_pct(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+    e = _speed_error_pct(w, spec)
+    i = int(np.argmax(np.abs(e)))
+    return float(abs(e[i])), f"max |error| {e[i]:+.4g} % at {w.t[i]:.6g} s"
+
+
+def speed_error_rms_pct(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+    e = _speed_error_pct(w, spec)
+    return float(np.sqrt(np.mean(e * e))), f"rms over {e.size} samples, mean {np.mean(e):+.4g} %"
+
+
+def _pos_error(w: _Window, spec: CriterionSpec) -> np.ndarray:
+    x = w.signal(spec.signal)
+    if "reference" in spec.params:
+        x = x - w.signal(spec.params["reference"])
+    return wrap_angle(x)
+
+
+def pos_error_max(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+    e = _pos_error(w, spec)
+    i = int(np.argmax(np.abs(e)))
+    return float(abs(e[i])), f"max |error| {e[i]:+.4g} rad at {w.t[i]:.6g} s"
+
+
+def pos_error_rms(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+    e = _pos_error(w, spec)
+    return float(np.sqrt(np.mean(e * e))), f"rms over {e.size} samples, mean {np.mean(e):+.4g} rad"
+
+
+def _flux_error_pct(w: _Window, spec: CriterionSpec) -> np.ndarray:
+    true = w.signal(spec.params.get("true_signal", "flux_true_wb"))
+    if np.any(np.abs(true) <= 0):
+        raise _Unusable("the true flux is zero in the window; a percentage is undefined")
+    return (w.signal(spec.signal) - true) / np.abs(true) * 100.0
+
+
+def flux_error_max_pct(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+    e = _flux_error_pct(w, spec)
+    i = int(np.argmax(np.abs(e)))
+    return float(abs(e[i])), f"max |error| {e[i]:+.4g} % at {w.t[i]:.6g} s"
+
+
+def flux_error_rms_pct(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+    e = _flux_error_pct(w, spec)
+    return float(np.sqrt(np.mean(e * e))), f"rms over {e.size} samples, mean {np.mean(e):+.4g} %"
+
+
+def flux_recovery_time(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+    e = _flux_error_pct(w, spec)
+    band = float(spec.params.get("band_pct", 2.0))
+    value, detail = _settle_time(w.t, np.abs(e) <= band, w.after(spec))
+    return value, f"flux error within ±{band:g} %: {detail}"
+
+
+def settling_time(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+    x = w.signal(spec.signal)
+    ref = _reference(w, spec)
+    band = _pct_band(spec, ref[-1], 2.0)
+    err = wrap_angle(x - ref) if is_angle(spec.signal) else x - ref
+    value, detail = _settle_time(w.t, np.abs(err) <= band, w.after(spec))
+    return value, f"band ±{band:.4g}: {detail}"
+
+
+def overshoot_pct(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+    x = w.signal(spec.signal)
+    final = float(_reference(w, spec)[-1])
+    start = float(spec.params.get("from_value", x[0]))
+    step = final - start
+    if step == 0:
+        raise _Unusable("the step is zero (final value equals the initial value)")
+    beyond = (x - final) * math.copysign(1.0, step)
+    i = int(np.argmax(beyond))
+    pct = max(0.0, float(beyond[i])) / abs(step) * 100.0
+    return pct, f"step {start:.4g} -> {final:.4g}, peak {x[i]:.4g} at {w.t[i]:.6g} s"
+
+
+def steady_state_error(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+    x = w.signal(spec.signal)
+    ref = _reference(w, spec)
+    err = float(np.mean(wrap_angle(x - ref) if is_angle(spec.signal) else x - ref))
+    if spec.params.get("percent", False):
+        level = abs(float(np.mean(ref)))
+        if level == 0:
+            raise _Unusable("the mean reference is zero; a percentage is undefined")
+        return abs(err) / level * 100.0, f"mean error {err:+.4g} = {err / level * 100:+.4g} % of {level:.4g}"
+    return abs(err), f"mean error {err:+.4g}"
+
+
+def peak_abs(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+    d = _difference(w, spec)
+    i = int(np.argmax(np.abs(d)))
+    return float(abs(d[i])), f"peak {d[i]:+.4g} at {w.t[i]:.6g} s"
+
+
+def rms(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+    d = _difference(w, spec)
+    return float(np.sqrt(np.mean(d * d))), f"rms over {d.size} samples"
+
+
+def mean(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+    d = _difference(w, spec)
+    expected = float(spec.params["expected"])
+    if is_angle(spec.signal):
+        m = float(np.arctan2(np.mean(np.sin(d)), np.mean(np.cos(d))))
+        dev = float(abs(wrap_angle(np.array(m - expected))))
+    else:
+        m = float(np.mean(d))
+        dev = abs(m - expected)
+    return dev, f"mean {m:+.6g}, expected {expected:+.6g}"
+
+
+def reversal_time(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+    x = w.signal(spec.signal)
+    t0 = w.after(spec)
+    sel = w.t >= t0
+    if not np.any(sel):
+        raise _Unusable(f"no samples after {t0:g} s in the window")
+    t, x = w.t[sel], x[sel]
+    target = float(spec.params.get("target", -x[0]))
+    if target == 0 or (x[0] != 0 and math.copysign(1.0, target) == math.copysign(1.0, x[0])):
+        raise _Unusable(f"target {target:g} is not a reversal from {x[0]:.4g}")
+    band = _pct_band(spec, target, 5.0)
+    hit = np.flatnonzero(np.abs(x - target) <= band)
+    if hit.size == 0:
+        return math.inf, f"never reached {target:.4g} ±{band:.4g} (last {x[-1]:.4g})"
+    return float(t[hit[0]] - t0), f"reached {target:.4g} ±{band:.4g} at {t[hit[0]]:.6g} s"
+
+
+_REF = {
+    "reference": Param("signal", help="subtract this signal"),
+    "target": Param("number", help="subtract this constant (signal units)"),
+}
+_AFTER = {"after_s": Param("number", help="measure from this time (default: window start)")}
+_BAND = {"band_pct": Param("number", help="band half-width in % of the final reference"),
+         "band_abs": Param("number", help="band half-width in signal units")}
+
+KINDS: dict[str, Kind] = {
+    "speed_error_max_pct": Kind(speed_error_max_pct, "%", {
+        "true_signal": Param("signal", "speed_true_mech_rad_s", help="true speed"),
+        "ref_signal": Param("signal", "speed_ref_mech_rad_s", help="reference whose max |value| is the base"),
+        "base_mech_rad_s": Param("number", help="fixed base speed instead"),
+        "base_rpm": Param("number", help="fixed base speed instead, rpm")},
+        "max |signal - true| in % of the base (default: max |reference| in the window)",
+        exclusive=(("base_mech_rad_s", "base_rpm"),)),
+    "speed_error_rms_pct": Kind(speed_error_rms_pct, "%", {
+        "true_signal": Param("signal", "speed_true_mech_rad_s"),
+        "ref_signal": Param("signal", "speed_ref_mech_rad_s"),
+        "base_mech_rad_s": Param("number"), "base_rpm": Param("number")},
+        "RMS of (signal - true) in % of the base", exclusive=(("base_mech_rad_s", "base_rpm"),)),
+    "pos_error_max": Kind(pos_error_max, "rad", {"reference": Param("signal", help="angle to subtract")},
+                          "max |wrapped angle error|"),
+    "pos_error_rms": Kind(pos_error_rms, "rad", {"reference": Param("signal")}, "RMS of the wrapped angle error"),
+    "flux_error_max_pct": Kind(flux_error_max_pct, "%", {"true_signal": Param("signal", "flux_true_wb")},
+                               "max |signal - true| / |true| in %"),
+    "flux_error_rms_pct": Kind(flux_error_rms_pct, "%", {"true_signal": Param("signal", "flux_true_wb")},
+                               "RMS of (signal - true) / |true| in %"),
+    "flux_recovery_time": Kind(flux_recovery_time, "s", {
+        "true_signal": Param("signal", "flux_true_wb"), "band_pct": Param("number", 2.0), **_AFTER},
+        "time from after_s until the flux error stays within ±band_pct %"),
+    "settling_time": Kind(settling_time, "s", {**_REF, **_BAND, **_AFTER},
+                          "time from after_s until |signal - reference| stays within the band",
+                          exclusive=(("band_pct", "band_abs"),), one_of=("reference", "target")),
+    "overshoot_pct": Kind(overshoot_pct, "%", {**_REF, "from_value": Param("number", help="initial value")},
+                          "overshoot beyond the final reference in % of the step", one_of=("reference", "target")),
+    "steady_state_error": Kind(steady_state_error, "signal", {**_REF, "percent": Param("bool", False)},
+                               "|mean(signal - reference)| (in % of |mean reference| with percent = true)",
+                               one_of=("reference", "target")),
+    "peak_abs": Kind(peak_abs, "signal", dict(_REF), "max |signal| (or |signal - reference|)",
+                     exclusive=(("reference", "target"),)),
+    "rms": Kind(rms, "signal", dict(_REF), "RMS of signal (or signal - reference)",
+                exclusive=(("reference", "target"),)),
+    "mean": Kind(mean, "signal", {**_REF, "expected": Param("number", required=True)},
+                 "|mean(signal) - expected| (mean of signal - reference when given)",
+                 exclusive=(("reference", "target"),)),
+    "reversal_time": Kind(reversal_time, "s", {
+        "target": Param("number", help="speed after the reversal (default: minus the speed at after_s)"),
+        **_BAND, **_AFTER},
+        "time from after_s until the signal reaches the reversed speed within the band (default 5 %)",
+        exclusive=(("band_pct", "band_abs"),)),
+}
+
+
+def evaluate(specs, t_s: np.ndarray, columns: dict[str, np.ndarray]) -> list[CriterionResult]:
+    results = []
+    for spec in specs:
+        try:
+            value, detail = KINDS[spec.kind].compute(_Window(t_s, columns, spec.window_s), spec)
+            passed = bool(value <= spec.limit)
+        except _Unusable as e:
+            value, detail, passed = math.nan, str(e), False
+        except KeyError:
+            value, detail, passed = math.nan, f"unknown criterion kind {spec.kind!r}", False
+        if not passed and math.isfinite(value):
+            detail = f"value {value:.6g} > limit {spec.limit:g}; {detail}"
+        results.append(CriterionResult(spec.name, spec.kind, spec.signal, tuple(spec.window_s), float(value),
+                                       float(spec.limit), passed, spec.known_gap, detail))
+    return results
+
+
+def verdict(results, aborted: bool) -> str:
+    if aborted:
+        return "aborted"
+    if any(not r.passed and not r.known_gap for r in results):
+        return "fail"
+    return "pass"
+
+
+__all__ = ["CriterionSpec", "CriterionResult", "KINDS", "evaluate", "verdict", "wrap_angle", "SIGNAL_NAMES"]

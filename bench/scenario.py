@@ -1,0 +1,507 @@
+"""Scenario files (TOML, schema_version = 1): profiles, injections, limits and acceptance criteria.
+
+A scenario is data. load_scenario() validates the whole file and raises InputError listing every problem as
+`<file>: <field>: <reason>`; the file's sha256 goes into the run record. The schema is documented in
+docs/scenarios.md.
+"""
+
+from __future__ import annotations
+
+import bisect
+import hashlib
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from bench.benchconfig import drive_kind, load_bench_config, read_toml, resolve_path
+from bench.criteria import KINDS, CriterionSpec
+from bench.errors import InputError, Problems, find_repo_root
+from drivers.api import LoadMode
+from drivers.signals import SIGNAL_NAMES
+from sim_backend.hooks import FIRMWARE_PARAMS, PLANT_PARAMS, TEST_HOOKS, writable_names
+
+SCHEMA_VERSION = 1
+GRAVITY_M_S2 = 9.80665
+RPM = math.pi / 30.0   # mech rad/s per rpm
+
+
+@dataclass(frozen=True)
+class SpeedSegment:
+    """Reference goes linearly from from_mech_rad_s at start_s to to_mech_rad_s at end_s."""
+    kind: str                # "hold" | "step" | "ramp" | "reversal"
+    start_s: float
+    end_s: float
+    from_mech_rad_s: float
+    to_mech_rad_s: float
+
+
+@dataclass(frozen=True)
+class LoadSegment:
+    kind: str                # "torque" | "viscous" | "brake" | "crane"
+    start_s: float
+    end_s: float
+    mode: LoadMode
+    value: float             # N*m (TORQUE, BRAKE) or N*m/(rad/s) (VISCOUS)
+
+
+@dataclass(frozen=True)
+class Injection:
+    at_s: float
+    name: str
+    value: float
+
+
+@dataclass(frozen=True)
+class Limits:
+    overspeed_mech_rad_s: float
+    overcurrent_a: float
+    max_duration_s: float            # wall-clock seconds the whole run may take
+    pos_err_max_elec_rad: float | None = None
+    vdc_max_v: float | None = None
+
+
+@dataclass(frozen=True)
+class Scenario:
+    path: Path
+    sha256: str
+    schema_version: int
+    name: str
+    description: str
+    bench: Path
+    duration_s: float
+    seed: int | None
+    speed_segments: tuple[SpeedSegment, ...]
+    load_segments: tuple[LoadSegment, ...]
+    injections: tuple[Injection, ...]
+    limits: Limits
+    criteria: tuple[CriterionSpec, ...]
+    drive_kind: str | None = None
+    _speed_starts: tuple[float, ...] = field(init=False, repr=False, compare=False)
+    _load_starts: tuple[float, ...] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "_speed_starts", tuple(s.start_s for s in self.speed_segments))
+        object.__setattr__(self, "_load_starts", tuple(s.start_s for s in self.load_segments))
+
+    def speed_ref_at(self, t_s: float) -> float:
+        """Mechanical rad/s. Before the first segment 0; between segments the last segment's end value."""
+        i = bisect.bisect_right(self._speed_starts, t_s) - 1
+        if i < 0:
+            return 0.0
+        seg = self.speed_segments[i]
+        if t_s >= seg.end_s or seg.end_s == seg.start_s:
+            return seg.to_mech_rad_s
+        frac = (t_s - seg.start_s) / (seg.end_s - seg.start_s)
+        return seg.from_mech_rad_s + frac * (seg.to_mech_rad_s - seg.from_mech_rad_s)
+
+    def load_at(self, t_s: float) -> tuple[LoadMode, float]:
+        """(mode, value) of the load machine at t_s; (TORQUE, 0.0) outside every load segment."""
+        i = bisect.bisect_right(self._load_starts, t_s) - 1
+        if i >= 0:
+            seg = self.load_segments[i]
+            if t_s < seg.end_s:
+                return seg.mode, seg.value
+        return LoadMode.TORQUE, 0.0
+
+    def plant_injections(self) -> tuple[Injection, ...]:
+        return tuple(inj for inj in self.injections if inj.name.startswith("plant_"))
+
+
+_TOP_KEYS = ("schema_version", "name", "description", "bench", "duration_s", "seed",
+             "speed", "load", "injection", "limits", "criteria")
+_SPEED_KEYS = {
+    "hold": ("kind", "start_s", "end_s", "speed_mech_rad_s", "speed_rpm"),
+    "step": ("kind", "at_s", "end_s", "speed_mech_rad_s", "speed_rpm"),
+    "ramp": ("kind", "start_s", "end_s", "speed_mech_rad_s", "speed_rpm", "from_speed_mech_rad_s",
+             "from_speed_rpm"),
+    "reversal": ("kind", "start_s", "end_s", "from_speed_mech_rad_s", "from_speed_rpm"),
+}
+_LOAD_KEYS = {
+    "torque": ("kind", "start_s", "end_s", "torque_nm"),
+    "viscous": ("kind", "start_s", "end_s", "coeff_nm_per_rad_s"),
+    "brake": ("kind", "start_s", "end_s", "torque_nm"),
+    "crane": ("kind", "start_s", "end_s", "mass_kg", "drum_radius_m", "gravity_m_s2"),
+}
+_LIMIT_KEYS = ("overspeed_mech_rad_s", "overspeed_rpm", "overcurrent_a", "max_duration_s",
+               "pos_err_max_elec_rad", "vdc_max_v")
+_CRITERION_KEYS = ("name", "kind", "signal", "window_s", "limit", "known_gap")
+
+
+def default_max_duration_s(duration_s: float) -> float:
+    """Wall-clock allowance when a scenario gives none: ten times the drive time plus 30 s of setup."""
+    return 10.0 * duration_s + 30.0
+
+
+def load_scenario(path: str | Path, bench: str | Path | None = None) -> Scenario:
+    """Read and validate a scenario file. `bench` overrides the file's bench config (e.g. `--bench`)."""
+    path = Path(path)
+    raw = read_toml(path)
+    sha256 = hashlib.sha256(path.read_bytes()).hexdigest()
+    p = Problems(path)
+    p.unknown_keys(raw, _TOP_KEYS, "")
+
+    version = p.integer(raw, "schema_version", "")
+    if version is not None and version != SCHEMA_VERSION:
+        p.add("schema_version", f"unsupported version {version} (this bench reads {SCHEMA_VERSION})")
+    name = p.string(raw, "name", "", required=False, default=path.stem) or path.stem
+    if not name.strip():
+        p.add("name", "must not be empty")
+    description = p.string(raw, "description", "", required=False, default="") or ""
+    duration = p.number(raw, "duration_s", "", positive=True)
+    seed = p.integer(raw, "seed", "", required=False, min_value=0, max_value=2**63 - 1)
+
+    bench_path, bench_cfg = _bench(p, raw, path, bench)
+    kind = drive_kind(bench_cfg) if bench_cfg else None
+    dur = duration if duration is not None else math.inf   # keep checking the rest when duration is bad
+
+    speed = _speed_segments(p, _array_of_tables(p, raw, "speed"), dur)
+    load = _load_segments(p, _array_of_tables(p, raw, "load"), dur)
+    injections = _injections(p, _array_of_tables(p, raw, "injection"), dur, kind, bench_cfg, bench_path)
+    limits = _limits(p, raw, duration, speed)
+    criteria = _criteria(p, _array_of_tables(p, raw, "criteria"), dur)
+    p.raise_if_any()
+
+    return Scenario(path=path.resolve(), sha256=sha256, schema_version=version, name=name,
+                    description=description, bench=bench_path, duration_s=duration, seed=seed,
+                    speed_segments=speed, load_segments=load, injections=injections, limits=limits,
+                    criteria=criteria, drive_kind=kind)
+
+
+def check_against_bench(scenario: Scenario, bench_cfg: dict) -> list[str]:
+    """Problems running `scenario` on another bench than its own (plant injections, hook names)."""
+    p = Problems(scenario.path)
+    kind = drive_kind(bench_cfg)
+    allowed = set(writable_names(kind)) if kind else _all_names()
+    for i, inj in enumerate(scenario.injections):
+        _check_injection_name(p, f"injection[{i}].name", inj.name, kind, allowed, bench_cfg,
+                              Path(bench_cfg.get("_path", "?")))
+    return p.lines
+
+
+# --- sections ------------------------------------------------------------------------------------------
+
+def _bench(p: Problems, raw: dict, path: Path, override: str | Path | None) -> tuple[Path | None, dict | None]:
+    if override is not None:
+        bench_path = Path(override)
+        if not bench_path.exists():
+            p.add("bench", f"bench config given on the command line not found: {override}")
+            return None, None
+    else:
+        value = p.string(raw, "bench", "")
+        if value is None:
+            return None, None
+        root = find_repo_root(path)
+        bench_path = resolve_path(value, root, path.resolve().parent)
+        if bench_path is None:
+            p.add("bench", f"bench config not found: {value!r} (looked under the repo root {root} and "
+                           f"next to the scenario)")
+            return None, None
+    try:
+        return bench_path.resolve(), load_bench_config(bench_path)
+    except InputError as e:
+        p.extend(e.problems)
+        return bench_path.resolve(), None
+
+
+def _array_of_tables(p: Problems, raw: dict, key: str) -> list[tuple[str, dict]]:
+    value = raw.get(key, [])
+    if not isinstance(value, list):
+        p.add(key, f"must be an array of tables, written [[{key}]]")
+        return []
+    out = []
+    for i, item in enumerate(value):
+        where = f"{key}[{i}]"
+        if not isinstance(item, dict):
+            p.add(where, f"must be a table, written [[{key}]]")
+        else:
+            out.append((where, item))
+    return out
+
+
+def _time(p: Problems, table: dict, key: str, where: str, duration: float, *, required: bool = True,
+          allow_end: bool = True) -> float | None:
+    t = p.number(table, key, where, required=required, min_value=0.0)
+    if t is not None and (t > duration or (not allow_end and t >= duration)):
+        p.add(f"{where}.{key}", f"{t:g} s is not before the end of the run (duration_s = {duration:g})")
+        return None
+    return t
+
+
+def _speed_value(p: Problems, table: dict, where: str, prefix: str, required: bool) -> float | None:
+    """`<prefix>speed_mech_rad_s` or `<prefix>speed_rpm`, exactly one, in mech rad/s."""
+    rad_key, rpm_key = f"{prefix}speed_mech_rad_s", f"{prefix}speed_rpm"
+    if rad_key in table and rpm_key in table:
+        p.add(f"{where}.{rpm_key}", f"give either {rad_key} or {rpm_key}, not both")
+        return None
+    if rpm_key in table:
+        v = p.number(table, rpm_key, where)
+        return None if v is None else v * RPM
+    if rad_key in table:
+        return p.number(table, rad_key, where)
+    if required:
+        p.add(f"{where}.{rad_key}", f"missing (give {rad_key} or {rpm_key})")
+    return None
+
+
+def _speed_segments(p: Problems, items: list[tuple[str, dict]], duration: float) -> tuple[SpeedSegment, ...]:
+    parsed: list[tuple[str, dict, str, float, float | None]] = []
+    for where, item in items:
+        kind = p.string(item, "kind", where, choices=tuple(_SPEED_KEYS))
+        if kind is None:
+            continue
+        p.unknown_keys(item, _SPEED_KEYS[kind], where)
+        start = _time(p, item, "at_s" if kind == "step" else "start_s", where, duration, allow_end=False)
+        end = _time(p, item, "end_s", where, duration, required=kind in ("ramp", "reversal"))
+        if start is None:
+            continue
+        if end is not None and (end < start or (end == start and kind in ("ramp", "reversal"))):
+            p.add(f"{where}.end_s", f"{end:g} s must be after the start {start:g} s")
+            continue
+        parsed.append((where, item, kind, start, end))
+
+    segments: list[SpeedSegment] = []
+    _check_order(p, [(w, s, e) for w, _, _, s, e in parsed])
+    for n, (where, item, kind, start, end) in enumerate(parsed):
+        if end is None:
+            end = parsed[n + 1][3] if n + 1 < len(parsed) else duration
+        before = segments[-1].to_mech_rad_s if segments else 0.0
+        if kind in ("hold", "step"):
+            v = _speed_value(p, item, where, "", required=True)
+            if v is None:
+                continue
+            segments.append(SpeedSegment(kind, start, end, v, v))
+        elif kind == "ramp":
+            to = _speed_value(p, item, where, "", required=True)
+            frm = _speed_value(p, item, where, "from_", required=False)
+            if to is None:
+                continue
+            segments.append(SpeedSegment(kind, start, end, before if frm is None else frm, to))
+        else:
+            frm = _speed_value(p, item, where, "from_", required=False)
+            frm = before if frm is None else frm
+            if frm == 0:
+                p.add(where, "a reversal from zero speed: give from_speed_mech_rad_s or from_speed_rpm")
+                continue
+            segments.append(SpeedSegment(kind, start, end, frm, -frm))
+    return tuple(segments)
+
+
+def _check_order(p: Problems, spans: list[tuple[str, float, float | None]]) -> None:
+    for (w0, s0, e0), (w1, s1, _) in zip(spans, spans[1:]):
+        if s1 < s0:
+            p.add(w1, f"starts at {s1:g} s, before {w0} ({s0:g} s): segments must be in time order")
+        elif s1 == s0:
+            p.add(w1, f"starts at {s1:g} s, the same time as {w0}")
+        elif e0 is not None and s1 < e0:
+            p.add(w1, f"starts at {s1:g} s, overlapping {w0} which ends at {e0:g} s")
+
+
+def _load_segments(p: Problems, items: list[tuple[str, dict]], duration: float) -> tuple[LoadSegment, ...]:
+    parsed = []
+    for where, item in items:
+        kind = p.string(item, "kind", where, choices=tuple(_LOAD_KEYS))
+        if kind is None:
+            continue
+        p.unknown_keys(item, _LOAD_KEYS[kind], where)
+        start = _time(p, item, "start_s", where, duration, allow_end=False)
+        end = _time(p, item, "end_s", where, duration, required=False)
+        if start is None:
+            continue
+        if end is not None and end <= start:
+            p.add(f"{where}.end_s", f"{end:g} s must be after the start {start:g} s")
+            continue
+        if kind == "torque":
+            mode, value = LoadMode.TORQUE, p.number(item, "torque_nm", where)
+        elif kind == "brake":
+            mode, value = LoadMode.BRAKE, p.number(item, "torque_nm", where, min_value=0.0)
+        elif kind == "viscous":
+            mode, value = LoadMode.VISCOUS, p.number(item, "coeff_nm_per_rad_s", where, min_value=0.0)
+        else:
+            mass = p.number(item, "mass_kg", where, positive=True)
+            radius = p.number(item, "drum_radius_m", where, positive=True)
+            g = p.number(item, "gravity_m_s2", where, required=False, default=GRAVITY_M_S2, positive=True)
+            mode, value = LoadMode.TORQUE, (None if None in (mass, radius, g) else mass * g * radius)
+        if value is None:
+            continue
+        parsed.append((where, kind, start, end, mode, value))
+    _check_order(p, [(w, s, e) for w, _, s, e, _, _ in parsed])
+    segments = []
+    for n, (where, kind, start, end, mode, value) in enumerate(parsed):
+        if end is None:
+            end = parsed[n + 1][2] if n + 1 < len(parsed) else duration
+        segments.append(LoadSegment(kind, start, end, mode, value))
+    return tuple(segments)
+
+
+def _all_names() -> set[str]:
+    names = set(TEST_HOOKS)
+    for group in (FIRMWARE_PARAMS, PLANT_PARAMS):
+        for names_of_kind in group.values():
+            names.update(names_of_kind)
+    return names
+
+
+def _check_injection_name(p: Problems, field_: str, name: str, kind: str | None, allowed: set[str],
+                          bench_cfg: dict | None, bench_path: Path | None) -> bool:
+    if name not in allowed:
+        if kind and name in _all_names():
+            p.add(field_, f"{name!r} is not a parameter of a {kind} drive")
+        else:
+            p.add(field_, f"unknown hook {name!r} (known: {', '.join(sorted(allowed))})")
+        return False
+    if name.startswith("plant_") and bench_cfg is not None and not bench_cfg["bench"]["plant_injections"]:
+        p.add(field_, f"plant injection {name!r} needs a simulator, but bench config {bench_path} has "
+                      f"plant_injections = false")
+        return False
+    return True
+
+
+def _injections(p: Problems, items: list[tuple[str, dict]], duration: float, kind: str | None,
+                bench_cfg: dict | None, bench_path: Path | None) -> tuple[Injection, ...]:
+    allowed = set(writable_names(kind)) if kind else _all_names()
+    out = []
+    for where, item in items:
+        p.unknown_keys(item, ("at_s", "name", "value"), where)
+        at = _time(p, item, "at_s", where, duration, allow_end=False)
+        name = p.string(item, "name", where)
+        value = p.number(item, "value", where)
+        if name is not None and not _check_injection_name(p, f"{where}.name", name, kind, allowed, bench_cfg,
+                                                          bench_path):
+            continue
+        if None not in (at, name, value):
+            out.append(Injection(at, name, value))
+    return tuple(sorted(out, key=lambda inj: inj.at_s))
+
+
+def _limits(p: Problems, raw: dict, duration: float | None, speed: tuple[SpeedSegment, ...]) -> Limits | None:
+    table = p.table(raw, "limits", "")
+    if table is None:
+        return None
+    w = "limits"
+    p.unknown_keys(table, _LIMIT_KEYS, w)
+    if "overspeed_mech_rad_s" in table and "overspeed_rpm" in table:
+        p.add("limits.overspeed_rpm", "give either overspeed_mech_rad_s or overspeed_rpm, not both")
+        overspeed = None
+    elif "overspeed_rpm" in table:
+        rpm = p.number(table, "overspeed_rpm", w, positive=True)
+        overspeed = None if rpm is None else rpm * RPM
+    else:
+        overspeed = p.number(table, "overspeed_mech_rad_s", w, positive=True)
+    field_ = "limits.overspeed_rpm" if "overspeed_rpm" in table else "limits.overspeed_mech_rad_s"
+    peak = max((max(abs(s.from_mech_rad_s), abs(s.to_mech_rad_s)) for s in speed), default=0.0)
+    if overspeed is not None and overspeed <= peak:
+        p.add(field_, f"{overspeed:.6g} mech rad/s is not above the profile's peak reference {peak:.6g} mech rad/s")
+    overcurrent = p.number(table, "overcurrent_a", w, positive=True)
+    max_dur = p.number(table, "max_duration_s", w, required=False, positive=True)
+    if duration is not None:
+        if max_dur is None and "max_duration_s" not in table:
+            max_dur = default_max_duration_s(duration)
+        elif max_dur is not None and max_dur < duration:
+            p.add("limits.max_duration_s", f"{max_dur:g} s (wall clock) is shorter than duration_s = {duration:g}")
+    pos = p.number(table, "pos_err_max_elec_rad", w, required=False, positive=True)
+    if pos is not None and pos > math.pi:
+        p.add("limits.pos_err_max_elec_rad", f"{pos:g} rad can never trip: a wrapped angle error is at most pi")
+    vdc = p.number(table, "vdc_max_v", w, required=False, positive=True)
+    if None in (overspeed, overcurrent, max_dur):
+        return None
+    return Limits(overspeed, overcurrent, max_dur, pos, vdc)
+
+
+def _criteria(p: Problems, items: list[tuple[str, dict]], duration: float) -> tuple[CriterionSpec, ...]:
+    out = []
+    names: set[str] = set()
+    for where, item in items:
+        name = p.string(item, "name", where)
+        if name is not None:
+            if name in names:
+                p.add(f"{where}.name", f"duplicate criterion name {name!r}")
+            names.add(name)
+        kind_name = p.string(item, "kind", where, choices=tuple(KINDS))
+        signal = p.string(item, "signal", where)
+        if signal is not None and signal not in SIGNAL_NAMES:
+            p.add(f"{where}.signal", f"unknown signal {signal!r} (signals: {', '.join(SIGNAL_NAMES)})")
+            signal = None
+        window = _window(p, item, where, duration)
+        limit = p.number(item, "limit", where, min_value=0.0)
+        known_gap = p.string(item, "known_gap", where, required=False)
+        if known_gap is not None and not known_gap.strip():
+            p.add(f"{where}.known_gap", "give the reason for the known gap")
+        params = None
+        if kind_name is not None:
+            params = _criterion_params(p, item, where, kind_name, window)
+        if None in (name, kind_name, signal, window, limit, params):
+            continue
+        out.append(CriterionSpec(name, kind_name, signal, window, limit, params, known_gap))
+    return tuple(out)
+
+
+def _window(p: Problems, item: dict, where: str, duration: float) -> tuple[float, float] | None:
+    field_ = f"{where}.window_s"
+    if "window_s" not in item:
+        p.add(field_, "missing (give [start_s, end_s])")
+        return None
+    w = item["window_s"]
+    if (not isinstance(w, list) or len(w) != 2
+            or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in w)):
+        p.add(field_, f"must be [start_s, end_s], two numbers, got {w!r}")
+        return None
+    a, b = float(w[0]), float(w[1])
+    if not (math.isfinite(a) and math.isfinite(b)):
+        p.add(field_, f"must be finite, got {w!r}")
+    elif a < 0:
+        p.add(field_, f"starts at a negative time {a:g} s")
+    elif b <= a:
+        p.add(field_, f"end {b:g} s must be after start {a:g} s")
+    elif b > duration:
+        p.add(field_, f"ends at {b:g} s, after the end of the run (duration_s = {duration:g})")
+    else:
+        return a, b
+    return None
+
+
+def _criterion_params(p: Problems, item: dict, where: str, kind_name: str,
+                      window: tuple[float, float] | None) -> dict[str, Any] | None:
+    kind = KINDS[kind_name]
+    given = {k: v for k, v in item.items() if k not in _CRITERION_KEYS}
+    ok = True
+    for key in given:
+        if key not in kind.params:
+            allowed = ", ".join(sorted(kind.params)) or "none"
+            p.add(f"{where}.{key}", f"unknown key for kind {kind_name!r} (its parameters: {allowed})")
+            ok = False
+    params: dict[str, Any] = {}
+    for key, spec in kind.params.items():
+        if key not in given:
+            if spec.required:
+                p.add(f"{where}.{key}", f"missing (required by kind {kind_name!r})")
+                ok = False
+            continue
+        if spec.type == "signal":
+            v = p.string(given, key, where)
+            if v is not None and v not in SIGNAL_NAMES:
+                p.add(f"{where}.{key}", f"unknown signal {v!r}")
+                v = None
+        elif spec.type == "bool":
+            v = p.boolean(given, key, where)
+        else:
+            v = p.number(given, key, where)
+            if v is not None and (key.startswith(("band_", "base_")) and v <= 0):
+                p.add(f"{where}.{key}", f"must be > 0, got {v:g}")
+                v = None
+        if v is None:
+            ok = False
+        params[key] = v
+    for group in kind.exclusive:
+        present = [k for k in group if k in given]
+        if len(present) > 1:
+            p.add(f"{where}.{present[1]}", f"give only one of {', '.join(group)}")
+            ok = False
+    if kind.one_of and sum(k in given for k in kind.one_of) != 1:
+        p.add(where, f"kind {kind_name!r} needs exactly one of {', '.join(kind.one_of)}")
+        ok = False
+    after = params.get("after_s")
+    if after is not None and window is not None and not (window[0] <= after < window[1]):
+        p.add(f"{where}.after_s", f"{after:g} s is outside the window [{window[0]:g}, {window[1]:g}] s")
+        ok = False
+    return params if ok else None
