@@ -1,0 +1,314 @@
+"""DriveLink over the drivebench serial protocol (docs/serial-protocol.md), via pyserial.
+
+The [drive] section: transport = "serial", url (a device path, a pty path or any pyserial URL such as
+socket://127.0.0.1:29537), baudrate, timeout_s, retries, sync_period_s, timing ("lockstep" | "realtime"),
+fault_reset ("once" | "never").
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import serial
+
+from drivers.api import DriveIdentity, DriveStatus, LinkError, LiveSample
+from drivers.serial_frames import (
+    PROTOCOL_MAJOR, PROTOCOL_MINOR, RESPONSE_FLAG, SAMPLE_HEADER, Cmd, ErrorCode, Frame, FrameDecoder,
+    encode_frame, fault_text, unpack_str8,
+)
+from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
+from drivers.trace_format import decode_rows, mask_for, selected_names
+
+MODE_PROFILE_VELOCITY = 3
+TRIGGER_IMMEDIATE = 0
+MAX_CATCH_UP_SYNCS = 100          # real time: more SYNCs than this behind and the link re-anchors its clock
+
+
+def state_from_statusword(word: int) -> str:
+    """CiA 402 state name from the statusword bits (DS402 table)."""
+    if word & 0x4F == 0x00:
+        return "NOT READY TO SWITCH ON"
+    if word & 0x4F == 0x40:
+        return "SWITCH ON DISABLED"
+    if word & 0x4F == 0x0F:
+        return "FAULT REACTION ACTIVE"
+    if word & 0x4F == 0x08:
+        return "FAULT"
+    return {0x21: "READY TO SWITCH ON", 0x23: "SWITCHED ON", 0x27: "OPERATION ENABLED",
+            0x07: "QUICK STOP ACTIVE"}.get(word & 0x6F, f"UNKNOWN (statusword 0x{word:04X})")
+
+
+class SerialDriveLink:
+    def __init__(self, section: dict, base_dir: Path):
+        url = section.get("url")
+        if not isinstance(url, str) or not url:
+            raise ValueError("[drive] url: required for transport 'serial' (a port path or pyserial URL)")
+        self.url = url
+        self.baudrate = int(section.get("baudrate", 115200))
+        self.timeout_s = float(section.get("timeout_s", 0.5))
+        self.retries = int(section.get("retries", 3))
+        self.sync_period_s = float(section.get("sync_period_s", 0.001))
+        self.timing = section.get("timing", "lockstep")
+        self.fault_reset = section.get("fault_reset", "once")
+        if self.timing not in ("lockstep", "realtime"):
+            raise ValueError(f"[drive] timing: '{self.timing}' is not 'lockstep' or 'realtime'")
+        if self.fault_reset not in ("once", "never"):
+            raise ValueError(f"[drive] fault_reset: '{self.fault_reset}' is not 'once' or 'never'")
+        if self.timeout_s <= 0 or self.retries < 0 or self.sync_period_s <= 0:
+            raise ValueError("[drive] timeout_s and sync_period_s must be > 0 and retries >= 0")
+        self.base_dir = base_dir
+        self.stats = {"crc_errors": 0, "seq_errors": 0, "timeouts": 0, "retries": 0, "requests": 0,
+                      "realtime_overruns": 0}
+        self.control_period_s = 0.0
+        self.sync_steps = 1
+        self.parameters: tuple[str, ...] = ()
+        self.identity: DriveIdentity | None = None
+        self.live_mask = (1 << len(SIGNAL_NAMES)) - 1
+        self.trace_lost_rows = 0
+        self._port: serial.SerialBase | None = None
+        self._decoder = FrameDecoder()
+        self._seq = 0
+        self._rt_anchor: float | None = None
+        self._rt_sent = 0
+
+    # --- transport -------------------------------------------------------------------------------------------
+
+    def _next_seq(self) -> int:
+        self._seq = (self._seq + 1) & 0xFF
+        return self._seq
+
+    def _read_reply(self, seq: int, deadline: float) -> tuple[Frame | None, bool]:
+        """Wait for the reply with this seq. Returns (frame or None on timeout, saw a CRC error)."""
+        port = self._port
+        crc_seen = False
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return None, crc_seen
+            port.timeout = left
+            try:
+                data = port.read(self._decoder.bytes_wanted())
+            except serial.SerialException as exc:
+                raise LinkError(f"serial drive {self.url}: {exc}") from None
+            before = self._decoder.crc_errors
+            frames = self._decoder.feed(data)
+            if self._decoder.crc_errors != before:
+                self.stats["crc_errors"] += self._decoder.crc_errors - before
+                crc_seen = True
+            for frame in frames:
+                if frame.seq == seq and frame.cmd & RESPONSE_FLAG:
+                    return frame, crc_seen
+                self.stats["seq_errors"] += 1       # a stale or foreign reply: not ours, drop it
+            if crc_seen and not self._decoder.buffer:
+                return None, True                   # our reply was mangled: ask again now, not at the timeout
+
+    def _transact(self, cmd: Cmd, payload: bytes = b"") -> bytes:
+        if self._port is None:
+            raise LinkError(f"serial drive {self.url}: link not open")
+        seq = self._next_seq()
+        frame = encode_frame(seq, cmd, payload)
+        self.stats["requests"] += 1
+        problems: list[str] = []
+        for attempt in range(self.retries + 1):
+            if attempt:
+                self.stats["retries"] += 1
+            try:
+                self._port.write(frame)
+            except serial.SerialException as exc:
+                raise LinkError(f"serial drive {self.url}: write failed: {exc}") from None
+            reply, crc_seen = self._read_reply(seq, time.monotonic() + self.timeout_s)
+            if reply is None:
+                if crc_seen:
+                    problems.append("CRC error")
+                else:
+                    self.stats["timeouts"] += 1
+                    problems.append(f"timeout {self.timeout_s:g} s")
+                continue
+            if reply.cmd == Cmd.ERROR | RESPONSE_FLAG:
+                raise LinkError(f"serial drive {self.url}: {cmd.name} rejected: {self._error_text(reply.payload)}")
+            if reply.cmd != cmd | RESPONSE_FLAG:
+                raise LinkError(f"serial drive {self.url}: {cmd.name} (seq {seq}) answered by command "
+                                f"0x{reply.cmd:02X}")
+            return reply.payload
+        raise LinkError(f"serial drive {self.url}: no valid reply to {cmd.name} (seq {seq}) after "
+                        f"{self.retries + 1} attempts: {', '.join(problems)}")
+
+    @staticmethod
+    def _error_text(payload: bytes) -> str:
+        if len(payload) < 2:
+            return "error reply without a code"
+        try:
+            code = ErrorCode(payload[1]).name
+        except ValueError:
+            code = f"code {payload[1]}"
+        return f"{payload[2:].decode(errors='replace')} ({code})"
+
+    # --- DriveLink --------------------------------------------------------------------------------------------
+
+    def open(self) -> DriveIdentity:
+        try:
+            self._port = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=self.timeout_s,
+                                               write_timeout=max(self.timeout_s, 1.0))
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise LinkError(f"serial drive {self.url}: cannot open: {exc}") from None
+        self._port.reset_input_buffer()
+        hello = self._transact(Cmd.HELLO, bytes([PROTOCOL_MAJOR, PROTOCOL_MINOR]))
+        major, minor, _max_payload, period, n_signals = struct.unpack("<BBHdB", hello[:13])
+        if major != PROTOCOL_MAJOR:
+            raise LinkError(f"serial drive {self.url}: drive speaks protocol {major}.{minor}, "
+                            f"this bench {PROTOCOL_MAJOR}.{PROTOCOL_MINOR}")
+        if n_signals != len(SIGNAL_NAMES):
+            raise LinkError(f"serial drive {self.url}: drive has {n_signals} signals, catalogue has "
+                            f"{len(SIGNAL_NAMES)}")
+        self.control_period_s = period
+        self.sync_steps = max(1, round(self.sync_period_s / period))
+        ident = self._transact(Cmd.IDENTITY)
+        vendor, product, revision, serial_no, flags = struct.unpack_from("<IIIIB", ident)
+        name, offset = unpack_str8(ident, 17)
+        firmware, _ = unpack_str8(ident, offset)
+        self.identity = DriveIdentity(vendor, product, revision, serial_no, name, firmware, bool(flags & 1))
+        plist = self._transact(Cmd.PARAM_LIST)
+        names, offset = [], 1
+        for _ in range(plist[0]):
+            n, offset = unpack_str8(plist, offset)
+            names.append(n)
+        self.parameters = tuple(names)
+        return self.identity
+
+    def configure(self, live_signals: Sequence[str], trace_signals: Sequence[str], trace_decimation: int) -> None:
+        try:
+            live_mask = mask_for(tuple(live_signals))
+            trace_mask = mask_for(tuple(trace_signals))
+        except ValueError as exc:
+            raise LinkError(f"serial drive {self.url}: {exc}") from None
+        self._transact(Cmd.LIVE_CONFIGURE, struct.pack("<I", live_mask))
+        self.live_mask = live_mask
+        if self.identity and self.identity.has_trace_recorder and trace_mask:
+            self._transact(Cmd.TRACE_CONFIGURE, struct.pack("<IHB", trace_mask, trace_decimation, TRIGGER_IMMEDIATE))
+            self._transact(Cmd.TRACE_START)
+
+    def _controlword(self, word: int) -> int:
+        (status,) = struct.unpack("<H", self._transact(Cmd.CONTROLWORD, struct.pack("<H", word)))
+        return status
+
+    def _read_status(self) -> tuple[int, int, list[int]]:
+        p = self._transact(Cmd.STATUS)
+        statusword, error_code, _mode, _step, n = struct.unpack_from("<HHbQB", p)
+        codes = list(struct.unpack_from(f"<{n}H", p, 14))
+        return statusword, error_code, codes
+
+    def _step_to(self, word: int, wanted: str) -> None:
+        status = self._controlword(word)
+        deadline = time.monotonic() + max(1.0, 4 * self.timeout_s)
+        while state_from_statusword(status) != wanted:      # a real drive may take a few ms to switch
+            if time.monotonic() > deadline:
+                raise LinkError(f"serial drive {self.url}: controlword 0x{word:04X} left the drive in "
+                                f"{state_from_statusword(status)}, expected {wanted}")
+            time.sleep(0.002)
+            status, _, _ = self._read_status()
+
+    def enable_velocity_mode(self) -> None:
+        status, error_code, _ = self._read_status()
+        if state_from_statusword(status) in ("FAULT", "FAULT REACTION ACTIVE"):
+            if self.fault_reset == "never":
+                raise LinkError(f"serial drive {self.url}: drive in FAULT ({fault_text(error_code)}), "
+                                "fault_reset = 'never'")
+            self._controlword(0x0000)
+            status = self._controlword(0x0080)        # rising edge of bit 7
+            if state_from_statusword(status) != "SWITCH ON DISABLED":
+                raise LinkError(f"serial drive {self.url}: fault reset failed, drive in "
+                                f"{state_from_statusword(status)} ({fault_text(error_code)})")
+        self._transact(Cmd.MODE, struct.pack("<b", MODE_PROFILE_VELOCITY))
+        self._step_to(0x0006, "READY TO SWITCH ON")
+        self._step_to(0x0007, "SWITCHED ON")
+        self._step_to(0x000F, "OPERATION ENABLED")
+
+    def set_speed_ref(self, speed_mech_rad_s: float) -> None:
+        self._transact(Cmd.TARGET_VELOCITY, struct.pack("<d", speed_mech_rad_s))
+
+    def write_parameter(self, name: str, value: float) -> None:
+        self._transact(Cmd.PARAM_WRITE_NAME, struct.pack("<d", value) + name.encode())
+
+    def write_parameter_index(self, index: int, value: float) -> None:
+        self._transact(Cmd.PARAM_WRITE_INDEX, struct.pack("<Hd", index, value))
+
+    def _decode_sample(self, p: bytes) -> LiveSample:
+        step, _status, _error, mask = SAMPLE_HEADER.unpack_from(p)
+        names = selected_names(mask)
+        values = np.frombuffer(p, dtype="<f8", count=len(names), offset=SAMPLE_HEADER.size)
+        return LiveSample(step * self.control_period_s, dict(zip(names, values.tolist())))
+
+    def sample(self) -> LiveSample:
+        """The drive's latest sample, without advancing its clock."""
+        return self._decode_sample(self._transact(Cmd.SAMPLE))
+
+    def _sync_once(self) -> LiveSample:
+        return self._decode_sample(self._transact(Cmd.SYNC, struct.pack("<I", self.sync_steps)))
+
+    def sync(self) -> list[LiveSample]:
+        if self.timing == "lockstep":
+            return [self._sync_once()]
+        # Real time: SYNCs paced by the wall clock; drive time = n_syncs * sync period tracks it.
+        period = self.sync_steps * self.control_period_s
+        now = time.monotonic()
+        if self._rt_anchor is None:
+            self._rt_anchor, self._rt_sent = now, 0
+        due = int((now - self._rt_anchor) / period) + 1 - self._rt_sent
+        if due <= 0:
+            time.sleep(self._rt_anchor + self._rt_sent * period - now)
+            due = 1
+        if due > MAX_CATCH_UP_SYNCS:
+            self.stats["realtime_overruns"] += 1
+            self._rt_anchor = now - (self._rt_sent + MAX_CATCH_UP_SYNCS - 1) * period
+            due = MAX_CATCH_UP_SYNCS
+        samples = [self._sync_once() for _ in range(due)]
+        self._rt_sent += due
+        return samples
+
+    def fetch_trace(self) -> dict[str, np.ndarray] | None:
+        if not (self.identity and self.identity.has_trace_recorder):
+            return None
+        chunks: list[dict[str, np.ndarray]] = []
+        mask = 0
+        for _ in range(100_000):
+            p = self._transact(Cmd.TRACE_READ, struct.pack("<H", 0xFFFF))
+            mask, remaining, lost = struct.unpack_from("<III", p)
+            self.trace_lost_rows = lost
+            if len(p) > 12:
+                try:
+                    chunks.append(decode_rows(p[12:], mask, self.control_period_s))
+                except ValueError as exc:
+                    raise LinkError(f"serial drive {self.url}: trace upload: {exc}") from None
+            if remaining == 0:
+                break
+        if not chunks:
+            return {TIME_COLUMN: np.zeros(0), **{n: np.zeros(0) for n in selected_names(mask)}}
+        return {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
+
+    def status(self) -> DriveStatus:
+        statusword, error_code, codes = self._read_status()
+        state = state_from_statusword(statusword)
+        return DriveStatus(state=state, fault=state in ("FAULT", "FAULT REACTION ACTIVE"), heartbeat_ok=True,
+                           emcy=[(c, fault_text(c)) for c in codes])
+
+    def quick_stop(self) -> None:
+        self._controlword(0x0002)
+
+    def disable(self) -> None:
+        errors = []
+        for action in (lambda: self.set_speed_ref(0.0), lambda: self._controlword(0x0006)):
+            try:
+                action()
+            except LinkError as exc:
+                errors.append(str(exc))
+        if errors:
+            raise LinkError("; ".join(errors))
+
+    def close(self) -> None:
+        if self._port is not None:
+            self._port.close()
+            self._port = None

@@ -1,0 +1,351 @@
+"""The simulated drive's serial protocol server (docs/serial-protocol.md), over TCP or a pty.
+
+One thread per server; it serves one client at a time, like a point-to-point serial line. The protocol
+handler (SerialProtocolHandler) is transport-free so tests can feed it frames directly.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import select
+import socket
+import struct
+import threading
+import tty
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivers.serial_frames import (
+    MAX_PAYLOAD, PROTOCOL_MAJOR, PROTOCOL_MINOR, RESPONSE_FLAG, SAMPLE_HEADER, Cmd, ErrorCode, Frame,
+    FrameDecoder, encode_frame, error_payload, pack_str8,
+)
+from drivers.signals import SIGNAL_NAMES
+from sim_backend.cia402 import CONTROL_FAULT_RESET, State
+from sim_backend.device import FIRMWARE_VERSION, SimulatedDevice
+from sim_backend.trace import TRIGGER_IMMEDIATE, TRIGGER_ON_ENABLE
+
+VENDOR_ID = 0x00000DB0
+PRODUCT_CODES = {"pmsm": 0x0001, "spim": 0x0002}
+REVISION = 0x00010000
+MAX_SYNC_STEPS = 1_000_000
+ALL_SIGNALS = (1 << len(SIGNAL_NAMES)) - 1
+WRITE_TIMEOUT_S = 5.0
+
+
+class CommandError(Exception):
+    def __init__(self, code: ErrorCode, message: str):
+        super().__init__(message)
+        self.code = code
+
+
+def _expect_len(payload: bytes, n: int, cmd: Cmd) -> None:
+    if len(payload) != n:
+        raise CommandError(ErrorCode.BAD_LENGTH, f"{cmd.name} takes {n} payload bytes, got {len(payload)}")
+
+
+@dataclass
+class SerialProtocolHandler:
+    """Executes request frames on a SimulatedDevice and builds reply frames."""
+
+    device: SimulatedDevice
+    serial_number: int = 1
+    live_mask: int = ALL_SIGNALS
+    requests: int = 0
+    replays: int = 0
+    _last_request: tuple[int, int, bytes] | None = None
+    _last_reply: bytes = b""
+    _params: tuple[str, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        model = self.device.model
+        self._params = tuple(model.hook_names()) + tuple(model.plant_param_names())
+
+    def handle(self, frame: Frame) -> bytes:
+        key = (frame.seq, frame.cmd, frame.payload)
+        if key == self._last_request and frame.cmd != Cmd.HELLO:
+            self.replays += 1            # a retry: answer again without executing twice (SYNC!)
+            return self._last_reply
+        self.requests += 1
+        try:
+            cmd = Cmd(frame.cmd)
+        except ValueError:
+            cmd = None
+        try:
+            if cmd is None or cmd is Cmd.ERROR:
+                raise CommandError(ErrorCode.UNKNOWN_COMMAND, f"unknown command 0x{frame.cmd:02X}")
+            reply = encode_frame(frame.seq, frame.cmd | RESPONSE_FLAG, self._execute(cmd, frame.payload))
+        except CommandError as exc:
+            reply = encode_frame(frame.seq, Cmd.ERROR | RESPONSE_FLAG, error_payload(frame.cmd, exc.code, str(exc)))
+        self._last_request, self._last_reply = key, reply
+        return reply
+
+    def _sample(self) -> bytes:
+        dev = self.device
+        with dev.lock:
+            head = SAMPLE_HEADER.pack(dev.step_count, dev.device.statusword, dev.device.error_code, self.live_mask)
+            values = np.asarray(dev.latest, dtype="<f8")
+            chosen = [i for i in range(len(SIGNAL_NAMES)) if self.live_mask >> i & 1]
+            return head + values[chosen].tobytes()
+
+    def _execute(self, cmd: Cmd, p: bytes) -> bytes:
+        dev = self.device
+        if cmd is Cmd.HELLO:
+            _expect_len(p, 2, cmd)
+            if p[0] != PROTOCOL_MAJOR:
+                raise CommandError(ErrorCode.VERSION, f"protocol {p[0]}.{p[1]} unsupported, drive speaks "
+                                                      f"{PROTOCOL_MAJOR}.{PROTOCOL_MINOR}")
+            return struct.pack("<BBHdB", PROTOCOL_MAJOR, PROTOCOL_MINOR, MAX_PAYLOAD,
+                               dev.model.control_period_s, len(SIGNAL_NAMES))
+        if cmd is Cmd.IDENTITY:
+            _expect_len(p, 0, cmd)
+            kind = getattr(dev.model, "kind", "pmsm")
+            return (struct.pack("<IIIIB", VENDOR_ID, PRODUCT_CODES.get(kind, 0), REVISION, self.serial_number, 1)
+                    + pack_str8(f"drivebench-sim {kind}") + pack_str8(FIRMWARE_VERSION))
+        if cmd is Cmd.CONTROLWORD:
+            _expect_len(p, 2, cmd)
+            (word,) = struct.unpack("<H", p)
+            with dev.lock:
+                if word & CONTROL_FAULT_RESET and dev.device.state is State.FAULT:
+                    dev.reset_fault()
+                dev.write_controlword(word)
+                return struct.pack("<H", dev.device.statusword)
+        if cmd is Cmd.STATUS:
+            _expect_len(p, 0, cmd)
+            with dev.lock:
+                codes = dev.take_emcy()[:255]
+                return (struct.pack("<HHbQB", dev.device.statusword, dev.device.error_code, dev.mode_of_operation,
+                                    dev.step_count, len(codes)) + struct.pack(f"<{len(codes)}H", *codes))
+        if cmd is Cmd.MODE:
+            _expect_len(p, 1, cmd)
+            with dev.lock:
+                (dev.mode_of_operation,) = struct.unpack("<b", p)
+                return struct.pack("<b", dev.mode_of_operation)
+        if cmd is Cmd.TARGET_VELOCITY:
+            _expect_len(p, 8, cmd)
+            (speed,) = struct.unpack("<d", p)
+            if not math.isfinite(speed):
+                raise CommandError(ErrorCode.BAD_VALUE, f"target velocity {speed} is not finite")
+            with dev.lock:
+                dev.target_speed_mech_rad_s = speed
+            return b""
+        if cmd is Cmd.PARAM_LIST:
+            _expect_len(p, 0, cmd)
+            return bytes([len(self._params)]) + b"".join(pack_str8(n) for n in self._params)
+        if cmd in (Cmd.PARAM_WRITE_INDEX, Cmd.PARAM_WRITE_NAME):
+            if cmd is Cmd.PARAM_WRITE_INDEX:
+                _expect_len(p, 10, cmd)
+                index, value = struct.unpack("<Hd", p)
+                if index >= len(self._params):
+                    raise CommandError(ErrorCode.UNKNOWN_PARAMETER, f"parameter index {index} out of range "
+                                                                    f"(0..{len(self._params) - 1})")
+                name = self._params[index]
+            else:
+                if len(p) < 9:
+                    raise CommandError(ErrorCode.BAD_LENGTH, "PARAM_WRITE_NAME needs a value and a name")
+                (value,) = struct.unpack_from("<d", p)
+                name = p[8:].decode(errors="replace")
+            if name not in self._params:
+                raise CommandError(ErrorCode.UNKNOWN_PARAMETER, f"unknown parameter '{name}'")
+            if not math.isfinite(value):
+                raise CommandError(ErrorCode.BAD_VALUE, f"value {value} for '{name}' is not finite")
+            try:
+                dev.write_named(name, value)
+            except (KeyError, ValueError) as exc:
+                raise CommandError(ErrorCode.BAD_VALUE, f"'{name}' = {value} rejected: {exc}") from None
+            return b""
+        if cmd is Cmd.TRACE_CONFIGURE:
+            _expect_len(p, 7, cmd)
+            mask, decimation, trigger = struct.unpack("<IHB", p)
+            if trigger not in (TRIGGER_IMMEDIATE, TRIGGER_ON_ENABLE):
+                raise CommandError(ErrorCode.BAD_VALUE, f"unknown trace trigger {trigger}")
+            with dev.lock:
+                try:
+                    dev.trace.configure(mask, decimation, trigger)
+                except ValueError as exc:
+                    raise CommandError(ErrorCode.BAD_VALUE, str(exc)) from None
+            return b""
+        if cmd in (Cmd.TRACE_START, Cmd.TRACE_STOP):
+            _expect_len(p, 0, cmd)
+            with dev.lock:
+                dev.trace.start() if cmd is Cmd.TRACE_START else dev.trace.stop()
+            return b""
+        if cmd is Cmd.TRACE_READ:
+            _expect_len(p, 2, cmd)
+            (max_rows,) = struct.unpack("<H", p)
+            with dev.lock:
+                fit = (MAX_PAYLOAD - 12) // dev.trace.row_size
+                data = dev.trace.read(min(max_rows, fit))
+                return struct.pack("<III", dev.trace.mask, dev.trace.rows_available, dev.trace.lost_rows) + data
+        if cmd is Cmd.LIVE_CONFIGURE:
+            _expect_len(p, 4, cmd)
+            (mask,) = struct.unpack("<I", p)
+            if mask >> len(SIGNAL_NAMES):
+                raise CommandError(ErrorCode.BAD_VALUE, f"live mask 0x{mask:X} selects unknown signals")
+            self.live_mask = mask
+            return b""
+        if cmd is Cmd.SAMPLE:
+            _expect_len(p, 0, cmd)
+            return self._sample()
+        if cmd is Cmd.SYNC:
+            _expect_len(p, 4, cmd)
+            (n_steps,) = struct.unpack("<I", p)
+            if not 1 <= n_steps <= MAX_SYNC_STEPS:
+                raise CommandError(ErrorCode.BAD_VALUE, f"SYNC of {n_steps} steps outside 1..{MAX_SYNC_STEPS}")
+            with dev.lock:
+                dev.advance(n_steps)
+                return self._sample()
+        raise CommandError(ErrorCode.UNKNOWN_COMMAND, f"command {cmd.name} not handled")
+
+
+class _Session:
+    """Decoder + handler for one connection; counts what it threw away."""
+
+    def __init__(self, device: SimulatedDevice, stats: dict[str, int]):
+        self.decoder = FrameDecoder()
+        self.handler = SerialProtocolHandler(device)
+        self.stats = stats
+
+    def feed(self, data: bytes) -> bytes:
+        before = self.decoder.crc_errors
+        frames = self.decoder.feed(data)
+        self.stats["crc_errors"] += self.decoder.crc_errors - before
+        out = b"".join(self.handler.handle(f) for f in frames)
+        self.stats["frames"] += len(frames)
+        return out
+
+
+class _ServerBase:
+    def __init__(self, device: SimulatedDevice):
+        self.device = device
+        self.stats = {"crc_errors": 0, "frames": 0, "sessions": 0}
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._stopping = threading.Event()
+        self._thread = threading.Thread(target=self._run_guarded, name=type(self).__name__, daemon=True)
+        self.error: BaseException | None = None
+
+    def _run_guarded(self) -> None:
+        try:
+            self._run()
+        except BaseException as exc:  # the thread must not die silently; stop() re-raises nothing, tests read .error
+            if not self._stopping.is_set():
+                self.error = exc
+
+    def _run(self) -> None:
+        raise NotImplementedError
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        self._stopping.set()
+        try:
+            self._wake_w.send(b"x")
+        except OSError:
+            pass
+        self._thread.join(timeout_s)
+        self._close_resources()
+        self._wake_r.close()
+        self._wake_w.close()
+
+    def _close_resources(self) -> None:
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+class SerialTcpServer(_ServerBase):
+    """Serial protocol over TCP (pyserial URL socket://host:port)."""
+
+    def __init__(self, device: SimulatedDevice, host: str, port: int):
+        super().__init__(device)
+        self._listener = socket.create_server((host, port))
+        self.host = host
+        self.port = self._listener.getsockname()[1]
+        self.url = f"socket://{host}:{self.port}"
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stopping.is_set():
+            ready, _, _ = select.select([self._listener, self._wake_r], [], [])
+            if self._wake_r in ready:
+                return
+            conn, _ = self._listener.accept()
+            with conn:
+                conn.settimeout(WRITE_TIMEOUT_S)
+                self._serve(conn)
+
+    def _serve(self, conn: socket.socket) -> None:
+        session = _Session(self.device, self.stats)
+        self.stats["sessions"] += 1
+        while True:
+            ready, _, _ = select.select([conn, self._wake_r], [], [])
+            if self._wake_r in ready:
+                return
+            try:
+                data = conn.recv(65536)
+            except OSError:
+                return
+            if not data:
+                return
+            reply = session.feed(data)
+            if reply:
+                try:
+                    conn.sendall(reply)
+                except OSError:
+                    return
+
+    def _close_resources(self) -> None:
+        self._listener.close()
+
+
+class SerialPtyServer(_ServerBase):
+    """Serial protocol on a pseudo-terminal: clients open .path like a serial port."""
+
+    def __init__(self, device: SimulatedDevice):
+        super().__init__(device)
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)          # no echo, no line discipline: a clean 8-bit line
+        os.set_blocking(self._master, False)
+        self.path = os.ttyname(self._slave)
+        self._thread.start()
+
+    def _run(self) -> None:
+        session = _Session(self.device, self.stats)
+        self.stats["sessions"] += 1
+        while True:
+            ready, _, _ = select.select([self._master, self._wake_r], [], [])
+            if self._wake_r in ready:
+                return
+            try:
+                data = os.read(self._master, 65536)
+            except BlockingIOError:
+                continue
+            reply = session.feed(data)
+            view = memoryview(reply)
+            while view:
+                _, writable, _ = select.select([], [self._master], [], WRITE_TIMEOUT_S)
+                if not writable:
+                    session.decoder.buffer.clear()   # nobody reads the line: drop the reply
+                    break
+                try:
+                    view = view[os.write(self._master, view):]
+                except BlockingIOError:
+                    continue
+
+    def _close_resources(self) -> None:
+        for fd in (self._master, self._slave):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+
+def start_serial_tcp(device: SimulatedDevice, host: str = "127.0.0.1", port: int = 0) -> SerialTcpServer:
+    return SerialTcpServer(device, host, port)
+
+
+def start_serial_pty(device: SimulatedDevice) -> SerialPtyServer:
+    return SerialPtyServer(device)
