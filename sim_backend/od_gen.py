@@ -1,0 +1,264 @@
+"""Generates the drivebench object dictionaries (EDS, CiA 306) that the bench and the simulator both load.
+
+    python -m sim_backend.od_gen            # rewrites config/od/drivebench-{pmsm,spim}.eds
+
+Layout (see docs/canopen.md):
+  0x1000-0x1A07  CiA 301 communication objects (identity, heartbeat, SYNC, EMCY, 4 RPDOs, 8 TPDOs)
+  0x6040-0x6502  CiA 402 objects; velocities are INTEGER32 in mrad/s, mechanical
+  0x2000-0x2002  drive clock (step counter), control period, drive kind
+  0x2010-0x201F  live telemetry, REAL32, one object per drivers.signals.SIGNAL_NAMES entry (PDO mappable)
+  0x2100/0x2101  trace recorder: configuration record and DOMAIN data (SDO block upload)
+  0x2200+/0x2300+/0x2400+  test hooks / firmware parameters / simulator plant injections, REAL32 rw
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from drivers.signals import SIGNALS
+from sim_backend.hooks import FIRMWARE_PARAMS, PLANT_PARAMS, TEST_HOOKS
+
+VENDOR_ID = 0x00DB0001
+PRODUCT_CODES = {"pmsm": 0x0402_0001, "spim": 0x0402_0002}
+REVISION = 0x0001_0000
+FIRMWARE_VERSION = "drivebench-sim 0.1.0"   # must equal sim_backend.device.FIRMWARE_VERSION
+
+# Data types (CiA 301)
+BOOLEAN, INTEGER8, INTEGER16, INTEGER32 = 0x1, 0x2, 0x3, 0x4
+UNSIGNED8, UNSIGNED16, UNSIGNED32, REAL32, VISIBLE_STRING, DOMAIN = 0x5, 0x6, 0x7, 0x8, 0x9, 0xF
+
+# Indices the client and the node both rely on
+IDX_STEP_COUNT = 0x2000
+IDX_CONTROL_PERIOD_NS = 0x2001
+IDX_DRIVE_KIND = 0x2002
+IDX_SIGNAL_BASE = 0x2010
+IDX_TRACE = 0x2100
+IDX_TRACE_DATA = 0x2101
+IDX_HOOK_BASE = 0x2200
+IDX_FW_PARAM_BASE = 0x2300
+IDX_PLANT_PARAM_BASE = 0x2400
+TRACE_SUBS = {  # subindex: (name, type, access)
+    1: ("trace_signal_mask", UNSIGNED32, "rw"),
+    2: ("trace_decimation", UNSIGNED16, "rw"),
+    3: ("trace_trigger", UNSIGNED8, "rw"),
+    4: ("trace_control", UNSIGNED8, "rw"),          # write 0 stop, 1 start, 2 clear
+    5: ("trace_rows_available", UNSIGNED32, "ro"),
+    6: ("trace_row_size", UNSIGNED16, "ro"),
+    7: ("trace_lost_rows", UNSIGNED32, "ro"),
+    8: ("trace_capacity_rows", UNSIGNED32, "ro"),
+    9: ("trace_max_rows_per_upload", UNSIGNED32, "rw"),
+}
+TRACE_STOP, TRACE_START, TRACE_CLEAR = 0, 1, 2
+N_RPDO, N_TPDO = 4, 8
+RPDO_COB = (0x200, 0x300, 0x400, 0x500)
+TPDO_COB = (0x180, 0x280, 0x380, 0x480, 0x1C0, 0x2C0, 0x3C0, 0x4C0)   # 5-8: CANopenNode convention, +0x40
+
+
+def signal_index(i: int) -> int:
+    return IDX_SIGNAL_BASE + i
+
+
+@dataclass
+class Var:
+    name: str
+    data_type: int
+    access: str
+    default: str | None = None
+    pdo: bool = False
+    description: str = ""
+
+
+@dataclass
+class Obj:
+    index: int
+    name: str
+    var: Var | None = None                                  # VAR object
+    subs: dict[int, Var] = field(default_factory=dict)      # RECORD object
+    description: str = ""
+
+
+def _u32(value: int) -> str:
+    return f"0x{value:08X}"
+
+
+def _pdo_objects() -> list[Obj]:
+    objs = []
+    rpdo_maps = {0: [0x60400010, 0x60FF0020, 0x60600008]}
+    tpdo_maps = {0: [0x60410010, 0x60610008, (IDX_STEP_COUNT << 16) | 0x20],
+                 1: [(signal_index(0) << 16) | 0x20, (signal_index(1) << 16) | 0x20]}
+    for n in range(N_RPDO):
+        cob = f"$NODEID+0x{RPDO_COB[n]:X}" if n in rpdo_maps else _u32(0x80000000 | RPDO_COB[n])
+        objs.append(Obj(0x1400 + n, f"RPDO {n + 1} communication parameter", subs={
+            0: Var("Highest sub-index supported", UNSIGNED8, "const", "0x02"),
+            1: Var(f"COB-ID used by RPDO {n + 1}", UNSIGNED32, "rw", cob),
+            2: Var("Transmission type", UNSIGNED8, "rw", "0xFF")}))
+    for n in range(N_RPDO):
+        entries = rpdo_maps.get(n, [])
+        subs = {0: Var("Number of mapped objects", UNSIGNED8, "rw", str(len(entries)))}
+        for k in range(8):
+            subs[k + 1] = Var(f"Mapped object {k + 1}", UNSIGNED32, "rw",
+                              _u32(entries[k] if k < len(entries) else 0))
+        objs.append(Obj(0x1600 + n, f"RPDO {n + 1} mapping parameter", subs=subs))
+    for n in range(N_TPDO):
+        enabled = n in tpdo_maps
+        cob = f"$NODEID+0x{TPDO_COB[n]:X}" if enabled and n < 4 else (
+            _u32(0x80000000 | TPDO_COB[n]) if n < 4 else _u32(0xC0000000 | (TPDO_COB[n] + 1)))
+        objs.append(Obj(0x1800 + n, f"TPDO {n + 1} communication parameter", subs={
+            0: Var("Highest sub-index supported", UNSIGNED8, "const", "0x06"),
+            1: Var(f"COB-ID used by TPDO {n + 1}", UNSIGNED32, "rw", cob),
+            2: Var("Transmission type", UNSIGNED8, "rw", "0x01"),
+            3: Var("Inhibit time", UNSIGNED16, "rw", "0"),
+            5: Var("Event timer", UNSIGNED16, "rw", "0"),
+            6: Var("SYNC start value", UNSIGNED8, "rw", "0")}))
+    for n in range(N_TPDO):
+        entries = tpdo_maps.get(n, [])
+        subs = {0: Var("Number of mapped objects", UNSIGNED8, "rw", str(len(entries)))}
+        for k in range(8):
+            subs[k + 1] = Var(f"Mapped object {k + 1}", UNSIGNED32, "rw",
+                              _u32(entries[k] if k < len(entries) else 0))
+        objs.append(Obj(0x1A00 + n, f"TPDO {n + 1} mapping parameter", subs=subs))
+    return objs
+
+
+def objects(kind: str) -> list[Obj]:
+    objs = [
+        Obj(0x1000, "Device type", Var("Device type", UNSIGNED32, "ro", "0x00020192",
+                                       description="CiA 402 drive")),
+        Obj(0x1001, "Error register", Var("Error register", UNSIGNED8, "ro", "0", pdo=True)),
+        Obj(0x1005, "COB-ID SYNC", Var("COB-ID SYNC", UNSIGNED32, "rw", "0x00000080")),
+        Obj(0x1006, "Communication cycle period", Var(
+            "Communication cycle period", UNSIGNED32, "rw", "1000",
+            description="SYNC period in us; the simulator advances this much drive time per SYNC")),
+        Obj(0x1008, "Manufacturer device name", Var("Manufacturer device name", VISIBLE_STRING, "const",
+                                                     f"drivebench simulated {kind.upper()} drive")),
+        Obj(0x1009, "Manufacturer hardware version", Var("Manufacturer hardware version", VISIBLE_STRING,
+                                                         "const", "sim")),
+        Obj(0x100A, "Manufacturer software version", Var("Manufacturer software version", VISIBLE_STRING,
+                                                         "const", FIRMWARE_VERSION)),
+        Obj(0x1014, "COB-ID EMCY", Var("COB-ID EMCY", UNSIGNED32, "ro", "$NODEID+0x80")),
+        Obj(0x1017, "Producer heartbeat time", Var("Producer heartbeat time", UNSIGNED16, "rw", "100",
+                                                   description="ms")),
+        Obj(0x1018, "Identity object", subs={
+            0: Var("Highest sub-index supported", UNSIGNED8, "const", "0x04"),
+            1: Var("Vendor-ID", UNSIGNED32, "ro", _u32(VENDOR_ID)),
+            2: Var("Product code", UNSIGNED32, "ro", _u32(PRODUCT_CODES[kind])),
+            3: Var("Revision number", UNSIGNED32, "ro", _u32(REVISION)),
+            4: Var("Serial number", UNSIGNED32, "ro", "0x00000001")}),
+        Obj(0x1200, "SDO server parameter", subs={
+            0: Var("Highest sub-index supported", UNSIGNED8, "const", "0x02"),
+            1: Var("COB-ID client to server", UNSIGNED32, "ro", "$NODEID+0x600"),
+            2: Var("COB-ID server to client", UNSIGNED32, "ro", "$NODEID+0x580")}),
+    ]
+    objs += _pdo_objects()
+    objs += [
+        Obj(IDX_STEP_COUNT, "drive_step_count", Var(
+            "drive_step_count", UNSIGNED32, "ro", "0", pdo=True,
+            description="drive clock: control periods since power-up")),
+        Obj(IDX_CONTROL_PERIOD_NS, "control_period_ns", Var("control_period_ns", UNSIGNED32, "ro", "100000")),
+        Obj(IDX_DRIVE_KIND, "drive_kind", Var("drive_kind", VISIBLE_STRING, "const", kind)),
+    ]
+    for i, sig in enumerate(SIGNALS):
+        objs.append(Obj(signal_index(i), sig.name, Var(sig.name, REAL32, "ro", "0", pdo=True,
+                                                       description=f"{sig.description} [{sig.unit}]")))
+    trace_subs = {0: Var("Highest sub-index supported", UNSIGNED8, "const", f"0x{len(TRACE_SUBS):02X}")}
+    defaults = {1: _u32((1 << len(SIGNALS)) - 1), 2: "1", 3: "0", 4: "0", 5: "0", 6: "0", 7: "0",
+                8: "200000", 9: "100000"}
+    for sub, (name, dtype, access) in TRACE_SUBS.items():
+        trace_subs[sub] = Var(name, dtype, access, defaults[sub])
+    objs.append(Obj(IDX_TRACE, "trace_recorder", subs=trace_subs,
+                    description="mask: bit i = drivers.signals.SIGNAL_NAMES[i]"))
+    objs.append(Obj(IDX_TRACE_DATA, "trace_data", Var(
+        "trace_data", DOMAIN, "ro",
+        description="oldest recorded rows (drivers.trace_format), removed once the upload completes")))
+    for base, names in ((IDX_HOOK_BASE, TEST_HOOKS), (IDX_FW_PARAM_BASE, FIRMWARE_PARAMS[kind]),
+                        (IDX_PLANT_PARAM_BASE, PLANT_PARAMS[kind])):
+        for i, name in enumerate(names):
+            objs.append(Obj(base + i, name, Var(name, REAL32, "rw", "0")))
+    objs += [
+        Obj(0x603F, "Error code", Var("Error code", UNSIGNED16, "ro", "0", pdo=True)),
+        Obj(0x6040, "Controlword", Var("Controlword", UNSIGNED16, "rw", "0", pdo=True)),
+        Obj(0x6041, "Statusword", Var("Statusword", UNSIGNED16, "ro", "0", pdo=True)),
+        Obj(0x6060, "Modes of operation", Var("Modes of operation", INTEGER8, "rw", "3", pdo=True)),
+        Obj(0x6061, "Modes of operation display", Var("Modes of operation display", INTEGER8, "ro", "3",
+                                                      pdo=True)),
+        Obj(0x606C, "Velocity actual value", Var("Velocity actual value", INTEGER32, "ro", "0", pdo=True,
+                                                 description="estimated speed, mrad/s mechanical")),
+        Obj(0x60FF, "Target velocity", Var("Target velocity", INTEGER32, "rw", "0", pdo=True,
+                                           description="mrad/s mechanical")),
+        Obj(0x6502, "Supported drive modes", Var("Supported drive modes", UNSIGNED32, "ro", "0x00000004",
+                                                 description="profile velocity only")),
+    ]
+    return sorted(objs, key=lambda o: o.index)
+
+
+def _var_lines(section: str, var: Var) -> list[str]:
+    lines = [f"[{section}]", f"ParameterName={var.name}", "ObjectType=0x7", f"DataType=0x{var.data_type:04X}",
+             f"AccessType={var.access}"]
+    if var.default is not None:
+        lines.append(f"DefaultValue={var.default}")
+    lines.append(f"PDOMapping={1 if var.pdo else 0}")
+    if var.description:
+        lines.append(f"Description={var.description}")
+    return lines + [""]
+
+
+def render(kind: str) -> str:
+    objs = objects(kind)
+    mandatory = [o for o in objs if o.index in (0x1000, 0x1001, 0x1018)]
+    manufacturer = [o for o in objs if 0x2000 <= o.index < 0x6000]
+    optional = [o for o in objs if o not in mandatory and o not in manufacturer]
+    out = [
+        "[FileInfo]", f"FileName=drivebench-{kind}.eds", "FileVersion=1", "FileRevision=0", "EDSVersion=4.0",
+        f"Description=drivebench simulated {kind.upper()} drive, CiA 402 profile velocity; generated by "
+        "sim_backend/od_gen.py, do not edit", "CreatedBy=drivebench", "",
+        "[DeviceInfo]", "VendorName=drivebench", f"VendorNumber={_u32(VENDOR_ID)}",
+        f"ProductName=drivebench-{kind}", f"ProductNumber={_u32(PRODUCT_CODES[kind])}",
+        f"RevisionNumber={_u32(REVISION)}", "OrderCode=sim",
+        *[f"BaudRate_{r}={1 if r in (125, 250, 500, 1000) else 0}" for r in (10, 20, 50, 125, 250, 500, 800, 1000)],
+        "SimpleBootUpMaster=0", "SimpleBootUpSlave=1", "Granularity=8", "DynamicChannelsSupported=0",
+        "GroupMessaging=0", f"NrOfRXPDO={N_RPDO}", f"NrOfTXPDO={N_TPDO}", "LSS_Supported=0", "",
+        "[DummyUsage]", *[f"Dummy000{i}=0" for i in range(1, 8)], "",
+        "[Comments]", "Lines=2", "Line1=Velocities (0x606C, 0x60FF) are INTEGER32 in mrad/s, mechanical.",
+        "Line2=Manufacturer objects carry drivebench signal, hook and parameter names as ParameterName.", "",
+    ]
+    for title, group in (("MandatoryObjects", mandatory), ("OptionalObjects", optional),
+                         ("ManufacturerObjects", manufacturer)):
+        out += [f"[{title}]", f"SupportedObjects={len(group)}"]
+        out += [f"{k + 1}=0x{o.index:04X}" for k, o in enumerate(group)] + [""]
+        for o in group:
+            if o.var is not None:
+                lines = _var_lines(f"{o.index:04X}", o.var)
+                if o.description and not o.var.description:
+                    lines.insert(-1, f"Description={o.description}")
+                out += lines
+            else:
+                out += [f"[{o.index:04X}]", f"ParameterName={o.name}", "ObjectType=0x9",
+                        f"SubNumber=0x{len(o.subs):X}"]
+                if o.description:
+                    out.append(f"Description={o.description}")
+                out.append("")
+                for sub, var in o.subs.items():
+                    out += _var_lines(f"{o.index:04X}sub{sub:X}", var)
+    return "\n".join(out)
+
+
+def write_all(od_dir: Path) -> list[Path]:
+    paths = []
+    for kind in ("pmsm", "spim"):
+        path = od_dir / f"drivebench-{kind}.eds"
+        path.write_text(render(kind))
+        paths.append(path)
+    return paths
+
+
+def main(argv: list[str] | None = None) -> int:
+    od_dir = Path(argv[0]) if argv else Path(__file__).resolve().parent.parent / "config" / "od"
+    for path in write_all(od_dir):
+        print(path)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
