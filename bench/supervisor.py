@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import queue
 import threading
+import time
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Protocol
 
@@ -18,14 +19,14 @@ from drivers.api import DriveStatus, LiveSample
 class SupervisorLimits(Protocol):
     overspeed_mech_rad_s: float
     overcurrent_a: float
-    max_duration_s: float
+    max_duration_s: float          # wall-clock seconds the whole run may take
     pos_err_max_elec_rad: float | None
     vdc_max_v: float | None
 
 
 @dataclass(frozen=True)
 class Trip:
-    reason: str                  # overspeed | overcurrent | position_error | dc_link_overvoltage | max_duration | fault | emcy | heartbeat
+    reason: str  # overspeed overcurrent position_error dc_link_overvoltage max_duration fault emcy heartbeat
     t_s: float | None            # drive time of the sample or status that tripped
     values: dict[str, float] = field(default_factory=dict)
     message: str = ""
@@ -57,9 +58,6 @@ def check_sample(limits: SupervisorLimits, t_s: float, values: dict[str, float])
         if value is not None and value > limits.vdc_max_v:
             return Trip("dc_link_overvoltage", t_s, {"vdc_v": value, "limit": limits.vdc_max_v},
                         f"DC-link overvoltage at t={t_s:.4f} s: vdc_v = {value:.1f} > {limits.vdc_max_v:g} V")
-    if t_s > limits.max_duration_s:
-        return Trip("max_duration", t_s, {"t_s": t_s, "limit": limits.max_duration_s},
-                    f"run time limit at t={t_s:.4f} s: > {limits.max_duration_s:g} s")
     return None
 
 
@@ -78,10 +76,15 @@ def check_status(t_s: float | None, status: DriveStatus) -> Trip | None:
 
 
 _STOP = object()
+WATCHDOG_PERIOD_S = 0.05
 
 
 class Supervisor:
-    """Runs check_sample/check_status on everything fed to it, in a daemon thread."""
+    """Runs check_sample/check_status on everything fed to it, in a daemon thread.
+
+    The thread also watches the wall clock from start(): past limits.max_duration_s it trips even if
+    nothing is fed any more (a hung link, a run loop stuck somewhere).
+    """
 
     def __init__(self, limits: SupervisorLimits, on_trip: Callable[[Trip], None] | None = None):
         self.limits = limits
@@ -92,8 +95,11 @@ class Supervisor:
         self._thread = threading.Thread(target=self._run, name="drivebench-supervisor", daemon=True)
         self._idle = threading.Condition()
         self._pending = 0
+        self._started = 0.0
+        self._last_t_s: float | None = None
 
     def start(self) -> "Supervisor":
+        self._started = time.monotonic()
         self._thread.start()
         return self
 
@@ -123,27 +129,45 @@ class Supervisor:
 
     def _run(self) -> None:
         while True:
-            item = self._queue.get()
+            try:
+                item = self._queue.get(timeout=WATCHDOG_PERIOD_S)
+            except queue.Empty:
+                item = None
             if item is _STOP:
                 return
             try:
                 if not self.tripped.is_set():
-                    trip = self._judge(item)
+                    trip = self._judge(item) if item is not None else None
+                    if trip is None:
+                        trip = self._check_wall_clock()
                     if trip is not None:
                         self.trip = trip
                         self.tripped.set()
                         if self.on_trip is not None:
                             self.on_trip(trip)
             finally:
-                with self._idle:
-                    self._pending -= 1
-                    self._idle.notify_all()
+                if item is not None:
+                    with self._idle:
+                        self._pending -= 1
+                        self._idle.notify_all()
+
+    def _check_wall_clock(self) -> Trip | None:
+        elapsed = time.monotonic() - self._started
+        limit = self.limits.max_duration_s
+        if elapsed <= limit:
+            return None
+        when = "" if self._last_t_s is None else f" (drive time t={self._last_t_s:.4f} s)"
+        return Trip("max_duration", self._last_t_s, {"wall_s": elapsed, "limit": limit},
+                    f"run time limit: {elapsed:.1f} s wall > max_duration_s = {limit:g} s{when}")
 
     def _judge(self, item) -> Trip | None:
         kind, payload = item
         if kind == "status":
+            if payload[0] is not None:
+                self._last_t_s = payload[0]
             return check_status(*payload)
         for sample in payload:
+            self._last_t_s = sample.t_s
             trip = check_sample(self.limits, sample.t_s, sample.values)
             if trip is not None:
                 return trip

@@ -53,9 +53,13 @@ def test_within_limits_and_optional_limits():
     assert check_sample(Limits(), 1.0, {"speed_est_mech_rad_s": float("nan")}) is None  # NaN is not a value
 
 
-def test_max_duration_trips():
-    trip = check_sample(Limits(max_duration_s=2.0), 2.001, OK)
-    assert trip.reason == "max_duration"
+def test_wall_clock_limit_trips_without_any_sample():
+    sup = Supervisor(Limits(max_duration_s=0.1)).start()
+    try:
+        assert sup.tripped.wait(2.0)
+        assert sup.trip.reason == "max_duration" and sup.trip.values["wall_s"] > 0.1
+    finally:
+        sup.stop()
 
 
 def test_link_status_trips():

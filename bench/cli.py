@@ -1,0 +1,445 @@
+"""The `drivebench` command line (also `python -m bench`).
+
+Exit codes: 0 all passed, 1 a criterion failed or a run aborted, 2 bad input or an error.
+Bad input is reported as one line per problem on stderr, without a traceback.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import sys
+import time
+import tomllib
+import traceback
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+import click
+from rich.console import Console
+from rich.table import Table
+
+from bench.errors import InputError, find_repo_root
+from drivers.api import LinkError
+
+EXIT_PASS, EXIT_FAIL, EXIT_ERROR = 0, 1, 2
+PROGRESS_MIN_DURATION_S = 3.0   # show a progress bar for scenarios at least this long (drive time)
+URL_RE = re.compile(r"^(rerun(\+https?)?|https?)://")
+
+err_console = Console(stderr=True, highlight=False)
+
+
+def _out_console(as_json: bool) -> Console:
+    # with --json, stdout carries JSON documents only; tables go to stderr
+    return err_console if as_json else Console(highlight=False)
+
+
+def _problem_lines(exc: BaseException) -> list[str]:
+    if isinstance(exc, InputError):
+        return exc.problems or [str(exc)]
+    if isinstance(exc, FileNotFoundError):
+        return [f"{exc.filename}: (file): not found"]
+    if isinstance(exc, tomllib.TOMLDecodeError):
+        return [f"not valid TOML: {exc}"]
+    if isinstance(exc, LinkError):
+        return [f"cannot connect: {exc}"]
+    return [f"{type(exc).__name__}: {exc}"]
+
+
+def _fail(exc: BaseException) -> int:
+    for line in _problem_lines(exc):
+        click.echo(line, err=True)
+    if not isinstance(exc, (InputError, FileNotFoundError, tomllib.TOMLDecodeError, LinkError)):
+        if os.environ.get("DRIVEBENCH_DEBUG"):
+            traceback.print_exc()
+        else:
+            click.echo("(set DRIVEBENCH_DEBUG=1 to see the traceback)", err=True)
+    return EXIT_ERROR
+
+
+def _guarded(fn: Callable[[], int]) -> int:
+    try:
+        return fn()
+    except (InputError, FileNotFoundError, tomllib.TOMLDecodeError, LinkError, OSError) as exc:
+        return _fail(exc)
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "n/a"
+        return f"{value:.4g}"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_fmt(v) for v in value) + "]"
+    return "" if value is None else str(value)
+
+
+def _as_dict(c: Any) -> dict:
+    if isinstance(c, dict):
+        return c
+    if hasattr(c, "to_dict"):
+        return c.to_dict()
+    return dict(vars(c))
+
+
+def criteria_table(title: str, criteria: Iterable[Any]) -> Table:
+    table = Table(title=title, title_justify="left")
+    for column in ("criterion", "signal", "window [s]", "value", "limit", "result"):
+        table.add_column(column, justify="right" if column in ("value", "limit") else "left")
+    for c in map(_as_dict, criteria):
+        if c.get("passed"):
+            result = "[green]pass[/green]"
+        elif c.get("known_gap"):
+            result = f"[yellow]known gap[/yellow]: {c['known_gap']}"
+        else:
+            result = "[red]FAIL[/red]"
+        table.add_row(str(c.get("name")), str(c.get("signal")), _fmt(c.get("window_s")), _fmt(c.get("value")),
+                      _fmt(c.get("limit")), result)
+    return table
+
+
+VERDICT_STYLE = {"pass": "bold green", "fail": "bold red", "aborted": "bold red", "error": "bold magenta"}
+
+
+def verdict_exit_code(verdicts: Iterable[str]) -> int:
+    verdicts = list(verdicts)
+    if any(v == "error" for v in verdicts):
+        return EXIT_ERROR
+    if any(v != "pass" for v in verdicts):
+        return EXIT_FAIL
+    return EXIT_PASS
+
+
+def print_record(console: Console, record: dict, run_dir: Path | str) -> None:
+    verdict = record.get("verdict", "?")
+    scenario = record.get("scenario", {}) or {}
+    name = scenario.get("name") or Path(str(scenario.get("path", "?"))).stem
+    console.print(criteria_table(f"{name}: [{VERDICT_STYLE.get(verdict, 'bold')}]{verdict}[/] ({run_dir})",
+                                 record.get("criteria", [])))
+    if record.get("abort_reason"):
+        console.print(f"  reason: {record['abort_reason']}")
+
+
+# --- commands --------------------------------------------------------------------------------------------
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="drivebench")
+def cli() -> None:
+    """drivebench: hardware-in-the-loop test bench for sensorless motor drives."""
+
+
+@cli.command()
+@click.argument("scenarios", nargs=-1, required=True)
+@click.option("--bench", "bench_path", type=click.Path(), help="Bench config (default: the one the scenario names).")
+@click.option("--rerun", "rerun_mode", type=click.Choice(["spawn", "connect", "save", "off"]), default="save",
+              show_default=True,
+              help="Live view: spawn a viewer, connect URL to a running one, save run.rrd only, or off. "
+                   "run.rrd is saved in every mode but off.")
+@click.option("--rerun-url", help="Viewer URL for --rerun connect (also accepted right after 'connect').")
+@click.option("--out", "out_root", type=click.Path(), default="runs", show_default=True, help="Run directories go here.")
+@click.option("--seed", type=int, help="Override the scenario's seed.")
+@click.option("--json", "as_json", is_flag=True, help="Print each record as one JSON document on stdout.")
+def run(scenarios, bench_path, rerun_mode, rerun_url, out_root, seed, as_json) -> None:
+    """Run SCENARIO files; exit 0 if all passed, 1 if one failed or aborted, 2 on bad input or error."""
+    scenarios = list(scenarios)
+    if rerun_mode == "connect" and rerun_url is None and scenarios and URL_RE.match(scenarios[0]):
+        rerun_url = scenarios.pop(0)
+    if not scenarios:
+        raise click.UsageError("no SCENARIO given")
+    sys.exit(run_many(scenarios, bench_path, out_root, seed, rerun_mode, rerun_url, as_json))
+
+
+def run_many(scenarios, bench_path, out_root, seed, rerun_mode, rerun_url, as_json) -> int:
+    from bench.orchestrator import prepare, run_scenario
+
+    problems: list[str] = []
+    for path in scenarios:  # validate everything before touching any hardware
+        try:
+            prepare(path, bench_path)
+        except (InputError, FileNotFoundError, tomllib.TOMLDecodeError, OSError) as exc:
+            problems.extend(_problem_lines(exc))
+    if problems:
+        for line in problems:
+            click.echo(line, err=True)
+        return EXIT_ERROR
+
+    out = _out_console(as_json)
+    verdicts: list[str] = []
+    for path in scenarios:
+        try:
+            with _progress(path) as progress:
+                result = run_scenario(path, bench_path, out_root=out_root, seed=seed, rerun_mode=rerun_mode,
+                                      rerun_url=rerun_url, progress=progress,
+                                      warn=lambda line: click.echo(line, err=True))
+        except (InputError, FileNotFoundError, tomllib.TOMLDecodeError, LinkError, OSError) as exc:
+            _fail(exc)
+            verdicts.append("error")
+            continue
+        except Exception as exc:  # a bug before the run directory existed
+            _fail(exc)
+            verdicts.append("error")
+            continue
+        verdicts.append(result.verdict)
+        if as_json:
+            click.echo(json.dumps(result.record, default=str))
+        print_record(out, result.record, result.run_dir)
+        if result.error:
+            click.echo(f"{path}: error: {result.error}", err=True)
+        if result.interrupted:
+            click.echo("interrupted: not starting further scenarios", err=True)
+            break
+    if len(verdicts) > 1:
+        out.print(f"{sum(v == 'pass' for v in verdicts)}/{len(verdicts)} passed")
+    return verdict_exit_code(verdicts)
+
+
+class _progress:
+    """A rich progress bar with ETA on stderr for scenarios of PROGRESS_MIN_DURATION_S or more."""
+
+    def __init__(self, scenario_path: str):
+        self.path = scenario_path
+        self.bar = None
+        self.task = None
+
+    def __enter__(self):
+        from bench.scenario import load_scenario
+
+        duration = load_scenario(self.path).duration_s
+        if duration < PROGRESS_MIN_DURATION_S or not err_console.is_terminal:
+            return None
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+        self.bar = Progress(TextColumn("{task.description}"), BarColumn(),
+                            TextColumn("{task.completed:.1f}/{task.total:.1f} s drive time"),
+                            TimeElapsedColumn(), TimeRemainingColumn(), console=err_console, transient=True)
+        self.bar.start()
+        self.task = self.bar.add_task(Path(self.path).stem, total=duration)
+
+        def update(t_s: float, total: float) -> None:
+            self.bar.update(self.task, completed=t_s)
+
+        return update
+
+    def __exit__(self, *exc):
+        if self.bar is not None:
+            self.bar.stop()
+        return False
+
+
+def _is_bench_config(path: Path) -> bool:
+    from bench.benchconfig import read_toml
+
+    raw = read_toml(path)
+    return isinstance(raw.get("bench"), dict) and "drive" in raw
+
+
+@cli.command()
+@click.argument("files", nargs=-1, required=True)
+def validate(files) -> None:
+    """Check scenario and bench config FILEs; one line per problem, exit 2 if any."""
+    from bench.benchconfig import load_bench_config
+    from bench.orchestrator import prepare
+
+    bad = False
+    for name in files:
+        path = Path(name)
+        try:
+            if _is_bench_config(path):
+                cfg = load_bench_config(path)
+                click.echo(f"{path}: ok (bench config {cfg['bench']['name']!r}, drive over {cfg['drive']['transport']}, "
+                           f"load over {cfg['load']['transport']})")
+            else:
+                scenario, cfg = prepare(path)
+                click.echo(f"{path}: ok (scenario {scenario.name!r}, {scenario.duration_s:g} s, "
+                           f"{len(scenario.criteria)} criteria, bench {cfg['bench']['name']!r})")
+        except (InputError, FileNotFoundError, tomllib.TOMLDecodeError, OSError) as exc:
+            bad = True
+            for line in _problem_lines(exc):
+                click.echo(line, err=True)
+    sys.exit(EXIT_ERROR if bad else EXIT_PASS)
+
+
+def _scenario_root() -> Path:
+    here = Path("scenarios")
+    return here if here.is_dir() else find_repo_root() / "scenarios"
+
+
+@cli.command(name="list")
+def list_scenarios() -> None:
+    """Scenarios under scenarios/ with their one-line descriptions."""
+    from bench.scenario import load_scenario
+
+    root = _scenario_root()
+    files = sorted(root.rglob("*.toml"))
+    if not files:
+        click.echo(f"no scenarios under {root}", err=True)
+        sys.exit(EXIT_PASS)
+    table = Table(show_header=True, box=None, pad_edge=False)
+    table.add_column("scenario")
+    table.add_column("description")
+    for f in files:
+        try:
+            description = load_scenario(f).description.strip().splitlines()
+            description = description[0] if description else ""
+        except InputError as exc:
+            description = f"[red]invalid[/red]: {exc.problems[0] if exc.problems else exc}"
+        table.add_row(str(f), description)
+    Console(highlight=False).print(table)
+
+
+@cli.command()
+@click.argument("run_dir", type=click.Path())
+@click.option("--json", "as_json", is_flag=True, help="Print the record as JSON.")
+def show(run_dir, as_json) -> None:
+    """The verdict table of a run directory (also of a killed, incomplete run)."""
+
+    def body() -> int:
+        from bench.records import load_run
+
+        record, columns, complete = load_run(Path(run_dir))
+        n = len(columns.get("t_s", ())) if columns else 0
+        if as_json:
+            click.echo(json.dumps({**record, "_complete": complete, "_samples": n}, default=str))
+            return verdict_exit_code([record.get("verdict") or "aborted"]) if complete else EXIT_FAIL
+        console = Console(highlight=False)
+        if not complete:
+            last = float(columns["t_s"][-1]) if n else float("nan")
+            console.print(f"[bold red]incomplete run[/] ({run_dir}): the bench did not finish the record "
+                          f"(killed?); {n} samples recovered, up to t = {_fmt(last)} s")
+            return EXIT_FAIL
+        print_record(console, record, run_dir)
+        console.print(f"  {n} samples, seed {record.get('seed')}, drive "
+                      f"{(record.get('drive') or {}).get('firmware_version', '?')}, "
+                      f"{record.get('started_utc', '?')} .. {record.get('ended_utc', '?')}")
+        return verdict_exit_code([record.get("verdict", "error")])
+
+    sys.exit(_guarded(body))
+
+
+@cli.command(name="evaluate")
+@click.argument("run_dir", type=click.Path())
+@click.option("--scenario", "scenario_path", type=click.Path(), help="Judge against this scenario's criteria "
+              "(default: the scenario file the record names).")
+@click.option("--json", "as_json", is_flag=True, help="Print the new criteria table as JSON.")
+def evaluate_cmd(run_dir, scenario_path, as_json) -> None:
+    """Re-judge a recorded run offline (e.g. against changed criteria); the record is not modified."""
+
+    def body() -> int:
+        import numpy as np
+
+        from bench.criteria import evaluate, verdict
+        from bench.records import load_run
+        from bench.scenario import load_scenario
+
+        record, columns, complete = load_run(Path(run_dir))
+        path = scenario_path or (record.get("scenario") or {}).get("path")
+        if not path:
+            raise InputError([f"{run_dir}: record.json: scenario.path: missing; give --scenario FILE"])
+        scenario = load_scenario(path)
+        t = np.asarray(columns.get("t_s", np.zeros(0)))
+        in_test = t <= scenario.duration_s + 1e-9
+        results = evaluate(scenario.criteria, t[in_test], {k: np.asarray(v)[in_test] for k, v in columns.items()
+                                                           if k != "t_s"})
+        aborted = (not complete) or record.get("verdict") in ("aborted", "error")
+        new_verdict = verdict(results, aborted=aborted)
+        if as_json:
+            click.echo(json.dumps({"run_dir": str(run_dir), "scenario": str(path), "verdict": new_verdict,
+                                  "criteria": [r.to_dict() for r in results]}, default=str))
+        else:
+            console = Console(highlight=False)
+            console.print(criteria_table(f"{scenario.name} re-evaluated: "
+                                         f"[{VERDICT_STYLE.get(new_verdict, 'bold')}]{new_verdict}[/] "
+                                         f"(recorded: {record.get('verdict')})", results))
+            if (record.get("scenario") or {}).get("sha256") not in (None, scenario.sha256):
+                console.print(f"  scenario file differs from the one recorded ({path})")
+            if not complete:
+                console.print("  the record is incomplete (killed run): judged on the recovered samples")
+        return verdict_exit_code([new_verdict])
+
+    sys.exit(_guarded(body))
+
+
+@cli.command(name="design-check")
+@click.argument("motor_config", type=click.Path())
+@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
+def design_check(motor_config, as_json) -> None:
+    """Small-signal stability of the estimator design over the speed range (exit 1 if unstable)."""
+
+    def body() -> int:
+        try:
+            from sim_backend.design_check import format_table, run_design_check
+        except ImportError as exc:
+            click.echo(f"design-check is not available: {exc}", err=True)
+            return EXIT_ERROR
+        result = run_design_check(Path(motor_config))
+        if as_json:
+            click.echo(json.dumps(result, default=_json_default))
+        else:
+            click.echo(format_table(result))
+        return EXIT_PASS if float(result["max_real_part"]) < 0 else EXIT_FAIL
+
+    sys.exit(_guarded(body))
+
+
+def _json_default(value: Any) -> Any:
+    try:
+        import numpy as np
+
+        if isinstance(value, np.ndarray):
+            return value.tolist()
+        if isinstance(value, np.generic):
+            return value.item()
+    except ImportError:
+        pass
+    if isinstance(value, complex):
+        return [value.real, value.imag]
+    return str(value)
+
+
+@cli.command()
+@click.argument("run_dirs", nargs=-1, required=True)
+def report(run_dirs) -> None:
+    """Validation report over RUN_DIRs."""
+    try:
+        from bench import report as report_module
+    except ImportError:
+        report_module = None
+    entry = getattr(report_module, "main", None)
+    if entry is None:
+        click.echo("drivebench report: not yet implemented", err=True)
+        sys.exit(EXIT_ERROR)
+    sys.exit(_guarded(lambda: int(entry(list(run_dirs)))))
+
+
+@cli.group()
+def sim() -> None:
+    """The simulated backend."""
+
+
+@sim.command()
+@click.option("--config", "config_path", type=click.Path(), required=True, help="Bench config with [simulator.serve].")
+def serve(config_path) -> None:
+    """Serve simulated drives over socketcand / serial TCP / Modbus TCP on 127.0.0.1 until Ctrl-C."""
+
+    def body() -> int:
+        try:
+            from sim_backend.serve import main as serve_main
+        except ImportError as exc:
+            click.echo(f"sim serve is not available: {exc}", err=True)
+            return EXIT_ERROR
+        try:
+            return int(serve_main(config_path) or 0)
+        except KeyboardInterrupt:
+            return EXIT_PASS
+
+    sys.exit(_guarded(body))
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        cli.main(args=argv, prog_name="drivebench", standalone_mode=True)
+    except SystemExit as exc:
+        return int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_ERROR
+    return EXIT_PASS

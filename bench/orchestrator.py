@@ -1,0 +1,387 @@
+"""Runs one scenario against one bench: connect, configure, drive the profile, supervise, stop safely, judge.
+
+The same code runs a real rig and the simulator; everything simulator-specific comes from the bench
+config's [services] entry and the link classes its transports name.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import threading
+import time
+import traceback
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from bench.benchconfig import load_bench_config
+from bench.criteria import evaluate, verdict as judge
+from bench.errors import InputError, find_repo_root
+from bench.links import make_links, started_services
+from bench.records import RunRecorder
+from bench.rerun_view import RerunStream
+from bench.scenario import load_scenario
+from bench.summary_plot import write_summary_png
+from bench.supervisor import SafeStop, Supervisor
+from drivers.api import LinkError, LiveSample
+from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
+
+# Live (PDO) signals: what the supervisor judges and the live view shows, within a CAN bus budget.
+LIVE_SIGNALS: tuple[str, ...] = (
+    "speed_ref_mech_rad_s", "speed_est_mech_rad_s", "speed_true_mech_rad_s", "pos_est_elec_rad",
+    "pos_err_elec_rad", "flux_est_wb", "flux_true_wb", "i_sx_a", "i_sy_a", "u_sx_v", "u_sy_v",
+    "torque_load_nm", "vdc_v",
+)
+TRACE_SIGNALS: tuple[str, ...] = SIGNAL_NAMES
+FETCH_PERIOD_S = 0.5       # upload the trace recorder every 0.5 s of drive time
+STATUS_PERIOD_S = 0.02     # poll the drive's status (fault, EMCY, heartbeat) every 20 ms of drive time
+PROGRESS_PERIOD_S = 0.1
+STALL_TIMEOUT_S = 5.0      # wall seconds without any live sample -> the link is dead
+
+ProgressFn = Callable[[float, float], None]
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C or SIGTERM during a run."""
+
+
+@dataclass
+class RunResult:
+    run_dir: Path
+    verdict: str                       # pass | fail | aborted | error
+    record: dict[str, Any]
+    criteria: list = field(default_factory=list)
+    interrupted: bool = False          # Ctrl-C/SIGTERM: callers should not start further runs
+    error: str | None = None           # one line when verdict == "error"
+
+    @property
+    def passed(self) -> bool:
+        return self.verdict == "pass"
+
+
+@dataclass
+class _Collected:
+    """Telemetry kept in memory for the verdict and the plot (the recorder has it on disk too)."""
+
+    chunks: list[dict[str, np.ndarray]] = field(default_factory=list)
+
+    def add(self, columns: dict[str, np.ndarray]) -> None:
+        if len(columns.get(TIME_COLUMN, ())):
+            self.chunks.append(columns)
+
+    def columns(self) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        if not self.chunks:
+            return np.zeros(0), {}
+        names = [n for n in self.chunks[0] if n != TIME_COLUMN]
+        t = np.concatenate([c[TIME_COLUMN] for c in self.chunks])
+        cols = {}
+        for n in names:
+            cols[n] = np.concatenate([
+                np.asarray(c[n], dtype=float) if n in c else np.full(len(c[TIME_COLUMN]), math.nan)
+                for c in self.chunks
+            ])
+        return t, cols
+
+
+def live_columns(samples: Sequence[LiveSample], names: Sequence[str]) -> dict[str, np.ndarray]:
+    t = np.fromiter((s.t_s for s in samples), dtype=np.float64, count=len(samples))
+    cols = {TIME_COLUMN: t}
+    for n in names:
+        cols[n] = np.fromiter((s.values.get(n, math.nan) for s in samples), dtype=np.float64, count=len(samples))
+    return cols
+
+
+def check_plant_injections(scenario, cfg: dict) -> None:
+    plant = list(scenario.plant_injections())
+    if plant and not cfg["bench"]["plant_injections"]:
+        names = ", ".join(sorted({inj.name for inj in plant}))
+        raise InputError([
+            f"{scenario.path}: injections: plant injections ({names}) need a bench that can change its plant; "
+            f"{cfg['_path']}: bench.plant_injections is false"
+        ])
+
+
+def prepare(scenario_path: str | Path, bench_path: str | Path | None = None):
+    """Load and validate the scenario and its bench config; InputError lists every problem."""
+    scenario = load_scenario(scenario_path, bench=bench_path)
+    cfg = load_bench_config(scenario.bench)
+    check_plant_injections(scenario, cfg)
+    return scenario, cfg
+
+
+class _SigtermAsInterrupt:
+    """SIGTERM raises Interrupted in the main thread for the duration of the run (so finally blocks run)."""
+
+    def __enter__(self):
+        self._previous = None
+        if threading.current_thread() is threading.main_thread():
+            def handler(signum, frame):
+                raise Interrupted("terminated (SIGTERM)")
+            self._previous = signal.signal(signal.SIGTERM, handler)
+        return self
+
+    def __exit__(self, *exc):
+        if self._previous is not None:
+            signal.signal(signal.SIGTERM, self._previous)
+        return False
+
+
+def run_scenario(
+    scenario_path: str | Path,
+    bench_path: str | Path | None = None,
+    out_root: str | Path = "runs",
+    seed: int | None = None,
+    rerun_mode: str = "save",
+    rerun_url: str | None = None,
+    progress: ProgressFn | None = None,
+    *,
+    links: tuple[Any, Any] | None = None,
+    warn: Callable[[str], None] | None = None,
+) -> RunResult:
+    """Run one scenario. Raises InputError (bad files, refused injections) and LinkError (cannot connect)
+    before a run directory exists; after that every outcome is a record and a RunResult.
+
+    `links` replaces the links the bench config names (unit tests with in-memory fakes).
+    """
+    scenario, cfg = prepare(scenario_path, bench_path)
+    seed = scenario.seed if seed is None else int(seed)
+    with _SigtermAsInterrupt():
+        with started_services(cfg, seed) as live_cfg:
+            if links is None:
+                drive, load = make_links(live_cfg, find_repo_root(cfg["_path"]))
+            else:
+                drive, load = links
+            return _run_connected(scenario, live_cfg, seed, drive, load, Path(out_root), rerun_mode, rerun_url,
+                                  progress, warn)
+
+
+def _open(drive, load):
+    identity = drive.open()
+    try:
+        load_name = load.open()
+    except BaseException:
+        _close_quietly(drive)
+        raise
+    return identity, load_name
+
+
+def _close_quietly(*links) -> list[str]:
+    errors = []
+    for link in links:
+        try:
+            link.close()
+        except Exception as exc:
+            errors.append(f"close {type(link).__name__}: {exc}")
+    return errors
+
+
+def _run_connected(scenario, cfg, seed, drive, load, out_root, rerun_mode, rerun_url, progress, warn) -> RunResult:
+    identity, load_name = _open(drive, load)  # LinkError here: nothing started, nothing to stop
+    recorder = None
+    safe_stop = SafeStop(drive, load)
+    try:
+        out_root.mkdir(parents=True, exist_ok=True)
+        recorder = RunRecorder(out_root, scenario, seed, cfg)
+    except BaseException:
+        _close_quietly(drive, load)
+        raise
+    run = _Run(scenario, cfg, seed, drive, load, identity, load_name, recorder, safe_stop, rerun_mode, rerun_url,
+               progress, warn)
+    return run.execute()
+
+
+class _Run:
+    def __init__(self, scenario, cfg, seed, drive, load, identity, load_name, recorder, safe_stop, rerun_mode,
+                 rerun_url, progress, warn):
+        self.scenario = scenario
+        self.cfg = cfg
+        self.seed = seed
+        self.drive = drive
+        self.load = load
+        self.identity = identity
+        self.recorder = recorder
+        self.safe_stop = safe_stop
+        self.progress = progress
+        self.collected = _Collected()
+        self.live_buffer: list[LiveSample] = []
+        self.supervisor = Supervisor(scenario.limits)
+        self.sync_period_s = float(cfg["drive"]["sync_period_s"])
+        self.data_source = "trace" if identity.has_trace_recorder else "pdo"
+        self.rerun = RerunStream(rerun_mode, recorder.run_dir / "run.rrd", url=rerun_url,
+                                 recording_name=recorder.run_dir.name,
+                                 **({"warn": warn} if warn is not None else {}))
+        recorder.set_drive(asdict(identity))
+        recorder.note("load_machine", load_name)
+        recorder.note("bench", {"name": cfg["bench"]["name"], "path": cfg["_path"], "timing": cfg["bench"]["timing"]})
+        recorder.note("rerun", {"mode": rerun_mode if self.rerun.enabled or rerun_mode == "off" else "off",
+                                "url": rerun_url})
+
+    # -- the run ------------------------------------------------------------------------------------------
+
+    def execute(self) -> RunResult:
+        abort_reason: str | None = None
+        error: str | None = None
+        interrupted = False
+        self.supervisor.start()
+        try:
+            self._configure_and_enable()
+            abort_reason = self._loop()
+        except Interrupted as exc:
+            interrupted = True
+            abort_reason = str(exc) or "interrupted"
+        except KeyboardInterrupt:
+            interrupted = True
+            abort_reason = "interrupted (Ctrl-C)"
+        except LinkError as exc:
+            error = f"link error: {exc}"
+        except Exception as exc:
+            error = f"{type(exc).__name__}: {exc}"
+            self.recorder.note("traceback", traceback.format_exc())
+        finally:
+            stop_errors = self.safe_stop.run()
+        try:
+            return self._finish(abort_reason, error, interrupted, stop_errors)
+        finally:
+            self.supervisor.stop()
+            self.rerun.close()
+            _close_quietly(self.drive, self.load)
+
+    def _configure_and_enable(self) -> None:
+        decimation = int(self.cfg["drive"]["trace_decimation"])
+        self.drive.configure(LIVE_SIGNALS, TRACE_SIGNALS, decimation)
+        self.recorder.note("data_source", self.data_source)
+        self.recorder.note("live_signals", list(LIVE_SIGNALS))
+        self.recorder.note("trace_decimation", decimation)
+        mode, value = self.scenario.load_at(0.0)
+        self.load.set_load(mode, value)
+        self.load.enable(True)
+        self._load_setting = (mode, value)
+        self.drive.set_speed_ref(self.scenario.speed_ref_at(0.0))
+        self._speed_ref = self.scenario.speed_ref_at(0.0)
+        self.drive.enable_velocity_mode()
+
+    def _loop(self) -> str | None:
+        duration = float(self.scenario.duration_s)
+        period = self.sync_period_s
+        injections = list(self.scenario.injections)
+        applied: list[dict] = []
+        t_drive = 0.0
+        next_fetch = FETCH_PERIOD_S
+        next_status = 0.0
+        next_progress = 0.0
+        last_sample_wall = time.monotonic()
+        k = 0
+        while t_drive < duration - 1e-9:
+            if self.supervisor.tripped.is_set():
+                break
+            t_cmd = t_drive
+            while injections and injections[0].at_s <= t_cmd + 1e-9:
+                inj = injections.pop(0)
+                self.drive.write_parameter(inj.name, inj.value)
+                applied.append({"at_s": inj.at_s, "name": inj.name, "value": inj.value, "applied_t_s": t_cmd})
+                self.recorder.note("injections_applied", applied)
+            ref = self.scenario.speed_ref_at(t_cmd + period)
+            if ref != self._speed_ref:
+                self.drive.set_speed_ref(ref)
+                self._speed_ref = ref
+            setting = self.scenario.load_at(t_cmd + period)
+            if setting != self._load_setting:
+                self.load.set_load(*setting)
+                self._load_setting = setting
+
+            samples = self.drive.sync()
+            k += 1
+            if samples:
+                last_sample_wall = time.monotonic()
+                t_drive = samples[-1].t_s
+                self.supervisor.feed(samples)
+                self.rerun.log_rows([s.t_s for s in samples], [s.values for s in samples])
+                if self.data_source == "pdo":
+                    self.live_buffer.extend(samples)
+            elif time.monotonic() - last_sample_wall > STALL_TIMEOUT_S:
+                raise LinkError(f"no telemetry from the drive for {STALL_TIMEOUT_S:g} s (after t={t_drive:.3f} s)")
+
+            if t_drive >= next_status:
+                self.supervisor.feed_status(t_drive, self.drive.status())
+                next_status = t_drive + STATUS_PERIOD_S
+            if t_drive >= next_fetch:
+                self._record_pending()
+                next_fetch = t_drive + FETCH_PERIOD_S
+            if self.progress is not None and t_drive >= next_progress:
+                self.progress(min(t_drive, duration), duration)
+                next_progress = t_drive + PROGRESS_PERIOD_S
+        # judge what has been fed before deciding the run went to its end
+        self.supervisor.drain()
+        if self.progress is not None:
+            self.progress(min(t_drive, duration), duration)
+        if self.supervisor.trip is not None:
+            return self.supervisor.trip.message
+        return None
+
+    def _record_pending(self) -> None:
+        if self.data_source == "trace":
+            block = self.drive.fetch_trace()
+            if block is None:  # the drive said it has a recorder but gives nothing: fall back to live data
+                self.data_source = "pdo"
+                self.recorder.note("data_source", "pdo")
+                return
+            if len(block.get(TIME_COLUMN, ())):
+                self._append(block)
+        elif self.live_buffer:
+            block = live_columns(self.live_buffer, LIVE_SIGNALS)
+            self.live_buffer = []
+            self._append(block)
+
+    def _append(self, block: dict[str, np.ndarray]) -> None:
+        block = {k: np.asarray(v) for k, v in block.items()}
+        self.recorder.append(block)
+        self.collected.add(block)
+
+    # -- after the safe stop --------------------------------------------------------------------------------
+
+    def _finish(self, abort_reason, error, interrupted, stop_errors) -> RunResult:
+        trip = self.supervisor.trip
+        if trip is not None:
+            self.recorder.note("supervisor_trip", trip.as_dict())
+        self.recorder.note("safe_stop", {"steps": self.safe_stop.steps, "errors": stop_errors})
+        try:
+            self._record_pending()  # final trace upload (includes the stop)
+        except Exception as exc:
+            self.recorder.note("final_fetch_error", f"{type(exc).__name__}: {exc}")
+            if error is None and abort_reason is None:
+                error = f"final trace upload failed: {exc}"
+        t, columns = self.collected.columns()
+        duration = float(self.scenario.duration_s)
+        in_test = t <= duration + 1e-9
+        try:
+            results = evaluate(self.scenario.criteria, t[in_test], {k: v[in_test] for k, v in columns.items()})
+        except Exception as exc:
+            results = []
+            if error is None:
+                error = f"criteria evaluation failed: {type(exc).__name__}: {exc}"
+        if error is not None:
+            verdict = "error"
+            reason = error
+        else:
+            verdict = judge(results, aborted=abort_reason is not None)
+            reason = abort_reason
+        if stop_errors:
+            reason = "; ".join(filter(None, [reason, "safe stop incomplete: " + "; ".join(stop_errors)]))
+            if verdict == "pass":
+                verdict = "error"
+        try:
+            if len(t):
+                write_summary_png(self.recorder.run_dir / "summary.png", t, columns,
+                                  title=f"{self.scenario.name} - {verdict}")
+        except Exception as exc:
+            self.recorder.note("summary_png_error", f"{type(exc).__name__}: {exc}")
+        record_path = self.recorder.finish(verdict, results, reason)
+        record_file = Path(record_path)
+        if record_file.is_dir():
+            record_file = record_file / "record.json"
+        record = json.loads(record_file.read_text())
+        return RunResult(self.recorder.run_dir, verdict, record, results, interrupted, error)

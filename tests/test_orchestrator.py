@@ -1,0 +1,198 @@
+"""Orchestrator over in-memory fake links: full run, trips, interrupts, errors, no-trace drives, refusals."""
+
+from __future__ import annotations
+
+import json
+import math
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench.errors import InputError
+from bench.orchestrator import LIVE_SIGNALS, run_scenario
+from bench.records import load_run
+from drivers.api import LinkError
+from tests.fakes import SAFE_STOP, FakeRig
+
+BENCH = """
+[bench]
+name = "fake"
+plant_injections = {plant}
+
+[drive]
+transport = "serial"
+port = "fake"
+sync_period_s = 0.001
+
+[load]
+transport = "modbus-tcp"
+host = "127.0.0.1"
+port = 1
+"""
+
+SCENARIO = """
+schema_version = 1
+name = "toy-ramp"
+bench = "{bench}"
+duration_s = {duration}
+
+[[speed]]
+kind = "ramp"
+start_s = 0.0
+end_s = 0.2
+speed_mech_rad_s = 20.0
+
+[[load]]
+kind = "torque"
+start_s = 0.5
+torque_nm = 2.0
+
+{extra}
+
+[limits]
+overspeed_mech_rad_s = 40.0
+overcurrent_a = 10.0
+
+[[criteria]]
+name = "speed steady"
+kind = "steady_state_error"
+signal = "speed_true_mech_rad_s"
+window_s = [0.7, {duration}]
+reference = "speed_ref_mech_rad_s"
+percent = true
+limit = {limit}
+"""
+
+
+def write_case(tmp_path: Path, *, plant: bool = True, duration: float = 1.0, limit: float = 1.0,
+               extra: str = "") -> Path:
+    bench = tmp_path / "bench.toml"
+    bench.write_text(textwrap.dedent(BENCH.format(plant=str(plant).lower())))
+    scenario = tmp_path / "scenario.toml"
+    scenario.write_text(SCENARIO.format(bench=bench, duration=duration, limit=limit, extra=extra))
+    return scenario
+
+
+def run(tmp_path, rig, **kwargs):
+    scenario = kwargs.pop("scenario", None) or write_case(tmp_path, **kwargs.pop("case", {}))
+    return run_scenario(scenario, out_root=tmp_path / "runs", rerun_mode=kwargs.pop("rerun_mode", "off"),
+                        links=rig.links(), **kwargs)
+
+
+def safe_stop_calls(rig) -> list[str]:
+    return [n for n in rig.names() if n in SAFE_STOP]
+
+
+def test_full_run_passes_and_records_everything(tmp_path):
+    rig = FakeRig()
+    progress = []
+    result = run(tmp_path, rig, case={"extra": '[[injection]]\nat_s = 0.3\nname = "plant_rs"\nvalue = 0.8'},
+                 progress=lambda t, total: progress.append(t))
+    assert result.verdict == "pass", result.record
+    rec = json.loads((result.run_dir / "record.json").read_text())
+    assert rec["verdict"] == "pass" and rec["complete"]
+    assert rec["drive"]["firmware_version"] == "toy-1.0"
+    assert rec["data_source"] == "trace"
+    assert rec["safe_stop"] == {"steps": ["load zero torque and disabled", "drive quick stop", "drive disabled"],
+                                "errors": []}
+    assert rec["injections_applied"][0]["name"] == "plant_rs"
+    assert rig.model.plant_factors == {"plant_rs": 0.8}
+    assert [c["name"] for c in rec["criteria"]] == ["speed steady"]
+    assert safe_stop_calls(rig) == SAFE_STOP
+    assert rig.names()[-2:] == ["drive.close", "load.close"]
+    # configure got the live set and the full trace at the config's decimation
+    configure = next(args for name, args in rig.calls if name == "drive.configure")
+    assert configure[0] == LIVE_SIGNALS and configure[2] == 1
+    # the load step at 0.5 s reached the load machine
+    assert ("load.set_load", (0, 2.0)) in rig.calls
+    # full-rate trace: 10 kHz toy control rate for 1 s, plus what the final upload brings
+    _, columns, complete = load_run(result.run_dir)
+    assert complete and len(columns["t_s"]) >= 10_000
+    assert np.all(np.diff(columns["t_s"]) > 0)
+    assert (result.run_dir / "summary.png").stat().st_size > 10_000
+    assert progress and math.isclose(progress[-1], 1.0)
+
+
+def test_failed_criterion_gives_fail(tmp_path):
+    rig = FakeRig()
+    result = run(tmp_path, rig, case={"limit": 0.0, "duration": 0.75})  # the toy lags: error > 0 %
+    assert result.verdict == "fail"
+    assert safe_stop_calls(rig) == SAFE_STOP
+
+
+def test_supervisor_trip_aborts_and_stops_once(tmp_path):
+    rig = FakeRig(overspeed_offset=50.0)  # true speed reported 50 rad/s high -> overspeed at once
+    result = run(tmp_path, rig)
+    assert result.verdict == "aborted"
+    rec = result.record
+    assert "overspeed" in rec["abort_reason"]
+    assert rec["supervisor_trip"]["reason"] == "overspeed"
+    assert rec["supervisor_trip"]["values"]["speed_true_mech_rad_s"] > 40.0
+    assert rec["supervisor_trip"]["t_s"] < 0.1
+    assert safe_stop_calls(rig) == SAFE_STOP
+
+
+def test_drive_fault_trips_the_supervisor(tmp_path):
+    rig = FakeRig(fault_at_s=0.3)
+    result = run(tmp_path, rig)
+    assert result.verdict == "aborted"
+    assert result.record["supervisor_trip"]["reason"] == "fault"
+    assert 0.3 <= result.record["supervisor_trip"]["t_s"] < 0.4
+    assert safe_stop_calls(rig) == SAFE_STOP
+
+
+def test_ctrl_c_aborts_with_record_and_single_safe_stop(tmp_path):
+    rig = FakeRig(interrupt_at_s=0.25)
+    result = run(tmp_path, rig)
+    assert result.verdict == "aborted" and result.interrupted
+    assert "interrupted" in result.record["abort_reason"]
+    assert safe_stop_calls(rig) == SAFE_STOP
+    _, columns, complete = load_run(result.run_dir)
+    assert complete and 0.2 < columns["t_s"][-1] < 0.4
+
+
+def test_link_error_mid_run_is_an_error_record(tmp_path):
+    rig = FakeRig(sync_error_at_s=0.4)
+    result = run(tmp_path, rig)
+    assert result.verdict == "error"
+    assert "SYNC not answered" in result.record["abort_reason"]
+    assert safe_stop_calls(rig) == SAFE_STOP
+
+
+def test_link_error_at_connect_raises_before_a_run_dir(tmp_path):
+    rig = FakeRig(open_error="no answer from node 1")
+    with pytest.raises(LinkError, match="node 1"):
+        run(tmp_path, rig)
+    assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").iterdir())
+
+
+def test_drive_without_trace_recorder_records_live_samples(tmp_path):
+    rig = FakeRig(has_trace_recorder=False)
+    result = run(tmp_path, rig)
+    assert result.record["data_source"] == "pdo"
+    _, columns, complete = load_run(result.run_dir)
+    assert complete and 900 <= len(columns["t_s"]) <= 1001  # one live sample per 1 ms SYNC
+    assert np.isnan(columns["torque_est_nm"]).all()         # not a live signal
+    assert result.verdict == "pass"
+
+
+def test_plant_injection_refused_before_connecting(tmp_path):
+    rig = FakeRig()
+    scenario = write_case(tmp_path, plant=False,
+                          extra='[[injection]]\nat_s = 0.3\nname = "plant_rs"\nvalue = 0.8')
+    with pytest.raises(InputError) as info:
+        run(tmp_path, rig, scenario=scenario)
+    assert any("plant_injections = false" in line for line in info.value.problems)
+    assert rig.calls == []
+
+
+def test_rerun_file_written_with_signal_entities(tmp_path):
+    rig = FakeRig()
+    result = run(tmp_path, rig, rerun_mode="save")
+    from bench.rerun_view import rrd_entity_paths
+
+    paths = rrd_entity_paths(result.run_dir / "run.rrd")
+    assert {f"/{name}" for name in LIVE_SIGNALS} <= paths
+    assert {"/flux_vector/true", "/flux_vector/estimated"} <= paths
