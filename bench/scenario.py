@@ -144,8 +144,8 @@ def load_scenario(path: str | Path, bench: str | Path | None = None) -> Scenario
     version = p.integer(raw, "schema_version", "")
     if version is not None and version != SCHEMA_VERSION:
         p.add("schema_version", f"unsupported version {version} (this bench reads {SCHEMA_VERSION})")
-    name = p.string(raw, "name", "", required=False, default=path.stem) or path.stem
-    if not name.strip():
+    name = p.string(raw, "name", "", required=False, default=path.stem)
+    if name is not None and not name.strip():
         p.add("name", "must not be empty")
     description = p.string(raw, "description", "", required=False, default="") or ""
     duration = p.number(raw, "duration_s", "", positive=True)
@@ -245,7 +245,7 @@ def _speed_value(p: Problems, table: dict, where: str, prefix: str, required: bo
 
 
 def _speed_segments(p: Problems, items: list[tuple[str, dict]], duration: float) -> tuple[SpeedSegment, ...]:
-    parsed: list[tuple[str, dict, str, float, float | None]] = []
+    parsed = []
     for where, item in items:
         kind = p.string(item, "kind", where, choices=tuple(_SPEED_KEYS))
         if kind is None:
@@ -253,32 +253,29 @@ def _speed_segments(p: Problems, items: list[tuple[str, dict]], duration: float)
         p.unknown_keys(item, _SPEED_KEYS[kind], where)
         start = _time(p, item, "at_s" if kind == "step" else "start_s", where, duration, allow_end=False)
         end = _time(p, item, "end_s", where, duration, required=kind in ("ramp", "reversal"))
-        if start is None:
+        to = _speed_value(p, item, where, "", required=True) if kind != "reversal" else 0.0
+        frm = _speed_value(p, item, where, "from_", required=False) if kind in ("ramp", "reversal") else None
+        if kind == "reversal" and frm == 0:
+            p.add(where, "a reversal from zero speed")
+            continue
+        if start is None or to is None:
             continue
         if end is not None and (end < start or (end == start and kind in ("ramp", "reversal"))):
             p.add(f"{where}.end_s", f"{end:g} s must be after the start {start:g} s")
             continue
-        parsed.append((where, item, kind, start, end))
+        parsed.append((where, kind, start, end, frm, to))
 
+    _check_order(p, [(w, s, e) for w, _, s, e, _, _ in parsed])
     segments: list[SpeedSegment] = []
-    _check_order(p, [(w, s, e) for w, _, _, s, e in parsed])
-    for n, (where, item, kind, start, end) in enumerate(parsed):
+    for n, (where, kind, start, end, frm, to) in enumerate(parsed):
         if end is None:
-            end = parsed[n + 1][3] if n + 1 < len(parsed) else duration
+            end = parsed[n + 1][2] if n + 1 < len(parsed) else duration
         before = segments[-1].to_mech_rad_s if segments else 0.0
         if kind in ("hold", "step"):
-            v = _speed_value(p, item, where, "", required=True)
-            if v is None:
-                continue
-            segments.append(SpeedSegment(kind, start, end, v, v))
+            segments.append(SpeedSegment(kind, start, end, to, to))
         elif kind == "ramp":
-            to = _speed_value(p, item, where, "", required=True)
-            frm = _speed_value(p, item, where, "from_", required=False)
-            if to is None:
-                continue
             segments.append(SpeedSegment(kind, start, end, before if frm is None else frm, to))
         else:
-            frm = _speed_value(p, item, where, "from_", required=False)
             frm = before if frm is None else frm
             if frm == 0:
                 p.add(where, "a reversal from zero speed: give from_speed_mech_rad_s or from_speed_rpm")
@@ -306,11 +303,6 @@ def _load_segments(p: Problems, items: list[tuple[str, dict]], duration: float) 
         p.unknown_keys(item, _LOAD_KEYS[kind], where)
         start = _time(p, item, "start_s", where, duration, allow_end=False)
         end = _time(p, item, "end_s", where, duration, required=False)
-        if start is None:
-            continue
-        if end is not None and end <= start:
-            p.add(f"{where}.end_s", f"{end:g} s must be after the start {start:g} s")
-            continue
         if kind == "torque":
             mode, value = LoadMode.TORQUE, p.number(item, "torque_nm", where)
         elif kind == "brake":
@@ -322,7 +314,10 @@ def _load_segments(p: Problems, items: list[tuple[str, dict]], duration: float) 
             radius = p.number(item, "drum_radius_m", where, positive=True)
             g = p.number(item, "gravity_m_s2", where, required=False, default=GRAVITY_M_S2, positive=True)
             mode, value = LoadMode.TORQUE, (None if None in (mass, radius, g) else mass * g * radius)
-        if value is None:
+        if value is None or start is None:
+            continue
+        if end is not None and end <= start:
+            p.add(f"{where}.end_s", f"{end:g} s must be after the start {start:g} s")
             continue
         parsed.append((where, kind, start, end, mode, value))
     _check_order(p, [(w, s, e) for w, _, s, e, _, _ in parsed])

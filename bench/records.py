@@ -1,0 +1,375 @@
+"""Run records: one directory per run, written as the run goes.
+
+runs/<UTC time>-<scenario name>/
+  record.json        written at start (verdict "running"), rewritten atomically (tmp + os.replace) on every change
+  telemetry.arrows   append-only Arrow IPC stream journal, flushed at least every flush interval (wall time);
+                     a SIGKILLed run keeps every batch flushed so far. Removed once telemetry.parquet is written.
+  telemetry.parquet  at finish: t_s (drive clock) + one float64 column per signal, catalogue names
+  junit.xml          at finish: one testcase per criterion
+The recorder keeps at most one flush interval of rows in memory; finish() streams the journal into Parquet.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as dt
+import json
+import math
+import os
+import re
+import subprocess
+import threading
+import time
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+from xml.etree import ElementTree as ET
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from bench.criteria import CriterionResult
+from bench.errors import InputError, find_repo_root
+from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
+
+RECORD = "record.json"
+JOURNAL = "telemetry.arrows"
+PARQUET = "telemetry.parquet"
+JUNIT = "junit.xml"
+VERDICTS = ("pass", "fail", "aborted", "error")
+_ROW_GROUP_ROWS = 1 << 20
+
+
+def utc_now() -> str:
+    return dt.datetime.now(dt.timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+def software_identity() -> dict[str, Any]:
+    try:
+        version = metadata.version("drivebench")
+    except metadata.PackageNotFoundError:
+        version = None
+    root = find_repo_root()
+    revision, dirty = None, None
+    try:
+        revision = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True,
+                                  timeout=5).stdout.strip() or None
+        if revision:
+            status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+                                    capture_output=True, text=True, timeout=10)
+            dirty = bool(status.stdout.strip()) if status.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return {"version": version, "git_revision": revision, "git_dirty": dirty}
+
+
+def json_safe(value: Any) -> Any:
+    """Plain JSON: numpy scalars/arrays to Python, dataclasses to dicts, NaN/inf to null."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        value = dataclasses.asdict(value)
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return [json_safe(v) for v in value.tolist()]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, (str, int, float, bool)) or value is None:
+        return value
+    return str(value)
+
+
+def write_json_atomic(path: Path, data: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump(json_safe(data), f, indent=2, allow_nan=False)
+        f.write("\n")
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def _run_dir_name(name: str) -> str:
+    stamp = dt.datetime.now(dt.timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")[:-4] + "Z"
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "-", name).strip("-.") or "scenario"
+    return f"{stamp}-{safe}"
+
+
+class RunRecorder:
+    """Writes one run directory. append() is cheap; a background thread flushes the journal on time."""
+
+    def __init__(self, out_root: Path, scenario, seed: int, bench_cfg: dict, flush_interval_s: float = 0.5):
+        out_root = Path(out_root)
+        out_root.mkdir(parents=True, exist_ok=True)
+        base = _run_dir_name(scenario.name)
+        for n in range(1000):
+            candidate = out_root / (base if n == 0 else f"{base}-{n}")
+            try:
+                candidate.mkdir()
+                break
+            except FileExistsError:
+                continue
+        else:
+            raise RuntimeError(f"cannot create a run directory under {out_root}")
+        self.run_dir: Path = candidate
+        self.flush_interval_s = float(flush_interval_s)
+        bench = bench_cfg.get("bench", {}) if isinstance(bench_cfg, dict) else {}
+        self.record: dict[str, Any] = {
+            "verdict": "running",
+            "complete": False,
+            "scenario": {"path": str(scenario.path), "sha256": scenario.sha256, "name": scenario.name,
+                         "duration_s": scenario.duration_s},
+            "seed": seed,
+            "bench": {"name": bench.get("name"), "path": bench_cfg.get("_path") if isinstance(bench_cfg, dict)
+                      else None},
+            "drive": {"identity": None, "firmware_version": None},
+            "software": software_identity(),
+            "started_utc": utc_now(),
+            "ended_utc": None,
+            "abort_reason": None,
+            "criteria": [],
+            "telemetry": {"rows": 0, "t_first_s": None, "t_last_s": None},
+        }
+        self._lock = threading.Lock()
+        self._pending: list[dict[str, np.ndarray]] = []
+        self._schema: pa.Schema | None = None
+        self._journal_file = None
+        self._writer: pa.ipc.RecordBatchStreamWriter | None = None
+        self._rows = 0
+        self._last_flush = time.monotonic()
+        self._stop = threading.Event()
+        self._closed = False
+        self._write_record()
+        self._flusher = threading.Thread(target=self._flush_loop, name=f"journal-{self.run_dir.name}", daemon=True)
+        self._flusher.start()
+
+    # --- while running ---------------------------------------------------------------------------------
+
+    def set_drive(self, identity: dict) -> None:
+        identity = json_safe(identity)
+        with self._lock:
+            self.record["drive"] = {"identity": identity,
+                                    "firmware_version": identity.get("firmware_version")
+                                    if isinstance(identity, dict) else None}
+            self._write_record()
+
+    def note(self, key: str, value) -> None:
+        with self._lock:
+            self.record[key] = json_safe(value)
+            self._write_record()
+
+    def append(self, columns: dict[str, np.ndarray]) -> None:
+        """Rows: "t_s" + signal columns, equal lengths. Signals not given are NaN in the record."""
+        if TIME_COLUMN not in columns:
+            raise ValueError(f"append(): the {TIME_COLUMN!r} column is missing")
+        block = {k: np.array(v, dtype=np.float64, copy=True).reshape(-1) for k, v in columns.items()}
+        n = block[TIME_COLUMN].size
+        bad = [k for k, v in block.items() if v.size != n]
+        if bad:
+            raise ValueError(f"append(): columns {bad} do not have {n} rows like {TIME_COLUMN!r}")
+        if n == 0:
+            return
+        with self._lock:
+            if self._closed:
+                raise RuntimeError("append() after finish()")
+            if self._schema is None:
+                extras = sorted(k for k in block if k != TIME_COLUMN and k not in SIGNAL_NAMES)
+                names = [TIME_COLUMN, *SIGNAL_NAMES, *extras]
+                self._schema = pa.schema([pa.field(k, pa.float64()) for k in names])
+            else:
+                unknown = [k for k in block if self._schema.get_field_index(k) < 0]
+                if unknown:
+                    raise ValueError(f"append(): columns {unknown} were not in the first block")
+            self._pending.append(block)
+            due = time.monotonic() - self._last_flush >= self.flush_interval_s
+        if due:
+            self.flush()
+
+    def flush(self) -> None:
+        """Write pending rows to the journal as one record batch and push it to the OS."""
+        with self._lock:
+            self._flush_locked()
+
+    # --- at the end --------------------------------------------------------------------------------------
+
+    def finish(self, verdict: str, criteria: list[CriterionResult], abort_reason: str | None) -> Path:
+        if verdict not in VERDICTS:
+            raise ValueError(f"verdict must be one of {VERDICTS}, got {verdict!r}")
+        self._stop.set()
+        self._flusher.join(timeout=5)
+        with self._lock:
+            self._flush_locked()
+            self._closed = True
+            if self._writer is not None:
+                self._writer.close()
+                self._journal_file.flush()
+                os.fsync(self._journal_file.fileno())
+                self._journal_file.close()
+            self._write_parquet()
+            results = [c.to_dict() if hasattr(c, "to_dict") else dict(c) for c in criteria]
+            self.record.update(verdict=verdict, criteria=results, abort_reason=abort_reason,
+                               ended_utc=utc_now(), complete=True)
+            write_junit(self.run_dir / JUNIT, self.record)
+            self._write_record()
+            journal = self.run_dir / JOURNAL
+            if journal.exists():
+                journal.unlink()
+        return self.run_dir
+
+    # --- internals ---------------------------------------------------------------------------------------
+
+    def _flush_loop(self) -> None:
+        while not self._stop.wait(self.flush_interval_s / 2):
+            with self._lock:
+                if self._pending and time.monotonic() - self._last_flush >= self.flush_interval_s / 2:
+                    self._flush_locked()
+
+    def _flush_locked(self) -> None:
+        self._last_flush = time.monotonic()
+        if not self._pending:
+            return
+        n = sum(b[TIME_COLUMN].size for b in self._pending)
+        arrays = []
+        for f in self._schema:
+            parts = [b.get(f.name) for b in self._pending]
+            if all(p is not None for p in parts):
+                col = np.concatenate(parts)
+            else:
+                col = np.concatenate([p if p is not None else np.full(b[TIME_COLUMN].size, np.nan)
+                                      for p, b in zip(parts, self._pending)])
+            arrays.append(pa.array(col, type=pa.float64()))
+        batch = pa.RecordBatch.from_arrays(arrays, schema=self._schema)
+        if self._writer is None:
+            self._journal_file = open(self.run_dir / JOURNAL, "wb")
+            self._writer = pa.ipc.new_stream(self._journal_file, self._schema)
+        self._writer.write_batch(batch)
+        self._journal_file.flush()
+        t = arrays[0]
+        tel = self.record["telemetry"]
+        if tel["t_first_s"] is None:
+            tel["t_first_s"] = float(t[0].as_py())
+        tel["t_last_s"] = float(t[n - 1].as_py())
+        self._rows += n
+        tel["rows"] = self._rows
+        self._pending.clear()
+
+    def _write_parquet(self) -> None:
+        journal = self.run_dir / JOURNAL
+        tmp = self.run_dir / (PARQUET + ".tmp")
+        schema = self._schema or _empty_schema()
+        with pq.ParquetWriter(tmp, schema, compression="zstd") as out:
+            pending: list[pa.RecordBatch] = []
+            pending_rows = 0
+            for batch in _read_journal(journal)[1] if journal.exists() else []:
+                pending.append(batch)
+                pending_rows += batch.num_rows
+                if pending_rows >= _ROW_GROUP_ROWS:
+                    out.write_table(pa.Table.from_batches(pending, schema=schema))
+                    pending, pending_rows = [], 0
+            if pending or pending_rows == 0:
+                out.write_table(pa.Table.from_batches(pending, schema=schema))
+        os.replace(tmp, self.run_dir / PARQUET)
+
+    def _write_record(self) -> None:
+        write_json_atomic(self.run_dir / RECORD, self.record)
+
+
+def _empty_schema() -> pa.Schema:
+    return pa.schema([pa.field(k, pa.float64()) for k in (TIME_COLUMN, *SIGNAL_NAMES)])
+
+
+def _read_journal(path: Path):
+    """(schema or None, generator of complete batches); stops quietly at a truncated or missing tail."""
+    f = open(path, "rb")
+    try:
+        reader = pa.ipc.open_stream(f)
+    except (pa.ArrowInvalid, OSError, EOFError):
+        f.close()
+        return None, iter(())
+
+    def batches():
+        try:
+            while True:
+                try:
+                    yield reader.read_next_batch()
+                except StopIteration:
+                    return
+                except (pa.ArrowInvalid, OSError, EOFError):
+                    return   # the batch being written when the run was killed
+        finally:
+            f.close()
+
+    return reader.schema, batches()
+
+
+def write_junit(path: Path, record: dict) -> None:
+    scenario = record.get("scenario", {}).get("name") or "scenario"
+    criteria = record.get("criteria", [])
+    suite = ET.Element("testsuite", name=scenario)
+    failures = skipped = errors = 0
+    for c in criteria:
+        case = ET.SubElement(suite, "testcase", classname=f"drivebench.{scenario}", name=str(c["name"]))
+        text = (f"{c['kind']} of {c['signal']} in [{c['window_s'][0]:g}, {c['window_s'][1]:g}] s: "
+                f"value {_fmt(c['value'])}, limit {_fmt(c['limit'])}")
+        if not c["passed"] and c.get("known_gap"):
+            skipped += 1
+            ET.SubElement(case, "skipped", message=f"known gap: {c['known_gap']}").text = f"{text}; {c['detail']}"
+        elif not c["passed"]:
+            failures += 1
+            ET.SubElement(case, "failure", message=text).text = c.get("detail", "")
+        else:
+            ET.SubElement(case, "system-out").text = f"{text}; {c.get('detail', '')}"
+    if record.get("verdict") in ("aborted", "error"):
+        errors += 1
+        case = ET.SubElement(suite, "testcase", classname=f"drivebench.{scenario}", name="run")
+        ET.SubElement(case, "error", message=f"run {record['verdict']}: {record.get('abort_reason') or 'no reason given'}")
+    suite.set("tests", str(len(criteria) + errors))
+    suite.set("failures", str(failures))
+    suite.set("errors", str(errors))
+    suite.set("skipped", str(skipped))
+    suite.set("timestamp", str(record.get("started_utc") or ""))
+    root = ET.Element("testsuites")
+    root.append(suite)
+    ET.indent(root)
+    tmp = path.with_name(path.name + ".tmp")
+    ET.ElementTree(root).write(tmp, encoding="utf-8", xml_declaration=True)
+    os.replace(tmp, path)
+
+
+def _fmt(v) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "n/a"
+    return f"{v:.6g}"
+
+
+def load_run(run_dir) -> tuple[dict, dict[str, np.ndarray], bool]:
+    """(record, columns incl. t_s, complete). A killed run is recovered from its journal with complete=False."""
+    run_dir = Path(run_dir)
+    record_path = run_dir / RECORD
+    try:
+        record = json.loads(record_path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError([f"{run_dir}: {RECORD}: not found (not a run directory?)"]) from None
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise InputError([f"{record_path}: (file): unreadable: {e}"]) from None
+    parquet, journal = run_dir / PARQUET, run_dir / JOURNAL
+    complete = bool(record.get("complete")) and record.get("verdict") in VERDICTS
+    if parquet.exists():
+        table = pq.read_table(parquet)
+        columns = {name: table.column(name).to_numpy() for name in table.column_names}
+        return record, columns, complete
+    if journal.exists():
+        schema, batches = _read_journal(journal)
+        batches = list(batches)
+        if schema is None:
+            schema = _empty_schema()
+        table = pa.Table.from_batches(batches, schema=schema)
+        columns = {name: table.column(name).to_numpy() for name in table.column_names}
+        return record, columns, False
+    return record, {name: np.zeros(0) for name in (TIME_COLUMN, *SIGNAL_NAMES)}, False
