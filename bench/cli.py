@@ -28,12 +28,12 @@ EXIT_PASS, EXIT_FAIL, EXIT_ERROR = 0, 1, 2
 PROGRESS_MIN_DURATION_S = 3.0   # show a progress bar for scenarios at least this long (drive time)
 URL_RE = re.compile(r"^(rerun(\+https?)?|https?)://")
 
-err_console = Console(stderr=True, highlight=False)
+err_console = Console(stderr=True, highlight=False, soft_wrap=True)
 
 
 def _out_console(as_json: bool) -> Console:
     # with --json, stdout carries JSON documents only; tables go to stderr
-    return err_console if as_json else Console(highlight=False)
+    return err_console if as_json else Console(highlight=False, soft_wrap=True)
 
 
 def _problem_lines(exc: BaseException) -> list[str]:
@@ -286,7 +286,7 @@ def list_scenarios() -> None:
         except InputError as exc:
             description = f"[red]invalid[/red]: {exc.problems[0] if exc.problems else exc}"
         table.add_row(str(f), description)
-    Console(highlight=False).print(table)
+    Console(highlight=False, soft_wrap=True).print(table)
 
 
 @cli.command()
@@ -303,7 +303,7 @@ def show(run_dir, as_json) -> None:
         if as_json:
             click.echo(json.dumps({**record, "_complete": complete, "_samples": n}, default=str))
             return verdict_exit_code([record.get("verdict") or "aborted"]) if complete else EXIT_FAIL
-        console = Console(highlight=False)
+        console = Console(highlight=False, soft_wrap=True)
         if not complete:
             last = float(columns["t_s"][-1]) if n else float("nan")
             console.print(f"[bold red]incomplete run[/] ({run_dir}): the bench did not finish the record "
@@ -348,7 +348,7 @@ def evaluate_cmd(run_dir, scenario_path, as_json) -> None:
             click.echo(json.dumps({"run_dir": str(run_dir), "scenario": str(path), "verdict": new_verdict,
                                   "criteria": [r.to_dict() for r in results]}, default=str))
         else:
-            console = Console(highlight=False)
+            console = Console(highlight=False, soft_wrap=True)
             console.print(criteria_table(f"{scenario.name} re-evaluated: "
                                          f"[{VERDICT_STYLE.get(new_verdict, 'bold')}]{new_verdict}[/] "
                                          f"(recorded: {record.get('verdict')})", results))
