@@ -1,7 +1,7 @@
 """DriveLink over the drivebench serial protocol (docs/serial-protocol.md), via pyserial.
 
-The [drive] section: transport = "serial", url (a device path, a pty path or any pyserial URL such as
-socket://127.0.0.1:29537), baudrate, timeout_s, retries, sync_period_s, timing ("lockstep" | "realtime"),
+The [drive] section: transport = "serial", port (or url: a device path, a pty path or any pyserial URL such
+as socket://127.0.0.1:29537), baudrate, timeout_s, retries, sync_period_s, timing ("lockstep" | "realtime"),
 fault_reset ("once" | "never").
 """
 
@@ -44,9 +44,9 @@ def state_from_statusword(word: int) -> str:
 
 class SerialDriveLink:
     def __init__(self, section: dict, base_dir: Path):
-        url = section.get("url")
+        url = section.get("url") or section.get("port")      # bench configs call it `port`
         if not isinstance(url, str) or not url:
-            raise ValueError("[drive] url: required for transport 'serial' (a port path or pyserial URL)")
+            raise ValueError("[drive] port: required for transport 'serial' (a device path or pyserial URL)")
         self.url = url
         self.baudrate = int(section.get("baudrate", 115200))
         self.timeout_s = float(section.get("timeout_s", 0.5))
