@@ -18,14 +18,16 @@ Estimator (paper section III), in the frame (x, y) fixed to the estimated rotor 
 
 from __future__ import annotations
 
-import cmath
 import math
 
 import numpy as np
 from numba import njit
 
+from drivers import signals
 from drivers.signals import SIGNAL_INDEX
-from sim_backend.mechanics import wrap_angle
+from sim_backend.pmsm.numba_cache import drop_stale_cache
+
+drop_stale_cache(__file__, [signals.__file__])
 
 SQRT3 = math.sqrt(3.0)
 
@@ -53,7 +55,8 @@ F_DELAY_COMP = 19          # angle advance of the inverse Park transform, in con
 F_DEADTIME_COMP_V = 20     # per-phase dead-time/drop compensation voltage, V
 F_DEADTIME_COMP_WIDTH = 21  # current below which the compensation fades linearly, A
 F_ISX_REF = 22             # field-axis current reference, A (paper: 0)
-N_PARAMS = 23
+F_FLUX_EST_MAX_FRACTION = 23  # psi^ kept <= this fraction of F_FLUX (a magnet cannot grow)
+N_PARAMS = 24
 
 # ---- state (fw_state array) ----
 S_ENABLE_CMD = 0           # fieldbus: 1 = operation enabled
@@ -79,7 +82,9 @@ S_INT_IX = 19              # current PI integrators, V
 S_INT_IY = 20
 S_M_ALPHA = 21             # output: PWM modulation command (voltage / measured vdc)
 S_M_BETA = 22
-N_STATE = 23
+S_TO_FRAME_RE = 23         # e^(-j rho^) of this step, reused by the inverse Park transform
+S_TO_FRAME_IM = 24
+N_STATE = 25
 
 FAULT_OVERCURRENT = 0x2310
 
@@ -96,6 +101,25 @@ C_U_SX = SIGNAL_INDEX["u_sx_v"]
 C_U_SY = SIGNAL_INDEX["u_sy_v"]
 C_TORQUE_EST = SIGNAL_INDEX["torque_est_nm"]
 C_VDC = SIGNAL_INDEX["vdc_v"]
+
+
+@njit(cache=True)
+def _wrap(angle: float) -> float:
+    """Wrap to [-pi, pi) for an angle that moved by less than a turn."""
+    if angle >= math.pi:
+        return angle - 2.0 * math.pi
+    if angle < -math.pi:
+        return angle + 2.0 * math.pi
+    return angle
+
+
+@njit(cache=True)
+def _small_rotation(a: float) -> complex:
+    """e^(j a) for the per-period angle steps (|a| < 0.1 at 3000 rpm): 5th-order Taylor, error < a^6/720."""
+    if abs(a) > 0.3:
+        return complex(math.cos(a), math.sin(a))
+    a2 = a * a
+    return complex(1.0 - a2 * (0.5 - a2 / 24.0), a * (1.0 - a2 * (1.0 / 6.0 - a2 / 120.0)))
 
 
 @njit(cache=True)
@@ -147,17 +171,20 @@ def _update_estimators(s: np.ndarray, p: np.ndarray, i_alpha_beta: complex) -> c
     psi = s[S_PSI]
 
     # voltage applied during the last period (own command u[k-2]) seen from the mid-period frame
-    theta_mid = s[S_THETA] + 0.5 * w * T
-    u_xy = complex(s[S_U_ALPHA_PREV], s[S_U_BETA_PREV]) * cmath.exp(-1j * theta_mid)
+    half_turn = _small_rotation(-0.5 * w * T)                               # e^(-j w T/2)
+    to_mid_frame = complex(math.cos(s[S_THETA]), -math.sin(s[S_THETA])) * half_turn
+    u_xy = complex(s[S_U_ALPHA_PREV], s[S_U_BETA_PREV]) * to_mid_frame
     lam = complex(-a1, -w)
-    e = cmath.exp(lam * T)
+    e = math.exp(-a1 * T) * half_turn * half_turn                            # e^(lam T)
     i_hat = complex(s[S_IHAT_X], s[S_IHAT_Y])
     i_hat = e * i_hat + (e - 1.0) / lam * a2 * (u_xy - 1j * w * psi)
-    theta = wrap_angle(s[S_THETA] + w * T)                                   # (5c)
-    i_xy = i_alpha_beta * cmath.exp(-1j * theta)
-    s[S_THETA] = theta
+    s[S_THETA] = _wrap(s[S_THETA] + w * T)                                   # (5c)
+    to_frame = to_mid_frame * half_turn                                      # e^(-j rho^[k])
+    i_xy = i_alpha_beta * to_frame
     s[S_IHAT_X] = i_hat.real
     s[S_IHAT_Y] = i_hat.imag
+    s[S_TO_FRAME_RE] = to_frame.real
+    s[S_TO_FRAME_IM] = to_frame.imag
 
     delta = i_xy - i_hat
     if s[S_FREEZE_SPEED] == 0.0:
@@ -173,8 +200,9 @@ def _update_estimators(s: np.ndarray, p: np.ndarray, i_alpha_beta: complex) -> c
         eps_psi = -delta.real / (a2 * max(w * w, w_min * w_min))              # (7b)
         s[S_INT_PSI] += ki_psi * T * eps_psi
         psi_min = p[F_FLUX_EST_MIN_FRACTION] * p[F_FLUX]
-        s[S_INT_PSI] = max(s[S_INT_PSI], psi_min)
-        s[S_PSI] = max(kp_psi * eps_psi + s[S_INT_PSI], psi_min)             # (8b)
+        psi_max = p[F_FLUX_EST_MAX_FRACTION] * p[F_FLUX]
+        s[S_INT_PSI] = min(max(s[S_INT_PSI], psi_min), psi_max)
+        s[S_PSI] = min(max(kp_psi * eps_psi + s[S_INT_PSI], psi_min), psi_max)  # (8b)
     return i_xy
 
 
@@ -236,18 +264,22 @@ def firmware_step(s: np.ndarray, p: np.ndarray, i_a: float, i_b: float, vdc: flo
     if not want_run:
         if s[S_RUNNING] != 0.0:
             _stop(s)
-        i_xy = i_ab * cmath.exp(-1j * s[S_THETA])
+        to_frame = complex(math.cos(s[S_THETA]), -math.sin(s[S_THETA]))
+        s[S_TO_FRAME_RE] = to_frame.real
+        s[S_TO_FRAME_IM] = to_frame.imag
+        i_xy = i_ab * to_frame
         u_xy = complex(0.0, 0.0)
         i_ref = complex(0.0, 0.0)
     else:
         if s[S_RUNNING] == 0.0:
-            _start(s, p, i_ab * cmath.exp(-1j * s[S_THETA]))
+            _start(s, p, i_ab * complex(math.cos(s[S_THETA]), -math.sin(s[S_THETA])))
         i_xy = _update_estimators(s, p, i_ab)
         i_ref = complex(p[F_ISX_REF], _speed_controller(s, p))
         u_xy = _current_controller(s, p, i_xy, i_ref, vdc)
         # the command takes effect next period: rotate with the angle at the middle of that period
-        w = s[S_OMEGA]
-        u_ab = u_xy * cmath.exp(1j * (s[S_THETA] + p[F_DELAY_COMP] * w * p[F_PERIOD]))
+        advance = p[F_DELAY_COMP] * s[S_OMEGA] * p[F_PERIOD]
+        from_frame = complex(s[S_TO_FRAME_RE], -s[S_TO_FRAME_IM]) * _small_rotation(advance)
+        u_ab = u_xy * from_frame
         s[S_U_ALPHA_PREV] = s[S_U_ALPHA_LAST]
         s[S_U_BETA_PREV] = s[S_U_BETA_LAST]
         s[S_U_ALPHA_LAST] = u_ab.real
@@ -288,11 +320,12 @@ def scale_flux_estimate(s: np.ndarray, factor: float) -> None:
 
 def offset_angle_estimate(s: np.ndarray, offset_rad: float) -> None:
     """rho^ <- rho^ + offset once (initial position error)."""
-    s[S_THETA] = float(wrap_angle(s[S_THETA] + offset_rad))
+    s[S_THETA] = (s[S_THETA] + offset_rad + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def new_state(initial_flux_wb: float) -> np.ndarray:
     s = np.zeros(N_STATE)
     s[S_PSI] = initial_flux_wb
     s[S_INT_PSI] = initial_flux_wb
+    s[S_TO_FRAME_RE] = 1.0
     return s

@@ -11,11 +11,15 @@ import math
 import numpy as np
 from numba import njit
 
+from drivers import signals
 from drivers.signals import SIGNAL_INDEX
+from sim_backend import inverter, mechanics
 from sim_backend.inverter import adc_sample, limit_to_linear_range, switching_error_voltage
-from sim_backend.mechanics import wrap_angle
 from sim_backend.pmsm import firmware as fw
 from sim_backend.pmsm import plant as pl
+from sim_backend.pmsm.numba_cache import drop_stale_cache
+
+drop_stale_cache(__file__, [fw.__file__, pl.__file__, inverter.__file__, mechanics.__file__, signals.__file__])
 
 # inverter / measurement parameters (inv_params array)
 I_VDC = 0
@@ -52,7 +56,6 @@ def run_steps(n: int, step0: int, x: np.ndarray, plant_p: np.ndarray, load_mode:
               noise: np.ndarray, use_noise: bool, out: np.ndarray) -> None:
     period = fw_p[fw.F_PERIOD]
     substeps = int(inv_p[I_SUBSTEPS])
-    work = np.empty((5, pl.N_STATE))
     ideal = not use_noise
     i_bits = 0 if ideal else int(inv_p[I_CURRENT_BITS])
     v_bits = 0 if ideal else int(inv_p[I_VDC_BITS])
@@ -79,7 +82,10 @@ def run_steps(n: int, step0: int, x: np.ndarray, plant_p: np.ndarray, load_mode:
 
         # --- reference sensor at t_k (logging only) ---
         row[C_SPEED_TRUE] = x[pl.X_W_MECH]
-        row[C_POS_ERR] = wrap_angle(pl.rotor_angle_elec(x) - row[C_POS_EST])
+        # true field vector seen from the estimated frame: its angle is the position error
+        to_est = complex(fw_s[fw.S_TO_FRAME_RE], fw_s[fw.S_TO_FRAME_IM])
+        seen = complex(x[pl.X_PSI_D], x[pl.X_PSI_Q]) * to_est
+        row[C_POS_ERR] = math.atan2(seen.imag, seen.real)
         row[C_FLUX_TRUE] = plant_p[pl.P_FLUX]
         row[C_TORQUE_LOAD] = pl.load_torque(x, load_mode, load_value)
 
@@ -98,7 +104,7 @@ def run_steps(n: int, step0: int, x: np.ndarray, plant_p: np.ndarray, load_mode:
         inv_s[R_GATES] = fw_s[fw.S_RUNNING]
 
         # --- plant over [t_k, t_k+1] ---
-        pl.advance(x, plant_p, u_d, u_q, load_mode, load_value, period, substeps, work)
+        pl.advance(x, plant_p, u_d, u_q, load_mode, load_value, period, substeps)
         if not gates_on:
             # gates blocked: the winding current freewheels through the diodes into the DC link and dies
             # within the period (peak line back-EMF at 3000 rpm, 423 V, is below vdc, so no regeneration)

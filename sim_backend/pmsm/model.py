@@ -115,6 +115,7 @@ class PmsmDrive:
         f[fw.F_FLUX_EST_KI_OVER_KP] = _num(cfg, s, "flux_est_ki_over_kp", positive=True)
         f[fw.F_FLUX_EST_MIN_SPEED] = _num(cfg, s, "flux_est_min_speed_elec_rad_s", positive=True)
         f[fw.F_FLUX_EST_MIN_FRACTION] = _num(cfg, s, "flux_est_min_fraction", positive=True)
+        f[fw.F_FLUX_EST_MAX_FRACTION] = _num(cfg, s, "flux_est_max_fraction", positive=True)
         f[fw.F_SPEED_BW] = _num(cfg, s, "speed_loop_bandwidth_rad_s", positive=True)
         f[fw.F_SPEED_ZERO_FRACTION] = _num(cfg, s, "speed_pi_zero_fraction", positive=True)
         f[fw.F_CURRENT_BW] = _num(cfg, s, "current_loop_bandwidth_rad_s", positive=True)

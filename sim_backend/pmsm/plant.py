@@ -16,7 +16,11 @@ import math
 import numpy as np
 from numba import njit
 
+from sim_backend import mechanics
 from sim_backend.mechanics import apply_coulomb, coulomb_torque, smooth_load_torque
+from sim_backend.pmsm.numba_cache import drop_stale_cache
+
+drop_stale_cache(__file__, [mechanics.__file__])
 
 # state indices
 X_ID, X_IQ, X_PSI_D, X_PSI_Q, X_W_MECH = 0, 1, 2, 3, 4
@@ -33,44 +37,44 @@ def electromagnetic_torque(x: np.ndarray, p: np.ndarray) -> float:
 
 
 @njit(cache=True)
-def derivatives(x: np.ndarray, p: np.ndarray, u_d: float, u_q: float, load_mode: int, load_value: float,
-                dx: np.ndarray) -> None:
-    a1 = p[P_RS] / p[P_LS]
-    a2 = 1.0 / p[P_LS]
-    w_e = p[P_POLE_PAIRS] * x[X_W_MECH]
-    # (1a): J w psi = w * [-psi_Q, psi_D]
-    dx[X_PSI_D] = -w_e * x[X_PSI_Q]
-    dx[X_PSI_Q] = w_e * x[X_PSI_D]
-    # (1b): -J a2 w psi = a2 w * [psi_Q, -psi_D]
-    dx[X_ID] = -a1 * x[X_ID] + a2 * w_e * x[X_PSI_Q] + a2 * u_d
-    dx[X_IQ] = -a1 * x[X_IQ] - a2 * w_e * x[X_PSI_D] + a2 * u_q
-    torque = electromagnetic_torque(x, p)
-    w = x[X_W_MECH]
-    dx[X_W_MECH] = (torque - smooth_load_torque(load_mode, load_value, w) - p[P_VISCOUS] * w) / p[P_INERTIA]
+def derivatives(i_d: float, i_q: float, psi_d: float, psi_q: float, w: float, u_d: float, u_q: float,
+                a1: float, a2: float, pole_pairs: float, inertia: float, viscous: float,
+                load_mode: int, load_value: float) -> tuple[float, float, float, float, float]:
+    """d/dt of (i_sD, i_sQ, psi_rD, psi_rQ, w_mech)."""
+    w_e = pole_pairs * w
+    d_psi_d = -w_e * psi_q                                # (1a): J w psi = w [-psi_Q, psi_D]
+    d_psi_q = w_e * psi_d
+    d_i_d = -a1 * i_d + a2 * w_e * psi_q + a2 * u_d       # (1b): -J a2 w psi = a2 w [psi_Q, -psi_D]
+    d_i_q = -a1 * i_q - a2 * w_e * psi_d + a2 * u_q
+    torque = 1.5 * pole_pairs * (psi_d * i_q - psi_q * i_d)
+    d_w = (torque - smooth_load_torque(load_mode, load_value, w) - viscous * w) / inertia
+    return d_i_d, d_i_q, d_psi_d, d_psi_q, d_w
 
 
 @njit(cache=True)
 def rk4_step(x: np.ndarray, p: np.ndarray, u_d: float, u_q: float, load_mode: int, load_value: float,
-             h: float, work: np.ndarray) -> None:
-    """One classical Runge-Kutta step of length h, in place. work: (5, N_STATE) scratch."""
-    k1, k2, k3, k4, tmp = work[0], work[1], work[2], work[3], work[4]
-    derivatives(x, p, u_d, u_q, load_mode, load_value, k1)
+             h: float) -> None:
+    """One classical Runge-Kutta step of length h, in place."""
+    a1 = p[P_RS] / p[P_LS]
+    a2 = 1.0 / p[P_LS]
+    consts = (u_d, u_q, a1, a2, p[P_POLE_PAIRS], p[P_INERTIA], p[P_VISCOUS], load_mode, load_value)
+    y0 = (x[X_ID], x[X_IQ], x[X_PSI_D], x[X_PSI_Q], x[X_W_MECH])
+    k1 = derivatives(*y0, *consts)
+    y = (y0[0] + 0.5 * h * k1[0], y0[1] + 0.5 * h * k1[1], y0[2] + 0.5 * h * k1[2],
+         y0[3] + 0.5 * h * k1[3], y0[4] + 0.5 * h * k1[4])
+    k2 = derivatives(*y, *consts)
+    y = (y0[0] + 0.5 * h * k2[0], y0[1] + 0.5 * h * k2[1], y0[2] + 0.5 * h * k2[2],
+         y0[3] + 0.5 * h * k2[3], y0[4] + 0.5 * h * k2[4])
+    k3 = derivatives(*y, *consts)
+    y = (y0[0] + h * k3[0], y0[1] + h * k3[1], y0[2] + h * k3[2], y0[3] + h * k3[3], y0[4] + h * k3[4])
+    k4 = derivatives(*y, *consts)
     for j in range(N_STATE):
-        tmp[j] = x[j] + 0.5 * h * k1[j]
-    derivatives(tmp, p, u_d, u_q, load_mode, load_value, k2)
-    for j in range(N_STATE):
-        tmp[j] = x[j] + 0.5 * h * k2[j]
-    derivatives(tmp, p, u_d, u_q, load_mode, load_value, k3)
-    for j in range(N_STATE):
-        tmp[j] = x[j] + h * k3[j]
-    derivatives(tmp, p, u_d, u_q, load_mode, load_value, k4)
-    for j in range(N_STATE):
-        x[j] += h / 6.0 * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j])
+        x[j] = y0[j] + h / 6.0 * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j])
 
 
 @njit(cache=True)
 def advance(x: np.ndarray, p: np.ndarray, u_d: float, u_q: float, load_mode: int, load_value: float,
-            period: float, substeps: int, work: np.ndarray) -> None:
+            period: float, substeps: int) -> None:
     """Advance the plant over one control period with the voltage held; Coulomb load after each substep."""
     h = period / substeps
     coulomb = coulomb_torque(load_mode, load_value)
@@ -78,13 +82,12 @@ def advance(x: np.ndarray, p: np.ndarray, u_d: float, u_q: float, load_mode: int
         w_before = x[X_W_MECH]
         drive_torque = (electromagnetic_torque(x, p) - smooth_load_torque(load_mode, load_value, w_before)
                         - p[P_VISCOUS] * w_before)
-        rk4_step(x, p, u_d, u_q, load_mode, load_value, h, work)
+        rk4_step(x, p, u_d, u_q, load_mode, load_value, h)
         x[X_W_MECH] = apply_coulomb(w_before, x[X_W_MECH], drive_torque, coulomb, p[P_INERTIA], h)
     # the magnet flux magnitude is a parameter: remove RK4's (tiny) amplitude drift of the rotation
-    mag = math.hypot(x[X_PSI_D], x[X_PSI_Q])
-    if mag > 0.0:
-        x[X_PSI_D] *= p[P_FLUX] / mag
-        x[X_PSI_Q] *= p[P_FLUX] / mag
+    scale = p[P_FLUX] / math.sqrt(x[X_PSI_D] * x[X_PSI_D] + x[X_PSI_Q] * x[X_PSI_Q])
+    x[X_PSI_D] *= scale
+    x[X_PSI_Q] *= scale
 
 
 @njit(cache=True)
