@@ -1,0 +1,426 @@
+"""The simulated drive as a CANopen CiA 402 node, built from the same EDS the bench loads.
+
+canopen's LocalNode gives the object dictionary, the SDO server and NMT/heartbeat. What it lacks is added
+here: TPDOs sent on SYNC (packed from the live object values, so PDO and SDO always agree), RPDOs applied
+to the drive, EMCY on faults, SDO block upload (the trace recorder's data) and lockstep time — each SYNC
+advances the drive by the communication cycle period (0x1006) before its TPDOs go out.
+
+Everything runs on the node network's receive thread; SimulatedDevice's lock guards the drive against the
+other protocol servers.
+"""
+
+from __future__ import annotations
+
+import binascii
+import logging
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import can
+import canopen
+from canopen import objectdictionary
+from canopen.node import LocalNode
+from canopen.sdo import SdoAbortedError, SdoServer
+
+from drivers.signals import SIGNAL_NAMES
+from sim_backend import od_gen
+from sim_backend.cia402 import CONTROL_FAULT_RESET, State
+from sim_backend.device import SimulatedDevice
+
+log = logging.getLogger(__name__)
+
+ABORT_NOT_IN_OD = 0x06020000
+ABORT_CANNOT_MAP = 0x06040041
+ABORT_PDO_TOO_LONG = 0x06040042
+ABORT_INVALID_VALUE = 0x06090030
+ABORT_CMD = 0x05040001
+ABORT_NO_DATA = 0x08000024
+ABORT_GENERAL = 0x08000000
+
+EMCY_PDO_LENGTH = 0x8210      # PDO not processed due to length error
+NMT_OPERATIONAL = 5
+NMT_PRE_OPERATIONAL = 127
+
+
+def error_register_for(code: int) -> int:
+    """Bits of 0x1001 for an EMCY error code (bit 0 generic is set for any error)."""
+    if code == 0:
+        return 0
+    reg = 0x01
+    reg |= {0x2: 0x02, 0x3: 0x04, 0x4: 0x08}.get(code >> 12, 0)
+    if code >> 8 in (0x81, 0x82):
+        reg |= 0x10
+    return reg
+
+
+@dataclass
+class _Pdo:
+    cob_id: int
+    trans_type: int
+    entries: list[tuple[int, int, int]]     # (index, subindex, bits)
+    last: bytes = b""
+
+    @property
+    def length(self) -> int:
+        return sum(bits for _, _, bits in self.entries) // 8
+
+
+class _BlockSdoServer(SdoServer):
+    """canopen's SdoServer plus SDO block upload (CiA 301 7.2.4.3.9-15), which it does not implement."""
+
+    def __init__(self, rx_cobid, tx_cobid, node):
+        super().__init__(rx_cobid, tx_cobid, node)
+        self._blk: dict | None = None
+        self.on_upload_complete = lambda index, subindex: None
+
+    def block_upload(self, data):
+        cs = data[0] & 0x03
+        if cs == 0:                                   # initiate
+            _, index, subindex, blksize = struct.unpack_from("<BHBB", data)
+            self._index, self._subindex = index, subindex
+            if not 0 < blksize < 128:
+                raise SdoAbortedError(0x05040002)
+            payload = bytes(self._node.get_data(index, subindex, check_readable=True))
+            if not payload:
+                raise SdoAbortedError(ABORT_NO_DATA)
+            crc = bool(data[0] & 0x04)
+            self._blk = {"data": payload, "pos": 0, "sent_from": 0, "blksize": blksize, "crc": crc,
+                         "ended": False}
+            response = struct.pack("<BHBL", 0xC0 | (0x04 if crc else 0) | 0x02, index, subindex, len(payload))
+            self.send_response(response)
+        elif self._blk is None:
+            raise SdoAbortedError(ABORT_CMD)
+        elif cs == 3:                                 # start upload
+            self._send_block()
+        elif cs == 2:                                 # block acknowledge
+            ackseq, blksize = data[1], data[2]
+            blk = self._blk
+            blk["pos"] = min(blk["sent_from"] + 7 * ackseq, len(blk["data"]))
+            if 0 < blksize < 128:
+                blk["blksize"] = blksize
+            if blk["pos"] >= len(blk["data"]):
+                n_unused = (7 - len(blk["data"]) % 7) % 7
+                crc = binascii.crc_hqx(blk["data"], 0) if blk["crc"] else 0
+                blk["ended"] = True
+                self.send_response(struct.pack("<BH5x", 0xC1 | (n_unused << 2), crc))
+            else:
+                self._send_block()
+        elif cs == 1:                                 # end confirmed by the client
+            done = self._blk["ended"]
+            self._blk = None
+            if done:
+                self.on_upload_complete(self._index, self._subindex)
+
+    def _send_block(self) -> None:
+        blk = self._blk
+        data, pos = blk["data"], blk["pos"]
+        blk["sent_from"] = pos
+        send = self.network.send_message
+        cob = self.tx_cobid
+        for seq in range(1, blk["blksize"] + 1):
+            chunk = data[pos:pos + 7]
+            pos += 7
+            last = pos >= len(data)
+            send(cob, bytes([seq | (0x80 if last else 0)]) + chunk.ljust(7, b"\0"))
+            if last:
+                break
+
+    def segmented_upload(self, command):
+        super().segmented_upload(command)
+        if not self._buffer:
+            self.on_upload_complete(self._index, self._subindex)
+
+    def request_aborted(self, data):
+        self._blk = None
+        super().request_aborted(data)
+
+
+class _DriveLocalNode(LocalNode):
+    def __init__(self, node_id, od):
+        super().__init__(node_id, od)
+        self.sdo = _BlockSdoServer(0x600 + node_id, 0x580 + node_id, self)
+        self.after_write = lambda index, subindex: None
+
+    def set_data(self, index, subindex, data, check_writable=False):
+        super().set_data(index, subindex, data, check_writable)
+        self.after_write(index, subindex)
+
+
+class SimCanopenNode:
+    """One simulated drive on a CAN bus. `stop()` takes it off the bus."""
+
+    def __init__(self, device: SimulatedDevice, eds_path: str | Path, node_id: int, bus: can.BusABC):
+        self.device = device
+        self.node_id = node_id
+        self.network = canopen.Network(bus)
+        od = canopen.import_od(str(eds_path), node_id)
+        self.node = _DriveLocalNode(node_id, od)
+        self.network.add_node(self.node)
+        self.od = od
+        self.node.add_read_callback(self._on_read)
+        self.node.add_write_callback(self._on_write)
+        self.node.sdo.on_upload_complete = self._on_upload_complete
+        self.node.after_write = self._after_write
+        self._trace_pending = b""
+        self._trace_max_rows = int(od[od_gen.IDX_TRACE][9].default)
+        self._trace_cfg = [device.trace.mask, device.trace.decimation, device.trace.trigger]
+        self._pdo_dirty = True
+        self._tpdos: list[_Pdo] = []
+        self._rpdos: dict[int, _Pdo] = {}
+        self._rpdo_pending: list[tuple[_Pdo, bytes]] = []
+        self._sync_count = 0
+        self._was_fault = False
+        self.rpdo_length_errors = 0
+        self.network.subscribe(0x80, self._on_sync)
+        self._rebuild_pdos()
+        self.network.connect()
+        self.network.notifier.add_listener(_ErrorLogger())
+        self.node.nmt.send_command(0x81)     # boot-up message, then PRE-OPERATIONAL with heartbeat
+        self.node.nmt.send_command(0x80)
+
+    # -- drive clock ---------------------------------------------------------------------------------
+    @property
+    def steps_per_sync(self) -> int:
+        period_us = self._raw(0x1006, 0)
+        return max(1, round(period_us * 1e-6 / self.device.model.control_period_s))
+
+    def _raw(self, index: int, subindex: int) -> int:
+        obj = self.od[index]
+        if not isinstance(obj, objectdictionary.ODVariable):
+            obj = obj[subindex]
+        return obj.decode_raw(self.node.get_data(index, subindex))
+
+    # -- object access -------------------------------------------------------------------------------
+    def _on_read(self, index, subindex, od):
+        dev = self.device
+        if index == 0x6041:
+            return dev.device.statusword
+        if index == 0x6061:
+            return dev.mode_of_operation
+        if index == 0x603F:
+            return dev.device.error_code
+        if index == 0x1001:
+            return error_register_for(dev.device.error_code) if dev.device.state is State.FAULT else 0
+        if index == 0x606C:
+            return int(round(float(dev.latest[SIGNAL_NAMES.index("speed_est_mech_rad_s")]) * 1000.0))
+        if index == od_gen.IDX_STEP_COUNT:
+            return dev.step_count & 0xFFFFFFFF
+        if index == od_gen.IDX_CONTROL_PERIOD_NS:
+            return round(dev.model.control_period_s * 1e9)
+        if od_gen.IDX_SIGNAL_BASE <= index < od_gen.IDX_SIGNAL_BASE + len(SIGNAL_NAMES):
+            return float(dev.latest[index - od_gen.IDX_SIGNAL_BASE])
+        if index == od_gen.IDX_TRACE:
+            trace = dev.trace
+            return {1: trace.mask, 2: trace.decimation, 3: trace.trigger, 4: int(trace.running),
+                    5: trace.rows_available + len(self._trace_pending) // trace.row_size,
+                    6: trace.row_size, 7: trace.lost_rows, 8: trace.capacity_rows,
+                    9: self._trace_max_rows}.get(subindex)
+        if index == od_gen.IDX_TRACE_DATA:
+            if not self._trace_pending:
+                with dev.lock:
+                    self._trace_pending = dev.trace.read(self._trace_max_rows)
+            return self._trace_pending
+        return None
+
+    def _on_write(self, index, subindex, od, data):
+        dev = self.device
+        value = od.decode_raw(data) if od.data_type != objectdictionary.DOMAIN else bytes(data)
+        if index == 0x6040:
+            with dev.lock:
+                if value & CONTROL_FAULT_RESET and dev.device.state is State.FAULT:
+                    dev.reset_fault()
+                dev.write_controlword(value)
+            self._emcy_reset_if_cleared()
+        elif index == 0x6060:
+            with dev.lock:
+                dev.mode_of_operation = value
+        elif index == 0x60FF:
+            with dev.lock:
+                dev.target_speed_mech_rad_s = value / 1000.0
+        elif od_gen.IDX_HOOK_BASE <= index < od_gen.IDX_PLANT_PARAM_BASE + 0x100:
+            try:
+                dev.write_named(od.name, float(value))
+            except (KeyError, ValueError) as exc:
+                log.warning("drive rejected %s = %r: %s", od.name, value, exc)
+                raise SdoAbortedError(ABORT_INVALID_VALUE) from None
+        elif index == od_gen.IDX_TRACE:
+            self._write_trace(subindex, value)
+        elif index == 0x1006:
+            steps = value * 1e-6 / dev.model.control_period_s
+            if value == 0 or abs(steps - round(steps)) > 1e-6:
+                raise SdoAbortedError(ABORT_INVALID_VALUE)
+        elif 0x1400 <= index < 0x1C00:
+            self._check_pdo_write(index, subindex, value)
+            self._pdo_dirty = True
+
+    def _after_write(self, index: int, subindex: int) -> None:
+        if self._pdo_dirty and 0x1400 <= index < 0x1C00:
+            self._rebuild_pdos()
+
+    def _write_trace(self, subindex: int, value: int) -> None:
+        trace = self.device.trace
+        with self.device.lock:
+            if subindex in (1, 2, 3):
+                cfg = list(self._trace_cfg)
+                cfg[subindex - 1] = value
+                try:
+                    trace.configure(*cfg)
+                except ValueError:
+                    raise SdoAbortedError(ABORT_INVALID_VALUE) from None
+                self._trace_cfg = cfg
+                self._trace_pending = b""
+            elif subindex == 4:
+                if value == od_gen.TRACE_START:
+                    trace.start()
+                elif value == od_gen.TRACE_STOP:
+                    trace.stop()
+                elif value == od_gen.TRACE_CLEAR:
+                    trace.clear()
+                    self._trace_pending = b""
+                else:
+                    raise SdoAbortedError(ABORT_INVALID_VALUE)
+            elif subindex == 9:
+                if value < 1:
+                    raise SdoAbortedError(ABORT_INVALID_VALUE)
+                self._trace_max_rows = value
+
+    def _on_upload_complete(self, index: int, subindex: int) -> None:
+        if index == od_gen.IDX_TRACE_DATA:
+            self._trace_pending = b""
+
+    # -- PDOs ----------------------------------------------------------------------------------------
+    def _check_pdo_write(self, index: int, subindex: int, value: int) -> None:
+        is_map = 0x1600 <= index < 0x1800 or 0x1A00 <= index < 0x1C00
+        if not is_map:
+            return
+        tx = index >= 0x1A00
+        if subindex == 0:
+            if value > 8:
+                raise SdoAbortedError(ABORT_PDO_TOO_LONG)
+            bits = sum(self._raw(index, k) & 0xFF for k in range(1, value + 1))
+            if bits > 64:
+                raise SdoAbortedError(ABORT_PDO_TOO_LONG)
+            return
+        if value == 0:
+            return
+        m_index, m_sub, bits = value >> 16, (value >> 8) & 0xFF, value & 0xFF
+        try:
+            obj = self.od[m_index]
+            if not isinstance(obj, objectdictionary.ODVariable):
+                obj = obj[m_sub]
+        except KeyError:
+            raise SdoAbortedError(ABORT_CANNOT_MAP) from None
+        if not obj.pdo_mappable or bits != len(obj) or (tx and not obj.readable) or (not tx and not obj.writable):
+            raise SdoAbortedError(ABORT_CANNOT_MAP)
+
+    def _read_pdo(self, comm: int, mapping: int) -> _Pdo:
+        cob = self._raw(comm, 1)
+        entries = []
+        for k in range(1, self._raw(mapping, 0) + 1):
+            raw = self._raw(mapping, k)
+            entries.append((raw >> 16, (raw >> 8) & 0xFF, raw & 0xFF))
+        return _Pdo(cob_id=cob, trans_type=self._raw(comm, 2), entries=entries)
+
+    def _rebuild_pdos(self) -> None:
+        for cob in list(self._rpdos):
+            self.network.unsubscribe(cob, self._on_rpdo)
+        self._tpdos, self._rpdos = [], {}
+        for n in range(od_gen.N_TPDO):
+            pdo = self._read_pdo(0x1800 + n, 0x1A00 + n)
+            if not pdo.cob_id & 0x80000000 and pdo.entries:
+                pdo.cob_id &= 0x7FF
+                self._tpdos.append(pdo)
+        for n in range(od_gen.N_RPDO):
+            pdo = self._read_pdo(0x1400 + n, 0x1600 + n)
+            if not pdo.cob_id & 0x80000000 and pdo.entries:
+                pdo.cob_id &= 0x7FF
+                self._rpdos[pdo.cob_id] = pdo
+                self.network.subscribe(pdo.cob_id, self._on_rpdo)
+        self._pdo_dirty = False
+
+    def _on_rpdo(self, can_id, data, timestamp):
+        if self.node.nmt._state != NMT_OPERATIONAL:
+            return
+        pdo = self._rpdos.get(can_id)
+        if pdo is None:
+            return
+        if len(data) < pdo.length:
+            self.rpdo_length_errors += 1
+            self._send_emcy(EMCY_PDO_LENGTH, error_register_for(EMCY_PDO_LENGTH))
+            return
+        if pdo.trans_type <= 240:
+            self._rpdo_pending.append((pdo, bytes(data)))
+        else:
+            self._apply_rpdo(pdo, bytes(data))
+
+    def _apply_rpdo(self, pdo: _Pdo, data: bytes) -> None:
+        offset = 0
+        for index, subindex, bits in pdo.entries:
+            n = bits // 8
+            try:
+                self.node.set_data(index, subindex, data[offset:offset + n])
+            except SdoAbortedError as exc:
+                log.warning("RPDO 0x%X: object 0x%04X:%02X rejected (0x%08X)", pdo.cob_id, index, subindex, exc.code)
+            offset += n
+
+    def _pack(self, pdo: _Pdo) -> bytes:
+        return b"".join(bytes(self.node.get_data(i, s)) for i, s, _ in pdo.entries)
+
+    def _on_sync(self, can_id, data, timestamp):
+        if self._pdo_dirty:
+            self._rebuild_pdos()
+        pending, self._rpdo_pending = self._rpdo_pending, []
+        for pdo, payload in pending:
+            self._apply_rpdo(pdo, payload)
+        self.device.advance(self.steps_per_sync)
+        for code in self.device.take_emcy():
+            self._send_emcy(code, error_register_for(code))
+            self._was_fault = True
+        self._sync_count += 1
+        if self.node.nmt._state != NMT_OPERATIONAL:
+            return
+        send = self.network.send_message
+        for pdo in self._tpdos:
+            t = pdo.trans_type
+            if 1 <= t <= 240:
+                if self._sync_count % t == 0:
+                    send(pdo.cob_id, self._pack(pdo))
+            else:                       # 0 (acyclic synchronous), 254/255 (event): on change
+                payload = self._pack(pdo)
+                if payload != pdo.last:
+                    pdo.last = payload
+                    send(pdo.cob_id, payload)
+
+    # -- EMCY / heartbeat ----------------------------------------------------------------------------
+    def _send_emcy(self, code: int, register: int) -> None:
+        stamp = struct.pack("<L", self.device.step_count & 0xFFFFFFFF)   # manufacturer field: drive clock
+        self.node.emcy.send(code, register, stamp)
+
+    def _emcy_reset_if_cleared(self) -> None:
+        if self._was_fault and self.device.device.state is not State.FAULT:
+            self._was_fault = False
+            self.node.emcy.reset(0, bytes(5))
+
+    def stop_heartbeat(self) -> None:
+        """What a crashed node looks like to the bench: no more heartbeats, no more answers."""
+        self.node.nmt.stop_heartbeat()
+
+    def stop(self) -> None:
+        self.node.nmt.stop_heartbeat()
+        self.network.disconnect()
+
+
+class _ErrorLogger(can.Listener):
+    def on_message_received(self, msg):
+        pass
+
+    def on_error(self, exc):
+        log.error("CANopen node receive thread: %s", exc)
+
+
+def start_node(device: SimulatedDevice, eds_path: str | Path, node_id: int, **bus_kwargs) -> SimCanopenNode:
+    """Put a simulated drive on a python-can bus (e.g. interface="virtual", channel=...)."""
+    bus_kwargs.setdefault("receive_own_messages", False)
+    bus = can.Bus(**bus_kwargs)
+    return SimCanopenNode(device, eds_path, node_id, bus)
