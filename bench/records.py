@@ -196,6 +196,20 @@ class RunRecorder:
         with self._lock:
             self._flush_locked()
 
+    def read_back(self) -> dict[str, np.ndarray]:
+        """Every row appended so far (t_s + signal columns), read back from the journal after a flush.
+
+        Lets the caller evaluate criteria without keeping its own copy of the run in memory."""
+        with self._lock:
+            self._flush_locked()
+            if self._journal_file is not None:
+                self._journal_file.flush()
+            schema = self._schema or _empty_schema()
+        journal = self.run_dir / JOURNAL
+        batches = list(_read_journal(journal)[1]) if journal.exists() else []
+        table = pa.Table.from_batches(batches, schema=schema)
+        return {name: table.column(name).to_numpy() for name in table.column_names}
+
     # --- at the end --------------------------------------------------------------------------------------
 
     def finish(self, verdict: str, criteria: list[CriterionResult], abort_reason: str | None) -> Path:

@@ -118,6 +118,21 @@ def test_bad_appends_and_verdicts_are_refused(tmp_path):
     assert "extra_probe" in cols
 
 
+def test_read_back_while_running(tmp_path):
+    rec = RunRecorder(tmp_path, SCENARIO, 1, BENCH, flush_interval_s=3600)
+    assert rec.read_back()["t_s"].size == 0
+    for k in range(3):
+        rec.append(block(k))
+    cols = rec.read_back()
+    assert np.array_equal(cols["t_s"], np.arange(300) * 1e-3) and np.isnan(cols["vdc_v"]).all()
+    rec.note("trips", [{"t_s": np.float64(0.5), "value": np.inf}])
+    rec.append(block(3))
+    assert rec.read_back()["t_s"].size == 400
+    rec.finish("pass", [], None)
+    record, cols, _ = load_run(rec.run_dir)
+    assert record["trips"] == [{"t_s": 0.5, "value": None}] and cols["t_s"].size == 400
+
+
 def test_memory_is_bounded_by_the_flush_interval(tmp_path):
     rec = RunRecorder(tmp_path, SCENARIO, 1, BENCH, flush_interval_s=0.0)
     for k in range(20):
