@@ -1,6 +1,7 @@
 """The simulated drive's serial protocol server (docs/serial-protocol.md), over TCP or a pty.
 
-One thread per server; it serves one client at a time, like a point-to-point serial line. The protocol
+One thread per server; it serves one client at a time, like a point-to-point serial line (over TCP a new
+client takes the line over from the previous one). The protocol
 handler (SerialProtocolHandler) is transport-free so tests can feed it frames directly.
 """
 
@@ -268,34 +269,43 @@ class SerialTcpServer(_ServerBase):
         self._thread.start()
 
     def _run(self) -> None:
+        conn: socket.socket | None = None
         while not self._stopping.is_set():
-            ready, _, _ = select.select([self._listener, self._wake_r], [], [])
-            if self._wake_r in ready:
-                return
-            conn, _ = self._listener.accept()
-            with conn:
-                conn.settimeout(WRITE_TIMEOUT_S)
-                self._serve(conn)
-
-    def _serve(self, conn: socket.socket) -> None:
-        session = _Session(self.device, self.stats)
-        self.stats["sessions"] += 1
-        while True:
-            ready, _, _ = select.select([conn, self._wake_r], [], [])
-            if self._wake_r in ready:
-                return
-            try:
-                data = conn.recv(65536)
-            except OSError:
-                return
-            if not data:
-                return
-            reply = session.feed(data)
-            if reply:
-                try:
-                    conn.sendall(reply)
-                except OSError:
+            if conn is None:
+                ready, _, _ = select.select([self._listener, self._wake_r], [], [])
+                if self._wake_r in ready:
                     return
+                conn = self._accept()
+            conn = self._serve(conn)
+
+    def _accept(self) -> socket.socket:
+        conn, _ = self._listener.accept()
+        conn.settimeout(WRITE_TIMEOUT_S)
+        self.stats["sessions"] += 1
+        return conn
+
+    def _serve(self, conn: socket.socket) -> socket.socket | None:
+        """Serve one client until it leaves (None) or a new client takes the line over (its socket)."""
+        session = _Session(self.device, self.stats)
+        with conn:
+            while True:
+                ready, _, _ = select.select([conn, self._listener, self._wake_r], [], [])
+                if self._wake_r in ready:
+                    return None
+                if self._listener in ready:          # like re-plugging a serial cable: the newcomer wins
+                    return self._accept()
+                try:
+                    data = conn.recv(65536)
+                except OSError:
+                    return None
+                if not data:
+                    return None
+                reply = session.feed(data)
+                if reply:
+                    try:
+                        conn.sendall(reply)
+                    except OSError:
+                        return None
 
     def _close_resources(self) -> None:
         self._listener.close()
