@@ -150,6 +150,8 @@ class SerialDriveLink:
     # --- DriveLink --------------------------------------------------------------------------------------------
 
     def open(self) -> DriveIdentity:
+        self.close()
+        self._decoder = FrameDecoder()
         try:
             self._port = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=self.timeout_s,
                                                write_timeout=max(self.timeout_s, 1.0))

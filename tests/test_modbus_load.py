@@ -1,0 +1,310 @@
+"""Modbus load machine: wire bytes, register map, round trips over TCP and RTU (pty), exceptions, timeouts."""
+
+import os
+import select
+import socket
+import struct
+import threading
+import time
+import tomllib
+import tty
+from pathlib import Path
+
+import pytest
+
+from drivers.api import LinkError, LoadMode
+from drivers.modbus_load import REGISTERS, ModbusLoadLink, float_to_regs
+from sim_backend.device import SimulatedDevice
+from sim_backend.modbus_server import TORQUE_LIMIT_NM, start_modbus_rtu_pty, start_modbus_tcp
+from sim_backend.toy import ToyDrive
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def crc16_modbus_reference(data: bytes) -> int:
+    crc = 0xFFFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+    return crc
+
+
+def test_crc16_reference_check_value():
+    assert crc16_modbus_reference(b"123456789") == 0x4B37
+
+
+def test_register_map_file_matches_the_code():
+    with open(ROOT / "config/od/load-machine-registers.toml", "rb") as f:
+        doc = tomllib.load(f)
+    assert doc["map"]["version"] == 1
+    in_file = {name: (r["address"], r["type"], r["access"], r.get("count", 2 if r["type"] == "float32" else 1))
+               for name, r in doc["registers"].items()}
+    in_code = {r.name: (r.address, r.kind, r.access, r.count) for r in REGISTERS}
+    assert in_file == in_code
+
+
+def test_float32_word_order_is_high_word_first():
+    assert float_to_regs(2.5) == [0x4020, 0x0000]
+    assert float_to_regs(-1.0) == [0xBF80, 0x0000]
+
+
+# --- exact bytes on the wire against scripted fake machines -----------------------------------------------------
+
+def answer(pdu: bytes) -> bytes:
+    """What a minimal, well-behaved Modbus machine answers (every holding register reads 1)."""
+    fc = pdu[0]
+    if fc == 3:
+        (count,) = struct.unpack(">H", pdu[3:5])
+        return bytes([3, 2 * count]) + b"\x00\x01" * count
+    if fc == 6:
+        return pdu[:5]
+    if fc == 16:
+        return pdu[:5]
+    return bytes([fc | 0x80, 1])
+
+
+class FakeTcpMachine:
+    def __init__(self, silent: bool = False):
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.port = self.listener.getsockname()[1]
+        self.silent = silent
+        self.requests: list[bytes] = []
+        threading.Thread(target=self._run, daemon=True).start()
+
+    def _recv(self, conn, n):
+        data = b""
+        while len(data) < n:
+            chunk = conn.recv(n - len(data))
+            if not chunk:
+                raise OSError("closed")
+            data += chunk
+        return data
+
+    def _run(self):
+        try:
+            conn, _ = self.listener.accept()
+            with conn:
+                while True:
+                    head = self._recv(conn, 7)
+                    (length,) = struct.unpack(">H", head[4:6])
+                    pdu = self._recv(conn, length - 1)
+                    self.requests.append(head + pdu)
+                    if not self.silent:
+                        reply = answer(pdu)
+                        conn.sendall(head[:4] + struct.pack(">H", len(reply) + 1) + head[6:7] + reply)
+        except OSError:
+            return
+
+    def close(self):
+        self.listener.close()
+
+
+def test_setpoint_write_exact_modbus_tcp_adu():
+    fake = FakeTcpMachine()
+    link = ModbusLoadLink({"transport": "modbus-tcp", "host": "127.0.0.1", "port": fake.port, "unit_id": 7,
+                           "timeout_s": 2.0}, ROOT)
+    link.open()
+    link.set_load(LoadMode.TORQUE, 2.5)
+    link.enable(True)
+    link.close()
+    fake.close()
+    read_version, read_identity, setpoint, enable = fake.requests
+    assert read_version[2:] == bytes.fromhex("0000 0006 07 03 0020 0001")
+    assert read_identity[2:] == bytes.fromhex("0000 0006 07 03 0028 0010")
+    # MBAP: transaction id (any), protocol 0, length 13, unit 7; PDU: FC16 at 1, 3 registers, 6 bytes:
+    # mode 0 (TORQUE), setpoint 2.5 as float32 0x40200000, high word first.
+    assert setpoint[2:] == bytes.fromhex("0000 000D 07 10 0001 0003 06 0000 4020 0000")
+    assert enable[2:] == bytes.fromhex("0000 0006 07 06 0000 0001")
+    ids = [struct.unpack(">H", r[:2])[0] for r in fake.requests]
+    assert len(set(ids)) == 4
+
+
+class FakeRtuMachine:
+    """Answers on the master side of a pty; the link opens the slave like a serial port."""
+
+    def __init__(self, silent: bool = False):
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)
+        self.path = os.ttyname(self.slave)
+        self.silent = silent
+        self.requests: list[bytes] = []
+        self._stop = False
+        threading.Thread(target=self._run, daemon=True).start()
+
+    def _read(self, n):
+        data = b""
+        while len(data) < n:
+            ready, _, _ = select.select([self.master], [], [], 0.1)
+            if self._stop:
+                raise OSError("stopped")
+            if ready:
+                data += os.read(self.master, n - len(data))
+        return data
+
+    def _run(self):
+        try:
+            while True:
+                head = self._read(7)
+                rest = self._read(1) if head[1] in (3, 6) else self._read(head[6] + 2)   # FC3/6: 8-byte frames; FC16: byte count in head[6]
+                adu = head + rest
+                self.requests.append(adu)
+                if not self.silent:
+                    body = adu[:1] + answer(adu[1:-2])
+                    os.write(self.master, body + struct.pack("<H", crc16_modbus_reference(body)))
+        except OSError:
+            return
+
+    def close(self):
+        self._stop = True
+        time.sleep(0)
+        for fd in (self.master, self.slave):
+            os.close(fd)
+
+
+def test_setpoint_write_exact_modbus_rtu_frame():
+    fake = FakeRtuMachine()
+    link = ModbusLoadLink({"transport": "modbus-rtu", "port": fake.path, "baudrate": 115200, "unit_id": 3,
+                           "timeout_s": 2.0}, ROOT)
+    link.open()
+    link.set_load(LoadMode.BRAKE, 2.5)
+    link.close()
+    fake.close()
+    setpoint = fake.requests[-1]
+    body = bytes.fromhex("03 10 0001 0003 06 0002 4020 0000")
+    assert setpoint == body + struct.pack("<H", crc16_modbus_reference(body))
+
+
+def test_modbus_tcp_timeout_is_a_clear_link_error():
+    fake = FakeTcpMachine(silent=True)
+    link = ModbusLoadLink({"transport": "modbus-tcp", "host": "127.0.0.1", "port": fake.port, "timeout_s": 0.2,
+                           "retries": 1}, ROOT)
+    start = time.monotonic()
+    with pytest.raises(LinkError, match=r"read_holding_registers of register 32 \(map_version\): no valid reply "
+                                        r"within 0.2 s x 2"):
+        link.open()
+    assert time.monotonic() - start < 10.0
+    link.close()
+    fake.close()
+
+
+def test_modbus_rtu_timeout_is_a_clear_link_error():
+    fake = FakeRtuMachine(silent=True)
+    link = ModbusLoadLink({"transport": "modbus-rtu", "port": fake.path, "baudrate": 115200, "timeout_s": 0.2,
+                           "retries": 0}, ROOT)
+    with pytest.raises(LinkError, match=r"modbus-rtu .*register 32 \(map_version\): no valid reply"):
+        link.open()
+    link.close()
+    fake.close()
+
+
+def test_unreachable_machine_is_a_link_error():
+    with socket.create_server(("127.0.0.1", 0)) as s:
+        port = s.getsockname()[1]
+    link = ModbusLoadLink({"transport": "modbus-tcp", "host": "127.0.0.1", "port": port, "timeout_s": 0.5}, ROOT)
+    with pytest.raises(LinkError, match="cannot connect"):
+        link.open()
+
+
+# --- against the simulated load machine ----------------------------------------------------------------------
+
+@pytest.fixture(params=["tcp", "rtu"])
+def machine(request):
+    device = SimulatedDevice(ToyDrive())
+    if request.param == "tcp":
+        server = start_modbus_tcp(device)
+        section = {"transport": "modbus-tcp", "host": "127.0.0.1", "port": server.port}
+    else:
+        server = start_modbus_rtu_pty(device)
+        section = {"transport": "modbus-rtu", "port": server.path, "baudrate": 115200}
+    link = ModbusLoadLink(section | {"timeout_s": 2.0}, ROOT)
+    yield device, server, link
+    link.close()
+    server.stop()
+
+
+def run_drive(device, speed, steps):
+    for word in (0x06, 0x07, 0x0F):
+        device.write_controlword(word)
+    device.target_speed_mech_rad_s = speed
+    device.advance(steps)
+
+
+def test_round_trip_load_torque_and_feedback(machine):
+    device, _, link = machine
+    assert link.open() == "drivebench-sim load machine"
+    link.set_load(LoadMode.TORQUE, 2.5)
+    link.enable(True)
+    assert (device.load.mode, device.load.value, device.load.enabled) == (0, 2.5, True)
+    run_drive(device, 50.0, 500)
+    fb = link.feedback()
+    speed, torque = device.model.load_feedback()
+    assert fb.speed_mech_rad_s == pytest.approx(speed, rel=1e-6) and speed > 10
+    assert fb.torque_nm == 2.5 == torque
+    assert fb.enabled and not fb.fault
+    i_sy = device.latest[8]
+    assert i_sy == pytest.approx(2.5)                   # the toy drive carries the load in its torque current
+    link.set_load(LoadMode.VISCOUS, 0.1)
+    assert link.feedback().torque_nm == pytest.approx(0.1 * speed, rel=1e-6)
+    link.zero_and_disable()
+    assert device.load.value == 0.0 and not device.load.enabled
+    assert link.feedback().torque_nm == 0.0
+
+
+def test_out_of_range_setpoint_is_refused_naming_the_registers(machine):
+    device, server, link = machine
+    link.open()
+    with pytest.raises(LinkError, match=r"write_registers of registers 1..3 \(mode, setpoint\) refused: "
+                                        r"Modbus exception 3 \(illegal data value\)"):
+        link.set_load(LoadMode.TORQUE, TORQUE_LIMIT_NM * 2)
+    with pytest.raises(LinkError, match="exception 3"):
+        link.set_load(LoadMode.BRAKE, -1.0)              # a passive brake cannot motor
+    with pytest.raises(LinkError, match="exception 3"):
+        link.set_load(LoadMode.TORQUE, float("nan"))
+    assert device.load.value == 0.0                      # nothing half-applied
+    assert server.registers.rejected[-1] == (16, 1, 3)
+
+
+def test_illegal_addresses_are_refused_naming_the_register(machine):
+    _, _, link = machine
+    link.open()
+    with pytest.raises(LinkError, match=r"registers 16..17 \(speed_mech_rad_s\) refused: Modbus exception 2 "
+                                        r"\(illegal data address\)"):
+        link._call("write_registers", 16, values=[0, 0])      # read-only feedback
+    with pytest.raises(LinkError, match=r"register 8 \(unmapped\) refused: Modbus exception 2"):
+        link._call("read_holding_registers", 8, count=1)
+    with pytest.raises(LinkError, match=r"register 2 \(setpoint\) refused: Modbus exception 2"):
+        link._call("write_register", 2, value=0x4020)         # half a float32 pair
+    with pytest.raises(LinkError, match=r"register 1 \(mode\) refused: Modbus exception 3"):
+        link._call("write_register", 1, value=7)              # no such LoadMode
+
+
+def test_fault_is_reported_blocks_enable_and_resets(machine):
+    device, _, link = machine
+    link.open()
+    link.enable(True)
+    with device.lock:
+        device.load.fault = 0x0042
+        device.set_load(enabled=False)
+    fb = link.feedback()
+    assert fb.fault and not fb.enabled
+    assert link.read(REGISTERS[7])[0] == 0x0042                  # fault_code
+    with pytest.raises(LinkError, match=r"register 0 \(enable\) refused: Modbus exception 4"):
+        link.enable(True)
+    link.reset_fault()
+    assert device.load.fault == 0 and link.read(REGISTERS[3]) == [0]   # fault_reset reads back 0
+    link.enable(True)
+    assert link.feedback().enabled
+
+
+def test_server_stops_cleanly_and_link_then_errors():
+    device = SimulatedDevice(ToyDrive())
+    server = start_modbus_tcp(device)
+    link = ModbusLoadLink({"transport": "modbus-tcp", "host": "127.0.0.1", "port": server.port,
+                           "timeout_s": 0.3, "retries": 0}, ROOT)
+    link.open()
+    server.stop()
+    with pytest.raises(LinkError, match="load machine modbus-tcp"):
+        link.feedback()
+    link.close()
+    assert not server._loop.thread.is_alive()
