@@ -171,15 +171,19 @@ def firmware_step(s, f, isd_m, isq_m, vdc_m, row):
     d_int_q = f[F_KI_I] * ts * e_iq
     s[S_ID_INT] += d_int_d
     s[S_IQ_INT] += d_int_q
-    c0 = math.cos(s[S_THETA])
-    s0 = math.sin(s[S_THETA])
+    c0 = c
+    s0 = sn
     ra = f[F_RD1] * i1a
     rb = f[F_RQ1] * i1b
     v_d = f[F_KP_I] * e_id + s[S_ID_INT] + c0 * ra + s0 * rb
     v_q = f[F_KP_I] * e_iq + s[S_IQ_INT] - s0 * ra + c0 * rb + s[S_WS_FF] * phi
-    th_apply = s[S_THETA] + 1.5 * ts * ws                                         # middle of next period
-    c1 = math.cos(th_apply)
-    s1 = math.sin(th_apply)
+    # rotate by the angle the frame turns until the middle of the next period (small: series to 5th order)
+    da = 1.5 * ts * ws
+    da2 = da * da
+    cd = 1.0 - da2 * (0.5 - da2 / 24.0)
+    sd = da * (1.0 - da2 * (1.0 / 6.0 - da2 / 120.0))
+    c1 = c0 * cd - s0 * sd
+    s1 = s0 * cd + c0 * sd
     u1a = c1 * v_d - s1 * v_q
     u1b = s1 * v_d + c1 * v_q
     # dL * d(i_sq1)/dt of the reference current vector turning at the frame speed
@@ -213,9 +217,9 @@ def firmware_step(s, f, isd_m, isq_m, vdc_m, row):
     comp = f[F_DT_COMP_V]
     if comp != 0.0:
         band = f[F_DT_COMP_BAND]
-        ua += comp * math.tanh(isd_m / band)
-        ub += comp * math.tanh(isq_m / band)
-        uc += comp * math.tanh(-(isd_m + isq_m) / band)
+        ua += comp * min(max(isd_m / band, -1.0), 1.0)
+        ub += comp * min(max(isq_m / band, -1.0), 1.0)
+        uc += comp * min(max(-(isd_m + isq_m) / band, -1.0), 1.0)
 
     # telemetry the firmware knows
     row[C_SPEED_REF] = s[S_SPEED_REF]
@@ -229,10 +233,7 @@ def firmware_step(s, f, isd_m, isq_m, vdc_m, row):
     row[C_USX] = v_d * scale
     row[C_USY] = v_q * scale
     row[C_TORQUE_EST] = f[F_NP] * phi * i_q                                      # (20), Delta T absorbed
-    da = min(max(ua / vdc, 0.0), 1.0)
-    db = min(max(ub / vdc, 0.0), 1.0)
-    dc = min(max(uc / vdc, 0.0), 1.0)
-    return True, da, db, dc
+    return True, min(max(ua / vdc, 0.0), 1.0), min(max(ub / vdc, 0.0), 1.0), min(max(uc / vdc, 0.0), 1.0)
 
 
 def firmware_params(model: dict, fw: dict) -> np.ndarray:

@@ -3,8 +3,8 @@ and the ADCs that measure the winding currents and the DC-link voltage.
 
 Leg x puts u_x = d_x * V_dc (to the negative rail) on its terminal, averaged over a PWM period; the winding
 voltages are v_sd = u_a - u_c, v_sq = u_b - u_c. Dead time and device drop make each leg lose
-(V_dc * t_dead * f_pwm + V_drop) against the sign of its output current (smoothed over `i_band` because the
-ripple current crosses zero there). With the gates off a leg's free-wheeling diodes clamp it to the rail the
+(V_dc * t_dead * f_pwm + V_drop) against the sign of its output current (fading linearly within +-`i_band`, where the
+ripple current crosses zero). With the gates off a leg's free-wheeling diodes clamp it to the rail the
 current flows into: u_x = 0 for i_x > 0, u_x = V_dc for i_x < 0.
 Leg currents (out of the leg): i_a = i_sd, i_b = i_sq, i_c = -(i_sd + i_sq).
 """
@@ -25,7 +25,7 @@ def _leg_loss(i, p):
     loss = p[I_VDC] * p[I_DEADTIME_S] * p[I_FPWM] + p[I_VDROP]
     if loss == 0.0:
         return 0.0
-    return loss * math.tanh(i / p[I_IBAND])
+    return loss * min(max(i / p[I_IBAND], -1.0), 1.0)
 
 
 @njit(cache=True)
@@ -49,7 +49,7 @@ def adc(value, noise, sigma, lsb):
     """One ADC conversion: additive Gaussian noise (pre-drawn standard normal `noise`) and quantisation."""
     v = value + sigma * noise
     if lsb > 0.0:
-        v = lsb * np.round(v / lsb)
+        v = lsb * math.floor(v / lsb + 0.5)
     return v
 
 

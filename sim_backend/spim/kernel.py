@@ -54,6 +54,7 @@ def run_steps(n, x, pp, ip, fs, fp, ks, noise, use_noise, substeps, out):
         vdc_m = inv.adc(ip[inv.I_VDC], n2, ip[inv.I_NOISE_VDC], ip[inv.I_LSB_VDC])
 
         row = out[j]
+        row[:] = 0.0
         gates_now = ks[K_GATES] != 0.0
         vsd, vsq = inv.winding_voltages(ks[K_DA], ks[K_DB], ks[K_DC], isd, isq, not gates_now, ip)
         gates_next, da, db, dc = fw.firmware_step(fs, fp, isd_m, isq_m, vdc_m, row)

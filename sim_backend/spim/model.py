@@ -16,6 +16,7 @@ from sim_backend.spim import inverter as inv
 from sim_backend.spim import kernel as kn
 from sim_backend.spim import plant as pl
 
+NOISE_BLOCK = 4096
 _PLANT_KEYS = ("rsd_ohm", "rsq_ohm", "rr_ohm", "lsd_h", "lsq_h", "lr_h", "msrd_h", "msrq_h")
 _INVERTER_KEYS = ("vdc_v", "pwm_frequency_hz", "dead_time_s", "device_drop_v", "zero_crossing_band_a")
 _MEASUREMENT_KEYS = ("current_noise_a", "current_lsb_a", "vdc_noise_v", "vdc_lsb_v")
@@ -82,6 +83,9 @@ class SpimDrive:
         self._rng = np.random.default_rng(seed)
         self._noise = bool(noise)
         self._no_noise = np.zeros((1, kn.NOISE_CHANNELS))
+        # standard-normal samples drawn in fixed blocks: the telemetry does not depend on how step() is chunked
+        self._noise_buf = np.zeros((NOISE_BLOCK, kn.NOISE_CHANNELS))
+        self._noise_pos = NOISE_BLOCK
 
     @classmethod
     def from_config(cls, cfg: dict, seed: int, *, noise: bool = True) -> "SpimDrive":
@@ -108,10 +112,19 @@ class SpimDrive:
 
     # ---- DriveModel ----
     def step(self, n: int) -> np.ndarray:
-        out = np.zeros((n, len(SIGNAL_NAMES)))
-        noise = self._rng.standard_normal((n, kn.NOISE_CHANNELS)) if self._noise else self._no_noise
-        kn.run_steps(n, self._x, self._pp, self._ip, self._fs, self._fp, self._ks, noise, self._noise,
-                     self._substeps, out)
+        out = np.empty((n, len(SIGNAL_NAMES)))
+        done = 0
+        while done < n:
+            if self._noise and self._noise_pos == len(self._noise_buf):
+                self._noise_buf = self._rng.standard_normal((NOISE_BLOCK, kn.NOISE_CHANNELS))
+                self._noise_pos = 0
+            m = n - done if not self._noise else min(n - done, NOISE_BLOCK - self._noise_pos)
+            noise = self._noise_buf[self._noise_pos:self._noise_pos + m] if self._noise else self._no_noise
+            kn.run_steps(m, self._x, self._pp, self._ip, self._fs, self._fp, self._ks, noise, self._noise,
+                         self._substeps, out[done:done + m])
+            done += m
+            if self._noise:
+                self._noise_pos += m
         self._steps += n
         self.time_s = self._steps * self.control_period_s
         return out

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from sim_backend.mechanics import apply_coulomb, coulomb_torque, smooth_load_torque
+from sim_backend.mechanics import coulomb_torque, smooth_load_torque
 
 # plant parameter vector (effective values: nominal * injection factor)
 P_RSD, P_RSQ, P_RR, P_LSD, P_LSQ, P_LR, P_MSRD, P_MSRQ, P_NP, P_J, P_FRICTION, P_LOAD_MODE, P_LOAD_VALUE = range(13)
@@ -55,7 +55,7 @@ def torque(isd, isq, ird, irq, p):
 
 
 @njit(cache=True, inline="always")
-def derivatives(psd, psq, prd, prq, wm, vsd, vsq, p, open_d, open_q):
+def derivatives(psd, psq, prd, prq, wm, vsd, vsq, p, open_d, open_q, coulomb_signed):
     isd, isq, ird, irq = currents(psd, psq, prd, prq, p, open_d, open_q)
     wr = p[P_NP] * wm
     dprd = -p[P_RR] * ird - wr * prq          # (3)
@@ -70,7 +70,7 @@ def derivatives(psd, psq, prd, prq, wm, vsd, vsq, p, open_d, open_q):
         dpsq = vsq - p[P_RSQ] * isq           # (2)
     te = torque(isd, isq, ird, irq, p)
     load = smooth_load_torque(int(p[P_LOAD_MODE]), p[P_LOAD_VALUE], wm)
-    dwm = (te - load - p[P_FRICTION] * wm) / p[P_J]
+    dwm = (te - load - coulomb_signed - p[P_FRICTION] * wm) / p[P_J]
     return dpsd, dpsq, dprd, dprq, dwm
 
 
@@ -89,27 +89,37 @@ def advance(x, p, vsd, vsq, dt, substeps, gates_off):
     te_sum = 0.0
     isd0, isq0, _, _ = currents(psd, psq, prd, prq, p, open_d, open_q)
     for _ in range(substeps):
-        k1 = derivatives(psd, psq, prd, prq, wm, vsd, vsq, p, open_d, open_q)
-        k2 = derivatives(psd + 0.5 * h * k1[0], psq + 0.5 * h * k1[1], prd + 0.5 * h * k1[2],
-                         prq + 0.5 * h * k1[3], wm + 0.5 * h * k1[4], vsd, vsq, p, open_d, open_q)
-        k3 = derivatives(psd + 0.5 * h * k2[0], psq + 0.5 * h * k2[1], prd + 0.5 * h * k2[2],
-                         prq + 0.5 * h * k2[3], wm + 0.5 * h * k2[4], vsd, vsq, p, open_d, open_q)
-        k4 = derivatives(psd + h * k3[0], psq + h * k3[1], prd + h * k3[2],
-                         prq + h * k3[3], wm + h * k3[4], vsd, vsq, p, open_d, open_q)
-        wm_before = wm
+        # Coulomb (brake) torque inside the RK4 stages keeps the method 4th order; at rest it holds the shaft
+        # while the net smooth torque stays within its magnitude (sim_backend.mechanics convention).
         isd, isq, ird, irq = currents(psd, psq, prd, prq, p, open_d, open_q)
         te = torque(isd, isq, ird, irq, p)
+        stuck = False
+        cs = 0.0
+        if coulomb > 0.0:
+            if wm != 0.0:
+                cs = coulomb * np.sign(wm)
+            else:
+                net = te - smooth_load_torque(int(p[P_LOAD_MODE]), p[P_LOAD_VALUE], 0.0)
+                if abs(net) <= coulomb:
+                    cs = net
+                    stuck = True
+                else:
+                    cs = coulomb * np.sign(net)
+        k1 = derivatives(psd, psq, prd, prq, wm, vsd, vsq, p, open_d, open_q, cs)
+        k2 = derivatives(psd + 0.5 * h * k1[0], psq + 0.5 * h * k1[1], prd + 0.5 * h * k1[2],
+                         prq + 0.5 * h * k1[3], wm + 0.5 * h * k1[4], vsd, vsq, p, open_d, open_q, cs)
+        k3 = derivatives(psd + 0.5 * h * k2[0], psq + 0.5 * h * k2[1], prd + 0.5 * h * k2[2],
+                         prq + 0.5 * h * k2[3], wm + 0.5 * h * k2[4], vsd, vsq, p, open_d, open_q, cs)
+        k4 = derivatives(psd + h * k3[0], psq + h * k3[1], prd + h * k3[2],
+                         prq + h * k3[3], wm + h * k3[4], vsd, vsq, p, open_d, open_q, cs)
+        wm_before = wm
         psd += h / 6.0 * (k1[0] + 2.0 * k2[0] + 2.0 * k3[0] + k4[0])
         psq += h / 6.0 * (k1[1] + 2.0 * k2[1] + 2.0 * k3[1] + k4[1])
         prd += h / 6.0 * (k1[2] + 2.0 * k2[2] + 2.0 * k3[2] + k4[2])
         prq += h / 6.0 * (k1[3] + 2.0 * k2[3] + 2.0 * k3[3] + k4[3])
-        wm_free = wm + h / 6.0 * (k1[4] + 2.0 * k2[4] + 2.0 * k3[4] + k4[4])
-        if coulomb > 0.0:
-            smooth = te - smooth_load_torque(int(p[P_LOAD_MODE]), p[P_LOAD_VALUE], wm_before) \
-                - p[P_FRICTION] * wm_before
-            wm = apply_coulomb(wm_before, wm_free, smooth, coulomb, p[P_J], h)
-        else:
-            wm = wm_free
+        wm += h / 6.0 * (k1[4] + 2.0 * k2[4] + 2.0 * k3[4] + k4[4])
+        if stuck or (coulomb > 0.0 and wm * wm_before < 0.0):
+            wm = 0.0  # held by the brake, or the brake stopped the shaft within this substep
         x[X_THETA_M] += 0.5 * h * (wm_before + wm)
         te_sum += te
         if gates_off:
