@@ -210,6 +210,9 @@ class SimCanopenNode:
             return round(dev.model.control_period_s * 1e9)
         if od_gen.IDX_SIGNAL_BASE <= index < od_gen.IDX_SIGNAL_BASE + len(SIGNAL_NAMES):
             return float(dev.latest[index - od_gen.IDX_SIGNAL_BASE])
+        if od_gen.IDX_SCALED_BASE <= index < od_gen.IDX_SCALED_BASE + len(SIGNAL_NAMES):
+            value = float(dev.latest[index - od_gen.IDX_SCALED_BASE]) / od.factor
+            return 0 if value != value else max(-32768, min(32767, round(value)))
         if index == od_gen.IDX_TRACE:
             trace = dev.trace
             return {1: trace.mask, 2: trace.decimation, 3: trace.trigger, 4: int(trace.running),

@@ -7,6 +7,7 @@ Layout (see docs/canopen.md):
   0x6040-0x6502  CiA 402 objects; velocities are INTEGER32 in mrad/s, mechanical
   0x2000-0x2002  drive clock (step counter), control period, drive kind
   0x2010-0x201F  live telemetry, REAL32, one object per drivers.signals.SIGNAL_NAMES entry (PDO mappable)
+  0x2030-0x203F  the same as scaled INTEGER16 (EDS Factor), for when REAL32 does not fit the bus budget
   0x2100/0x2101  trace recorder: configuration record and DOMAIN data (SDO block upload)
   0x2200+/0x2300+/0x2400+  test hooks / firmware parameters / simulator plant injections, REAL32 rw
 """
@@ -34,6 +35,9 @@ IDX_STEP_COUNT = 0x2000
 IDX_CONTROL_PERIOD_NS = 0x2001
 IDX_DRIVE_KIND = 0x2002
 IDX_SIGNAL_BASE = 0x2010
+IDX_SCALED_BASE = 0x2030          # the same signals as scaled INTEGER16 (value = raw * Factor) for tight buses
+SCALED_PREFIX = "scaled_"
+SCALE_BY_UNIT = {"rad/s": 0.05, "rad": 1e-4, "Wb": 1e-4, "A": 0.01, "V": 0.1, "N*m": 0.01}
 IDX_TRACE = 0x2100
 IDX_TRACE_DATA = 0x2101
 IDX_HOOK_BASE = 0x2200
@@ -68,6 +72,7 @@ class Var:
     default: str | None = None
     pdo: bool = False
     description: str = ""
+    factor: float | None = None
 
 
 @dataclass
@@ -162,6 +167,11 @@ def objects(kind: str) -> list[Obj]:
     for i, sig in enumerate(SIGNALS):
         objs.append(Obj(signal_index(i), sig.name, Var(sig.name, REAL32, "ro", "0", pdo=True,
                                                        description=f"{sig.description} [{sig.unit}]")))
+    for i, sig in enumerate(SIGNALS):
+        factor = SCALE_BY_UNIT[sig.unit]
+        objs.append(Obj(IDX_SCALED_BASE + i, SCALED_PREFIX + sig.name, Var(
+            SCALED_PREFIX + sig.name, INTEGER16, "ro", "0", pdo=True, factor=factor,
+            description=f"{sig.name} / {factor:g}, saturated to INTEGER16 [{sig.unit}]")))
     trace_subs = {0: Var("Highest sub-index supported", UNSIGNED8, "const", f"0x{len(TRACE_SUBS):02X}")}
     defaults = {1: _u32((1 << len(SIGNALS)) - 1), 2: "1", 3: "0", 4: "0", 5: "0", 6: "0", 7: "0",
                 8: "200000", 9: "100000"}
@@ -201,6 +211,8 @@ def _var_lines(section: str, var: Var) -> list[str]:
     lines.append(f"PDOMapping={1 if var.pdo else 0}")
     if var.description:
         lines.append(f"Description={var.description}")
+    if var.factor is not None:
+        lines.append(f"Factor={var.factor:g}")
     return lines + [""]
 
 
