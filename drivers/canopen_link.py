@@ -141,9 +141,13 @@ class CanopenDriveLink:
 
     # -- connection ----------------------------------------------------------------------------------
     def open(self) -> DriveIdentity:
+        kwargs = bus_kwargs(self.section)
+        if kwargs["interface"] == "socketcand":
+            # python-can's client warns on every TCP read that ends mid-message, which is normal at load
+            logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
         try:
             self.network = canopen.Network()
-            self.network.connect(**bus_kwargs(self.section))
+            self.network.connect(**kwargs)
         except (can.CanError, OSError, ValueError, TimeoutError) as exc:
             raise LinkError(f"CAN interface {self.section.get('interface')!r} channel "
                             f"{self.section.get('channel')!r}: cannot open: {exc}") from None

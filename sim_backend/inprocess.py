@@ -28,6 +28,7 @@ def make_model(bench_cfg: dict, seed: int):
         drive = importlib.import_module("sim_backend.drive")
     except ModuleNotFoundError as exc:
         raise RuntimeError(f"simulator: sim_backend.drive is not available ({exc})") from None
+    drive.make_drive(motor, seed).step(1)      # compile the kernels now, not inside the first SYNC
     return drive.make_drive(motor, seed)
 
 

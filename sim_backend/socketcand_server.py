@@ -1,0 +1,215 @@
+"""Server side of socketcand's ASCII protocol (raw mode), bridging TCP clients onto a python-can bus.
+
+What python-can's `socketcand` interface (can/interfaces/socketcand/socketcand.py) sends and expects:
+    server: "< hi >"                 client: "< open can0 >"    server: "< ok >"
+    client: "< rawmode >"            server: "< ok >"
+    client: "< send 601 8 40 0 10 0 0 0 0 0 >"     (id hex, dlc hex, data bytes hex without padding)
+    server: "< frame 581 1700000000.123456 4B001000AABB0000 >"   (id, seconds.micros, data as one hex string)
+Each client gets its own python-can `virtual` bus on the simulator's channel, so a client hears every
+node and every other client but never its own frames (python-can's `virtual` semantics, like a real
+socketcand bound to a CAN interface with loopback of own frames off).
+"""
+
+from __future__ import annotations
+
+import logging
+import select
+import socket
+import threading
+import time
+
+import can
+
+log = logging.getLogger(__name__)
+
+HANDSHAKE_TIMEOUT_S = 10.0
+FORWARD_HOLD_S = 0.05   # after "< ok >" to rawmode: python-can's client reads that reply with one recv(), so
+                        # frames must not share its TCP segment
+
+
+def format_frame(msg: can.Message) -> str:
+    can_id = f"{msg.arbitration_id:08X}" if msg.is_extended_id else f"{msg.arbitration_id:03X}"
+    return f"< frame {can_id} {msg.timestamp:.6f} {bytes(msg.data).hex().upper()} >"
+
+
+def parse_send(command: str) -> can.Message:
+    """'< send 601 8 40 0 10 0 0 0 0 0 >' -> Message; ValueError on anything else."""
+    parts = command.strip("<> \t\r\n").split()
+    if len(parts) < 3 or parts[0] != "send":
+        raise ValueError(f"not a send command: {command!r}")
+    can_id, dlc = int(parts[1], 16), int(parts[2], 16)
+    data = bytes(int(b, 16) for b in parts[3:])
+    if dlc != len(data) or dlc > 8:
+        raise ValueError(f"send command with dlc {dlc} and {len(data)} data bytes: {command!r}")
+    return can.Message(arbitration_id=can_id, data=data, is_extended_id=len(parts[1]) > 3)
+
+
+class _Client:
+    def __init__(self, server: "SocketcandServer", conn: socket.socket, addr):
+        self.server, self.conn, self.addr = server, conn, addr
+        self.bus: can.BusABC | None = None
+        self.closed = threading.Event()
+        self.frames_in = self.frames_out = 0
+        self.thread = threading.Thread(target=self._run, name=f"socketcand-{addr[1]}", daemon=True)
+        self.thread.start()
+
+    def _send_text(self, text: str) -> None:
+        self.conn.sendall(text.encode("ascii"))
+
+    def _read_command(self, buf: bytearray, deadline: float) -> str | None:
+        while b">" not in buf:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or self.closed.is_set():
+                return None
+            ready, _, _ = select.select([self.conn], [], [], min(remaining, 0.2))
+            if ready:
+                chunk = self.conn.recv(4096)
+                if not chunk:
+                    return None
+                buf += chunk
+        end = buf.index(b">") + 1
+        start = buf.find(b"<")
+        command = buf[start:end].decode("ascii", "replace") if 0 <= start < end else ""
+        del buf[:end]
+        return command
+
+    def _run(self) -> None:
+        buf = bytearray()
+        try:
+            self._send_text("< hi >")
+            deadline = time.monotonic() + HANDSHAKE_TIMEOUT_S
+            command = self._read_command(buf, deadline)
+            if command is None:
+                return
+            words = command.strip("<> ").split()
+            if words[:1] != ["open"] or len(words) != 2 or words[1] != self.server.can_name:
+                self._send_text(f"< error could not open bus {' '.join(words[1:])} >")
+                return
+            self._send_text("< ok >")
+            command = self._read_command(buf, deadline)
+            if command is None or command.strip("<> ") != "rawmode":
+                self._send_text("< error expected rawmode >")
+                return
+            self.bus = can.Bus(interface="virtual", channel=self.server.channel, receive_own_messages=False,
+                               preserve_timestamps=False)
+            self._send_text("< ok >")
+            forwarder = threading.Thread(target=self._forward, name=f"socketcand-fwd-{self.addr[1]}", daemon=True)
+            forwarder.start()
+            self._receive(buf)
+        except OSError as exc:
+            log.info("socketcand client %s: %s", self.addr, exc)
+        finally:
+            self.close()
+
+    def _receive(self, buf: bytearray) -> None:
+        while not self.closed.is_set():
+            while b">" in buf:
+                end = buf.index(b">") + 1
+                start = buf.find(b"<")
+                command = buf[start:end].decode("ascii", "replace") if 0 <= start < end else ""
+                del buf[:end]
+                if command.startswith("< send "):
+                    try:
+                        self.bus.send(parse_send(command))
+                        self.frames_in += 1
+                    except ValueError as exc:
+                        log.warning("socketcand client %s: %s", self.addr, exc)
+                elif command:
+                    log.info("socketcand client %s: ignored %r", self.addr, command)
+            ready, _, _ = select.select([self.conn], [], [], 0.2)
+            if ready:
+                chunk = self.conn.recv(65536)
+                if not chunk:
+                    return
+                buf += chunk
+
+    def _forward(self) -> None:
+        time.sleep(FORWARD_HOLD_S)
+        try:
+            while not self.closed.is_set():
+                msg = self.bus.recv(0.2)
+                if msg is None:
+                    continue
+                lines = [format_frame(msg)]
+                while len(lines) < 256:          # batch what is queued into one send
+                    more = self.bus.recv(0)
+                    if more is None:
+                        break
+                    lines.append(format_frame(more))
+                self._send_text("".join(lines))
+                self.frames_out += len(lines)
+        except (OSError, can.CanError) as exc:
+            if not self.closed.is_set():
+                log.info("socketcand client %s: %s", self.addr, exc)
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        if self.closed.is_set():
+            return
+        self.closed.set()
+        try:
+            self.conn.close()
+        except OSError:
+            pass
+        if self.bus is not None:
+            self.bus.shutdown()
+        self.server._forget(self)
+
+
+class SocketcandServer:
+    """Serves one CAN bus (a python-can `virtual` channel) as `can_name` on host:port."""
+
+    def __init__(self, channel: str, host: str = "127.0.0.1", port: int = 0, can_name: str = "can0"):
+        self.channel, self.can_name = channel, can_name
+        self._listener = socket.create_server((host, port))
+        self.host, self.port = host, self._listener.getsockname()[1]
+        self.url = f"socketcand://{host}:{self.port}/{can_name}"
+        self._clients: list[_Client] = []
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._thread = threading.Thread(target=self._accept_loop, name="socketcand-accept", daemon=True)
+        self._thread.start()
+
+    def _accept_loop(self) -> None:
+        while not self._stopping.is_set():
+            ready, _, _ = select.select([self._listener], [], [], 0.2)
+            if not ready or self._stopping.is_set():
+                continue
+            try:
+                conn, addr = self._listener.accept()
+            except OSError:
+                return
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            with self._lock:
+                self._clients.append(_Client(self, conn, addr))
+
+    def _forget(self, client: _Client) -> None:
+        with self._lock:
+            if client in self._clients:
+                self._clients.remove(client)
+
+    @property
+    def clients(self) -> int:
+        with self._lock:
+            return len(self._clients)
+
+    def stop(self) -> None:
+        self._stopping.set()
+        self._thread.join(timeout=2.0)
+        self._listener.close()
+        with self._lock:
+            clients = list(self._clients)
+        for client in clients:
+            client.close()
+            client.thread.join(timeout=2.0)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+def start_socketcand(channel: str, host: str = "127.0.0.1", port: int = 0, can_name: str = "can0") -> SocketcandServer:
+    return SocketcandServer(channel, host, port, can_name)
