@@ -104,9 +104,16 @@ def run_steps(n: int, step0: int, x: np.ndarray, plant_p: np.ndarray, load_mode:
         inv_s[R_GATES] = fw_s[fw.S_RUNNING]
 
         # --- plant over [t_k, t_k+1] ---
-        pl.advance(x, plant_p, u_d, u_q, load_mode, load_value, period, substeps)
         if not gates_on:
             # gates blocked: the winding current freewheels through the diodes into the DC link and dies
-            # within the period (peak line back-EMF at 3000 rpm, 423 V, is below vdc, so no regeneration)
+            # within the period; the open winding then shows its back-EMF (peak line EMF at 3000 rpm,
+            # 423 V, stays below vdc, so the diodes do not conduct again)
+            x[pl.X_ID] = 0.0
+            x[pl.X_IQ] = 0.0
+            w_e = plant_p[pl.P_POLE_PAIRS] * x[pl.X_W_MECH]
+            u_d = -w_e * x[pl.X_PSI_Q]
+            u_q = w_e * x[pl.X_PSI_D]
+        pl.advance(x, plant_p, u_d, u_q, load_mode, load_value, period, substeps)
+        if not gates_on:
             x[pl.X_ID] = 0.0
             x[pl.X_IQ] = 0.0
