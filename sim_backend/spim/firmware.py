@@ -33,15 +33,15 @@ FAULT_OVERCURRENT = 0x2310
 (F_TS, F_NP, F_K, F_RD1, F_RQ1, F_LSD, F_SIGMA_D, F_TAU_R, F_LQ1, F_J,
  F_KP_I, F_KI_I, F_FLUX_REF, F_KP_F, F_KI_F, F_KP_W, F_KI_W, F_KP_V, F_KI_V,
  F_T_MAX, F_I_MAX, F_RAMP, F_W_SPEED_LPF, F_W_FF_LPF, F_PHI_MIN, F_I_TRIP, F_M_MAX,
- F_DT_COMP_V, F_DT_COMP_BAND, F_T_MAG, F_COMMON_FIXED, F_DL) = range(32)
-N_FW_PARAMS = 32
+ F_DT_COMP_V, F_DT_COMP_BAND, F_T_MAG, F_COMMON_FIXED, F_DL, F_G_CM) = range(33)
+N_FW_PARAMS = 33
 
 # ---- firmware state vector ----------------------------------------------------------------------------
 (S_ENABLED, S_FAULT, S_T_ON, S_THETA, S_PHI, S_WS, S_WS_FF, S_SLIP, S_SLIP_INT, S_IQ_MODEL,
  S_SPEED_EST, S_SPEED_INT, S_FLUX_INT, S_ID_INT, S_IQ_INT, S_U1A_P1, S_U1B_P1, S_U1A_P2, S_U1B_P2,
  S_I1A_PREV, S_I1B_PREV, S_SPEED_TARGET, S_SPEED_REF, S_FREEZE_SLIP, S_FREEZE_FLUX, S_RUNNING,
- S_ID_REF) = range(27)
-N_FW_STATE = 27
+ S_ID_REF, S_PHI_CM, S_ID_PREV) = range(29)
+N_FW_STATE = 29
 
 # telemetry columns the firmware writes (indices into drivers.signals.SIGNAL_NAMES)
 C_SPEED_REF, C_SPEED_EST, C_SPEED_TRUE, C_POS_EST, C_POS_ERR, C_FLUX_EST, C_FLUX_TRUE, C_ISX, C_ISY, \
@@ -53,7 +53,7 @@ def reset_controllers(s):
     """Zero every estimator and controller state (done at each enable), keep target, freezes and fault."""
     for j in (S_T_ON, S_THETA, S_PHI, S_WS, S_WS_FF, S_SLIP, S_SLIP_INT, S_IQ_MODEL, S_SPEED_EST,
               S_SPEED_INT, S_FLUX_INT, S_ID_INT, S_IQ_INT, S_U1A_P1, S_U1B_P1, S_U1A_P2, S_U1B_P2,
-              S_I1A_PREV, S_I1B_PREV, S_SPEED_REF, S_RUNNING, S_ID_REF):
+              S_I1A_PREV, S_I1B_PREV, S_SPEED_REF, S_RUNNING, S_ID_REF, S_PHI_CM, S_ID_PREV):
         s[j] = 0.0
 
 
@@ -89,7 +89,9 @@ def firmware_step(s, f, isd_m, isq_m, vdc_m, row):
     ed = c * ea + sn * eb
     eq = -sn * ea + c * eb
     if s[S_FREEZE_FLUX] == 0.0:
-        s[S_PHI] = max(s[S_PHI] + ts * ed, 0.0)
+        # voltage model, pulled weakly towards the current model of eq. (24) (g_cm): an error of the
+        # integrator state then decays instead of persisting (a pure integrator never forgets)
+        s[S_PHI] = max(s[S_PHI] + ts * (ed + f[F_G_CM] * (s[S_PHI_CM] - s[S_PHI])), 0.0)
     phi = s[S_PHI]
     ws = eq / max(phi, f[F_PHI_MIN])
     s[S_WS] = ws
@@ -118,6 +120,11 @@ def firmware_step(s, f, isd_m, isq_m, vdc_m, row):
         s[S_SLIP_INT] += f[F_KI_W] * ts * eps
         s[S_SLIP] = f[F_KP_W] * eps + s[S_SLIP_INT]
     slip = s[S_SLIP]
+    # current model of the stator-flux magnitude, eq. (24) (zeta = 0 for the symmetrised flux)
+    sig_l = f[F_SIGMA_D] * f[F_LSD]
+    s[S_PHI_CM] += ts * ((f[F_LSD] * i_d - s[S_PHI_CM]) / f[F_TAU_R] - slip * sig_l * i_q) \
+        + sig_l * (i_d - s[S_ID_PREV])
+    s[S_ID_PREV] = i_d
     speed_raw = (ws - slip) / f[F_NP]
     a_sp = ts * f[F_W_SPEED_LPF] / (1.0 + ts * f[F_W_SPEED_LPF])
     s[S_SPEED_EST] += a_sp * (speed_raw - s[S_SPEED_EST])
@@ -274,6 +281,7 @@ def firmware_params(model: dict, fw: dict) -> np.ndarray:
     f[F_DT_COMP_BAND] = fw["dead_time_comp_band_a"]
     f[F_T_MAG] = fw["magnetising_time_s"]
     f[F_DL] = k * k * lsq - lsd
+    f[F_G_CM] = fw["flux_current_model_gain_rad_s"]
     f[F_COMMON_FIXED] = 1.0 if fw["common_leg"] == "fixed" else 0.0
     return f
 
