@@ -7,6 +7,7 @@ handler (SerialProtocolHandler) is transport-free so tests can feed it frames di
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import select
@@ -15,6 +16,7 @@ import struct
 import threading
 import tty
 from dataclasses import dataclass, field
+from typing import Iterator
 
 import numpy as np
 
@@ -359,3 +361,22 @@ def start_serial_tcp(device: SimulatedDevice, host: str = "127.0.0.1", port: int
 
 def start_serial_pty(device: SimulatedDevice) -> SerialPtyServer:
     return SerialPtyServer(device)
+
+
+@contextlib.contextmanager
+def start_inprocess(bench_cfg: dict, seed: int) -> Iterator[dict]:
+    """[services] starter: the simulated drive on the serial protocol over TCP (127.0.0.1) and its load machine
+    on Modbus TCP, in this process. Yields the endpoint overrides {"drive": {"port": url}, "load": {"port": n}}."""
+    from sim_backend.inprocess import make_model
+    from sim_backend.modbus_server import start_modbus_tcp
+
+    device = SimulatedDevice(make_model(bench_cfg, seed))
+    drive_server = start_serial_tcp(device)
+    try:
+        load_server = start_modbus_tcp(device)
+        try:
+            yield {"drive": {"port": drive_server.url}, "load": {"host": "127.0.0.1", "port": load_server.port}}
+        finally:
+            load_server.stop()
+    finally:
+        drive_server.stop()
