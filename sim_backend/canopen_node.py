@@ -154,6 +154,7 @@ class SimCanopenNode:
         self.device = device
         self.node_id = node_id
         self.network = canopen.Network(bus)
+        self.network.NOTIFIER_CYCLE = 0.1       # stop() returns within 0.1 s
         od = canopen.import_od(str(eds_path), node_id)
         self.node = _DriveLocalNode(node_id, od)
         self.network.add_node(self.node)
@@ -163,7 +164,7 @@ class SimCanopenNode:
         self.node.sdo.on_upload_complete = self._on_upload_complete
         self.node.after_write = self._after_write
         self._trace_pending = b""
-        self._trace_max_rows = int(od[od_gen.IDX_TRACE][9].default)
+        self._trace_max_rows = int(od[od_gen.IDX_TRACE][9].default) if od_gen.IDX_TRACE in od else 0
         self._trace_cfg = [device.trace.mask, device.trace.decimation, device.trace.trigger]
         self._pdo_dirty = True
         self._tpdos: list[_Pdo] = []

@@ -1,0 +1,78 @@
+"""Shared set-up for the CANopen tests: a ToyDrive behind the simulated node on a private virtual channel,
+the bench's link, and a passive sniffer on the same channel that sees every frame on the wire."""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import can
+
+from drivers.canopen_link import CanopenDriveLink
+from sim_backend.canopen_node import SimCanopenNode, start_node
+from sim_backend.device import SimulatedDevice
+from sim_backend.inprocess import private_channel
+from sim_backend.toy import ToyDrive
+
+REPO = Path(__file__).resolve().parent.parent
+EDS = REPO / "config" / "od" / "drivebench-pmsm.eds"
+
+
+class Sniffer:
+    """A bus that only listens; frames() returns what arrived since the last call, in wire order."""
+
+    def __init__(self, channel: str):
+        self.bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+
+    def frames(self) -> list[can.Message]:
+        out = []
+        while (msg := self.bus.recv(0)) is not None:
+            out.append(msg)
+        return out
+
+    def with_id(self, can_id: int) -> list[bytes]:
+        return [bytes(m.data) for m in self.frames() if m.arbitration_id == can_id]
+
+    def inject(self, can_id: int, data: bytes) -> None:
+        self.bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
+
+    def close(self) -> None:
+        self.bus.shutdown()
+
+
+@dataclass
+class Rig:
+    toy: ToyDrive
+    device: SimulatedDevice
+    node: SimCanopenNode
+    link: CanopenDriveLink
+    sniffer: Sniffer
+    channel: str
+
+
+def link_section(channel: str, **overrides) -> dict:
+    section = dict(transport="canopen", interface="virtual", channel=channel, bitrate=1_000_000, node_id=1,
+                   eds=str(EDS), sync_period_s=0.01, heartbeat_timeout_s=1.0, sdo_timeout_s=1.0,
+                   trace_decimation=1)
+    section.update(overrides)
+    return section
+
+
+@contextlib.contextmanager
+def rig(node_eds: Path = EDS, open_link: bool = True, **section) -> Iterator[Rig]:
+    channel = private_channel()
+    sniffer = Sniffer(channel)
+    toy = ToyDrive()
+    device = SimulatedDevice(toy)
+    node = start_node(device, node_eds, 1, interface="virtual", channel=channel)
+    link = CanopenDriveLink(link_section(channel, **section), REPO)
+    try:
+        if open_link:
+            link.open()
+        yield Rig(toy, device, node, link, sniffer, channel)
+    finally:
+        link.close()
+        node.stop()
+        sniffer.close()
