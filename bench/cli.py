@@ -28,12 +28,19 @@ EXIT_PASS, EXIT_FAIL, EXIT_ERROR = 0, 1, 2
 PROGRESS_MIN_DURATION_S = 3.0   # show a progress bar for scenarios at least this long (drive time)
 URL_RE = re.compile(r"^(rerun(\+https?)?|https?)://")
 
-err_console = Console(stderr=True, highlight=False, soft_wrap=True)
+def make_console(stderr: bool = False) -> Console:
+    console = Console(stderr=stderr, highlight=False, soft_wrap=True)
+    if not console.is_terminal and "COLUMNS" not in os.environ:
+        console.width = 160   # logs and pipes: do not squeeze tables into 80 columns
+    return console
+
+
+err_console = make_console(stderr=True)
 
 
 def _out_console(as_json: bool) -> Console:
     # with --json, stdout carries JSON documents only; tables go to stderr
-    return err_console if as_json else Console(highlight=False, soft_wrap=True)
+    return err_console if as_json else make_console()
 
 
 def _problem_lines(exc: BaseException) -> list[str]:
@@ -86,17 +93,27 @@ def _as_dict(c: Any) -> dict:
 
 def criteria_table(title: str, criteria: Iterable[Any]) -> Table:
     table = Table(title=title, title_justify="left")
-    for column in ("criterion", "signal", "window [s]", "value", "limit", "result"):
-        table.add_column(column, justify="right" if column in ("value", "limit") else "left")
+    table.add_column("criterion")
+    table.add_column("signal", no_wrap=True)
+    table.add_column("window [s]", no_wrap=True)
+    table.add_column("value", justify="right", no_wrap=True)
+    table.add_column("limit", justify="right", no_wrap=True)
+    table.add_column("result", no_wrap=True)
+    gaps = []
     for c in map(_as_dict, criteria):
         if c.get("passed"):
             result = "[green]pass[/green]"
         elif c.get("known_gap"):
-            result = f"[yellow]known gap[/yellow]: {c['known_gap']}"
+            gaps.append(f"{c.get('name')}: {c['known_gap']}")
+            result = f"[yellow]known gap ({len(gaps)})[/yellow]"
         else:
             result = "[red]FAIL[/red]"
-        table.add_row(str(c.get("name")), str(c.get("signal")), _fmt(c.get("window_s")), _fmt(c.get("value")),
-                      _fmt(c.get("limit")), result)
+        value = c.get("value")
+        table.add_row(str(c.get("name")), str(c.get("signal")), _fmt(c.get("window_s")),
+                      "n/a" if value is None else _fmt(value), _fmt(c.get("limit")), result)
+    if gaps:
+        table.caption = "\n".join(f"({n}) {gap}" for n, gap in enumerate(gaps, start=1))
+        table.caption_justify = "left"
     return table
 
 
@@ -185,7 +202,7 @@ def run_many(scenarios, bench_path, out_root, seed, rerun_mode, rerun_url, as_js
         if as_json:
             click.echo(json.dumps(result.record, default=str))
         print_record(out, result.record, result.run_dir)
-        if result.error:
+        if result.error and as_json:
             click.echo(f"{path}: error: {result.error}", err=True)
         if result.interrupted:
             click.echo("interrupted: not starting further scenarios", err=True)
@@ -286,7 +303,7 @@ def list_scenarios() -> None:
         except InputError as exc:
             description = f"[red]invalid[/red]: {exc.problems[0] if exc.problems else exc}"
         table.add_row(str(f), description)
-    Console(highlight=False, soft_wrap=True).print(table)
+    make_console().print(table)
 
 
 @cli.command()
@@ -303,7 +320,7 @@ def show(run_dir, as_json) -> None:
         if as_json:
             click.echo(json.dumps({**record, "_complete": complete, "_samples": n}, default=str))
             return verdict_exit_code([record.get("verdict") or "aborted"]) if complete else EXIT_FAIL
-        console = Console(highlight=False, soft_wrap=True)
+        console = make_console()
         if not complete:
             last = float(columns["t_s"][-1]) if n else float("nan")
             console.print(f"[bold red]incomplete run[/] ({run_dir}): the bench did not finish the record "
@@ -348,7 +365,7 @@ def evaluate_cmd(run_dir, scenario_path, as_json) -> None:
             click.echo(json.dumps({"run_dir": str(run_dir), "scenario": str(path), "verdict": new_verdict,
                                   "criteria": [r.to_dict() for r in results]}, default=str))
         else:
-            console = Console(highlight=False, soft_wrap=True)
+            console = make_console()
             console.print(criteria_table(f"{scenario.name} re-evaluated: "
                                          f"[{VERDICT_STYLE.get(new_verdict, 'bold')}]{new_verdict}[/] "
                                          f"(recorded: {record.get('verdict')})", results))

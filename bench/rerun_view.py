@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+import time
 from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
@@ -17,6 +18,7 @@ import numpy as np
 
 RERUN_MODES = ("spawn", "connect", "save", "off")
 APPLICATION_ID = "drivebench"
+MAX_BATCH_ROWS = 20_000
 FLUX_VECTOR_PERIOD_S = 0.01  # arrows are decimated to 100 Hz of drive time: a phasor view needs no more
 
 PLOTS: tuple[tuple[str, tuple[str, ...]], ...] = (
@@ -49,7 +51,8 @@ def _warn(message: str) -> None:
 
 
 class RerunStream:
-    """Buffers samples and sends them in batches of at least `batch_s` of drive time."""
+    """Buffers samples and sends them in batches of at least `batch_s` of drive time and at most about
+    one batch per `min_wall_interval_s` of wall time."""
 
     def __init__(
         self,
@@ -59,17 +62,21 @@ class RerunStream:
         url: str | None = None,
         recording_name: str = "run",
         batch_s: float = 0.1,
+        min_wall_interval_s: float = 0.1,
         warn: Callable[[str], None] = _warn,
     ):
         if mode not in RERUN_MODES:
             raise ValueError(f"rerun mode must be one of {', '.join(RERUN_MODES)}, not {mode!r}")
         self.mode = mode
         self.batch_s = batch_s
+        self.min_wall_interval_s = min_wall_interval_s
         self.rrd_path = rrd_path
         self._rec = None
         self._times: list[float] = []
         self._rows: list[Mapping[str, float]] = []
-        self._last_arrow_t = -math.inf
+        self._last_send = time.monotonic()
+        self._last_arrow_bin = -math.inf
+        self.sinks: list[str] = []   # what the stream really goes to: "file", "viewer"
         self._styled: set[str] = set()
         if mode == "off":
             return
@@ -81,6 +88,7 @@ class RerunStream:
         sinks: list = []
         if rrd_path is not None:
             sinks.append(rr.FileSink(str(rrd_path)))
+            self.sinks.append("file")
         if mode == "spawn":
             if not display_available():
                 warn("rerun: no display (DISPLAY/WAYLAND_DISPLAY unset); not spawning a viewer, saving run.rrd only")
@@ -88,10 +96,12 @@ class RerunStream:
                 try:
                     self._rec.spawn(connect=False, detach_process=True)
                     sinks.append(rr.GrpcSink())
+                    self.sinks.append("viewer")
                 except Exception as exc:  # the viewer binary or its window may be missing
                     warn(f"rerun: could not spawn the viewer ({exc}); saving run.rrd only")
         elif mode == "connect":
             sinks.append(rr.GrpcSink(url) if url else rr.GrpcSink())
+            self.sinks.append("viewer")
         if not sinks:
             self._rec = None
             return
@@ -115,7 +125,10 @@ class RerunStream:
             return
         self._times.extend(t_s)
         self._rows.extend(values)
-        if self._times and self._times[-1] - self._times[0] >= self.batch_s:
+        if not self._times or self._times[-1] - self._times[0] < self.batch_s:
+            return
+        # at most ~10 batches per wall second: a lockstep run faster than real time sends bigger batches
+        if time.monotonic() - self._last_send >= self.min_wall_interval_s or len(self._times) >= MAX_BATCH_ROWS:
             self.flush()
 
     def log_columns(self, t_s: np.ndarray, columns: Mapping[str, np.ndarray]) -> None:
@@ -137,6 +150,7 @@ class RerunStream:
         }
         self._times = []
         self._rows = []
+        self._last_send = time.monotonic()
         self._send(t, columns)
 
     def _send(self, t: np.ndarray, columns: Mapping[str, np.ndarray]) -> None:
@@ -150,14 +164,13 @@ class RerunStream:
         needed = ("flux_est_wb", "flux_true_wb", "pos_est_elec_rad", "pos_err_elec_rad")
         if not all(name in columns for name in needed):
             return
-        keep = []
-        for k, tk in enumerate(t):
-            if tk - self._last_arrow_t >= FLUX_VECTOR_PERIOD_S:
-                keep.append(k)
-                self._last_arrow_t = tk
-        if not keep:
+        bins = np.floor(t / FLUX_VECTOR_PERIOD_S)
+        first = np.ones(len(t), dtype=bool)
+        first[1:] = bins[1:] != bins[:-1]
+        idx = np.flatnonzero(first & (bins > self._last_arrow_bin))
+        if len(idx) == 0:
             return
-        idx = np.asarray(keep)
+        self._last_arrow_bin = bins[idx[-1]]
         angle_est = columns["pos_est_elec_rad"][idx]
         angle_true = angle_est + columns["pos_err_elec_rad"][idx]
         rr = self._rr

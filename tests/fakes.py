@@ -29,9 +29,11 @@ class FakeRig:
     interrupt_at_s: float | None = None      # sync() raises KeyboardInterrupt once at this drive time
     overspeed_offset: float = 0.0            # added to the true speed reported live (to trip the supervisor)
     calls: list[tuple[str, tuple]] = field(default_factory=list)
+    model: object = None                     # any sim_backend DriveModel; default a ToyDrive
 
     def __post_init__(self):
-        self.model = ToyDrive()
+        if self.model is None:
+            self.model = ToyDrive()
         self.drive = FakeDriveLink(self)
         self.load = FakeLoadLink(self)
 
@@ -77,7 +79,7 @@ class FakeDriveLink:
     def write_parameter(self, name: str, value: float) -> None:
         self._log("drive.write_parameter", name, value)
         model = self.rig.model
-        if name in model.plant_param_names():
+        if name in model.plant_param_names():  # a real drive link writes a named OD object instead
             model.set_plant_param(name, value)
         else:
             model.set_hook(name, value)
@@ -91,7 +93,7 @@ class FakeDriveLink:
             self._interrupted = True
             raise KeyboardInterrupt
         n = max(1, round(self.rig.sync_period_s / model.control_period_s))
-        steps = model._steps
+        steps = round(model.time_s / model.control_period_s)
         block = model.step(n)
         times = (steps + 1 + np.arange(n)) * model.control_period_s
         keep = slice(None, None, self.decimation)

@@ -1,0 +1,172 @@
+"""Bench overhead: recording + Rerun logging + evaluation (+ summary plot) as % of the run time.
+
+Runs the same scenario through the same orchestrator loop twice per round, alternating:
+  baseline  - telemetry not recorded, no Rerun stream, no evaluation, no plot
+  full      - the real thing: journal + parquet, run.rrd (--rerun save), criteria, summary.png
+overhead_pct = time spent inside recording, Rerun and evaluation during the full runs / the rest of those
+runs (direct, robust to a noisy machine); the baseline difference is printed as a cross-check. Target <= 10 %.
+
+Drive path: the in-process CANopen simulator of config/benches/sim-pmsm.toml when drivers.canopen_link and
+sim_backend.inprocess exist; otherwise the PMSM model stepped directly through the in-memory fake links of
+tests/fakes.py (no protocol cost, so the base is cheaper and the percentage pessimistic).
+
+    python benchmarks/overhead.py [--rounds N] [--scenario FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import importlib.util
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import bench.orchestrator as orch  # noqa: E402
+from bench.orchestrator import run_scenario  # noqa: E402
+
+DEFAULT_SCENARIO = REPO / "scenarios/examples/pmsm-rs-step.toml"
+
+
+def inprocess_available() -> bool:
+    return all(importlib.util.find_spec(m) is not None for m in ("drivers.canopen_link", "sim_backend.inprocess"))
+
+
+@contextlib.contextmanager
+def instrumentation_off():
+    """Baseline: the run loop as is, minus recording, Rerun, evaluation and plot."""
+    saved = (orch._Run._append, orch.RerunStream, orch.evaluate, orch.write_summary_png)
+    orch._Run._append = lambda self, block: None
+    orch.RerunStream = lambda mode, path, **kw: saved[1]("off", None)
+    orch.evaluate = lambda specs, t, cols: []
+    orch.write_summary_png = lambda *a, **kw: None
+    try:
+        yield
+    finally:
+        orch._Run._append, orch.RerunStream, orch.evaluate, orch.write_summary_png = saved
+
+
+class Timed:
+    """Wall time spent inside the instrumented parts during a full run, for the breakdown."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = {}
+
+    @contextlib.contextmanager
+    def patch(self):
+        saved = {}
+        targets = {
+            "record.append": (orch.RunRecorder, "append"),
+            "record.finish": (orch.RunRecorder, "finish"),
+            "record.memory": (orch._Collected, "add"),
+            "rerun.open": (orch.RerunStream, "__init__"),
+            "rerun.log": (orch.RerunStream, "log_columns"),
+            "rerun.close": (orch.RerunStream, "close"),
+            "evaluate": (orch, "evaluate"),
+            "plot": (orch, "write_summary_png"),
+        }
+        for label, (owner, name) in targets.items():
+            original = getattr(owner, name)
+            saved[label] = (owner, name, original)
+            setattr(owner, name, self._wrap(label, original))
+        self.seconds = {label: 0.0 for label in targets}
+        try:
+            yield
+        finally:
+            for owner, name, original in saved.values():
+                setattr(owner, name, original)
+
+    def _wrap(self, label, fn):
+        def timed(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.seconds[label] = self.seconds.get(label, 0.0) + time.perf_counter() - t0
+        return timed
+
+
+def make_runner(scenario: Path, out_root: Path):
+    if inprocess_available():
+        def run_once():
+            return run_scenario(scenario, out_root=out_root, rerun_mode="save")
+        return run_once, "in-process CANopen simulator (sim-pmsm.toml)"
+
+    from bench.scenario import load_scenario
+    from sim_backend.drive import make_drive
+    from tests.fakes import FakeRig
+
+    scen = load_scenario(scenario)
+    from bench.benchconfig import load_bench_config
+
+    motor = load_bench_config(scen.bench)["simulator"]["motor"]
+    sync_period = load_bench_config(scen.bench)["drive"]["sync_period_s"]
+
+    def run_once():
+        rig = FakeRig(model=make_drive(motor, seed=1), sync_period_s=sync_period)
+        return run_scenario(scenario, out_root=out_root, rerun_mode="save", links=rig.links())
+    return run_once, "PMSM model through in-memory fake links (no protocol; pessimistic)"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--scenario", type=Path, default=DEFAULT_SCENARIO)
+    args = parser.parse_args()
+
+    with tempfile.TemporaryDirectory() as tmp:
+        run_once, path_label = make_runner(args.scenario, Path(tmp))
+        print(f"scenario: {args.scenario.relative_to(REPO) if args.scenario.is_relative_to(REPO) else args.scenario}")
+        print(f"drive path: {path_label}")
+        run_once()  # warm-up: JIT compilation, imports
+        base_times, full_times = [], []
+        breakdown = Timed()
+        for _ in range(args.rounds):
+            with instrumentation_off():
+                t0 = time.perf_counter()
+                base = run_once()
+                base_times.append(time.perf_counter() - t0)
+            with breakdown.patch():
+                t0 = time.perf_counter()
+                full = run_once()
+                full_times.append(time.perf_counter() - t0)
+        for result in (base, full):
+            if result.verdict == "error":
+                print(f"run failed: {result.record.get('abort_reason')}")
+                return 2
+        rows = full.record.get("telemetry", {}).get("rows")
+        print(f"verdicts: baseline {base.verdict}, full {full.verdict}; recorded rows per run: {rows}")
+
+    # 1) direct: time spent inside the instrumented parts of the full runs, against the rest of those runs
+    spent = {label: seconds / args.rounds for label, seconds in breakdown.seconds.items()}
+    full_med = statistics.median(full_times)
+    plot_s = spent["plot"]
+    instr_s = sum(spent.values()) - plot_s
+    rest_s = full_med - instr_s - plot_s
+    overhead_pct = 100.0 * instr_s / rest_s
+    with_plot_pct = 100.0 * (instr_s + plot_s) / rest_s
+    print("time inside the instrumented parts, per full run:")
+    for label, seconds in spent.items():
+        print(f"  {label:14s} {seconds:7.3f} s  {100 * seconds / rest_s:5.1f} %")
+    print(f"  {'total (no plot)':14s} {instr_s:7.3f} s  {overhead_pct:5.1f} %   of the run without them "
+          f"({rest_s:.3f} s)")
+    # 2) cross-check by difference (noisy on a shared machine: min over rounds)
+    base_min, full_min = min(base_times), min(full_times)
+    diff_pct = 100.0 * (full_min - base_min) / base_min
+    print(f"baseline runs (no recording/Rerun/evaluation/plot): {['%.2f' % t for t in base_times]} s")
+    print(f"full runs:                                          {['%.2f' % t for t in full_times]} s")
+    print(f"by difference of the fastest runs: {diff_pct:+.1f} % (plot included; noise of a shared machine)")
+    print("summary.png is a fixed cost per run, reported apart (with_plot_pct)")
+    print("machine: 2 cores shared with other engineers' work; figures are pessimistic")
+    print(f"RESULT overhead_pct={overhead_pct:.1f} with_plot_pct={with_plot_pct:.1f} plot_s={plot_s:.3f} "
+          f"run_s={full_med:.2f} diff_pct={diff_pct:.1f} target_pct=10 rounds={args.rounds}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
