@@ -40,8 +40,8 @@ N_FW_PARAMS = 33
 (S_ENABLED, S_FAULT, S_T_ON, S_THETA, S_PHI, S_WS, S_WS_FF, S_SLIP, S_SLIP_INT, S_IQ_MODEL,
  S_SPEED_EST, S_SPEED_INT, S_FLUX_INT, S_ID_INT, S_IQ_INT, S_U1A_P1, S_U1B_P1, S_U1A_P2, S_U1B_P2,
  S_I1A_PREV, S_I1B_PREV, S_SPEED_TARGET, S_SPEED_REF, S_FREEZE_SLIP, S_FREEZE_FLUX, S_RUNNING,
- S_ID_REF, S_PHI_CM, S_ID_PREV) = range(29)
-N_FW_STATE = 29
+ S_ID_REF, S_LAM_D, S_LAM_Q, S_CM_D, S_CM_Q) = range(31)
+N_FW_STATE = 31
 
 # telemetry columns the firmware writes (indices into drivers.signals.SIGNAL_NAMES)
 C_SPEED_REF, C_SPEED_EST, C_SPEED_TRUE, C_POS_EST, C_POS_ERR, C_FLUX_EST, C_FLUX_TRUE, C_ISX, C_ISY, \
@@ -53,7 +53,8 @@ def reset_controllers(s):
     """Zero every estimator and controller state (done at each enable), keep target, freezes and fault."""
     for j in (S_T_ON, S_THETA, S_PHI, S_WS, S_WS_FF, S_SLIP, S_SLIP_INT, S_IQ_MODEL, S_SPEED_EST,
               S_SPEED_INT, S_FLUX_INT, S_ID_INT, S_IQ_INT, S_U1A_P1, S_U1B_P1, S_U1A_P2, S_U1B_P2,
-              S_I1A_PREV, S_I1B_PREV, S_SPEED_REF, S_RUNNING, S_ID_REF, S_PHI_CM, S_ID_PREV):
+              S_I1A_PREV, S_I1B_PREV, S_SPEED_REF, S_RUNNING, S_ID_REF, S_LAM_D, S_LAM_Q,
+              S_CM_D, S_CM_Q):
         s[j] = 0.0
 
 
@@ -73,6 +74,9 @@ def firmware_step(s, f, isd_m, isq_m, vdc_m, row):
         s[S_FAULT] = FAULT_OVERCURRENT
         s[S_RUNNING] = 0.0
         return False, 0.5, 0.5, 0.5
+    running_time = s[S_T_ON]
+    s[S_T_ON] += ts
+    magnetised = running_time >= f[F_T_MAG]
     k = f[F_K]
     i1a = isd_m
     i1b = isq_m / k
@@ -88,10 +92,15 @@ def firmware_step(s, f, isd_m, isq_m, vdc_m, row):
     sn = math.sin(th_mid)
     ed = c * ea + sn * eb
     eq = -sn * ea + c * eb
-    if s[S_FREEZE_FLUX] == 0.0:
-        # voltage model, pulled weakly towards the current model of eq. (24) (g_cm): an error of the
-        # integrator state then decays instead of persisting (a pure integrator never forgets)
-        s[S_PHI] = max(s[S_PHI] + ts * (ed + f[F_G_CM] * (s[S_PHI_CM] - s[S_PHI])), 0.0)
+    # pulled towards the current model (eqs. 24-25 as a vector: rotor flux driven by the currents and the
+    # estimated slip) with gain g_cm: errors of the integrator decay instead of persisting, and below
+    # ~g_cm rad/s the current model takes over from the voltage model
+    g = f[F_G_CM]
+    eq += g * s[S_CM_Q]
+    if not magnetised:
+        s[S_PHI] = s[S_CM_D]  # at standstill only the current model knows the flux
+    elif s[S_FREEZE_FLUX] == 0.0:
+        s[S_PHI] = max(s[S_PHI] + ts * (ed + g * (s[S_CM_D] - s[S_PHI])), 0.0)
     phi = s[S_PHI]
     ws = eq / max(phi, f[F_PHI_MIN])
     s[S_WS] = ws
@@ -105,9 +114,6 @@ def firmware_step(s, f, isd_m, isq_m, vdc_m, row):
     sn = math.sin(s[S_THETA])
     i_d = c * i1a + sn * i1b
     i_q = -sn * i1a + c * i1b
-    running_time = s[S_T_ON]
-    s[S_T_ON] += ts
-    magnetised = running_time >= f[F_T_MAG]
     flux_ref = f[F_FLUX_REF]
 
     # 2. slip estimator (eqs. 35-42): model q-current driven by the estimated slip vs measured q-current
@@ -120,11 +126,15 @@ def firmware_step(s, f, isd_m, isq_m, vdc_m, row):
         s[S_SLIP_INT] += f[F_KI_W] * ts * eps
         s[S_SLIP] = f[F_KP_W] * eps + s[S_SLIP_INT]
     slip = s[S_SLIP]
-    # current model of the stator-flux magnitude, eq. (24) (zeta = 0 for the symmetrised flux)
+    # current model in the flux frame: lam = (M/L_r) psi_r, d lam/dt = -lam/tau_r + (1-sigma) L i/tau_r
+    # - j slip lam (the frame turns at omega_s = omega_r + slip); stator flux = sigma L i + lam
     sig_l = f[F_SIGMA_D] * f[F_LSD]
-    s[S_PHI_CM] += ts * ((f[F_LSD] * i_d - s[S_PHI_CM]) / f[F_TAU_R] - slip * sig_l * i_q) \
-        + sig_l * (i_d - s[S_ID_PREV])
-    s[S_ID_PREV] = i_d
+    mag_l = f[F_LSD] - sig_l
+    lam_d, lam_q = s[S_LAM_D], s[S_LAM_Q]
+    s[S_LAM_D] = lam_d + ts * ((mag_l * i_d - lam_d) / f[F_TAU_R] + slip * lam_q)
+    s[S_LAM_Q] = lam_q + ts * ((mag_l * i_q - lam_q) / f[F_TAU_R] - slip * lam_d)
+    s[S_CM_D] = sig_l * i_d + s[S_LAM_D]
+    s[S_CM_Q] = sig_l * i_q + s[S_LAM_Q]
     speed_raw = (ws - slip) / f[F_NP]
     a_sp = ts * f[F_W_SPEED_LPF] / (1.0 + ts * f[F_W_SPEED_LPF])
     s[S_SPEED_EST] += a_sp * (speed_raw - s[S_SPEED_EST])
