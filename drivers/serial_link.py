@@ -74,6 +74,7 @@ class SerialDriveLink:
         self._seq = 0
         self._rt_anchor: float | None = None
         self._rt_sent = 0
+        self._names_cache: dict[int, list[str]] = {}
 
     # --- transport -------------------------------------------------------------------------------------------
 
@@ -240,7 +241,9 @@ class SerialDriveLink:
 
     def _decode_sample(self, p: bytes) -> LiveSample:
         step, _status, _error, mask = SAMPLE_HEADER.unpack_from(p)
-        names = selected_names(mask)
+        names = self._names_cache.get(mask)
+        if names is None:
+            names = self._names_cache[mask] = selected_names(mask)
         values = np.frombuffer(p, dtype="<f8", count=len(names), offset=SAMPLE_HEADER.size)
         return LiveSample(step * self.control_period_s, dict(zip(names, values.tolist())))
 

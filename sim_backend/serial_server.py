@@ -48,6 +48,10 @@ def _expect_len(payload: bytes, n: int, cmd: Cmd) -> None:
         raise CommandError(ErrorCode.BAD_LENGTH, f"{cmd.name} takes {n} payload bytes, got {len(payload)}")
 
 
+def _mask_index(mask: int) -> np.ndarray:
+    return np.array([i for i in range(len(SIGNAL_NAMES)) if mask >> i & 1], dtype=np.intp)
+
+
 @dataclass
 class SerialProtocolHandler:
     """Executes request frames on a SimulatedDevice and builds reply frames."""
@@ -62,6 +66,7 @@ class SerialProtocolHandler:
     _params: tuple[str, ...] = field(default=())
 
     def __post_init__(self) -> None:
+        self._live_index = _mask_index(self.live_mask)
         model = self.device.model
         self._params = tuple(model.hook_names()) + tuple(model.plant_param_names())
 
@@ -88,12 +93,18 @@ class SerialProtocolHandler:
         dev = self.device
         with dev.lock:
             head = SAMPLE_HEADER.pack(dev.step_count, dev.device.statusword, dev.device.error_code, self.live_mask)
-            values = np.asarray(dev.latest, dtype="<f8")
-            chosen = [i for i in range(len(SIGNAL_NAMES)) if self.live_mask >> i & 1]
-            return head + values[chosen].tobytes()
+            return head + np.asarray(dev.latest, dtype="<f8")[self._live_index].tobytes()
 
     def _execute(self, cmd: Cmd, p: bytes) -> bytes:
         dev = self.device
+        if cmd is Cmd.SYNC:                 # first: the hot path in lockstep
+            _expect_len(p, 4, cmd)
+            (n_steps,) = struct.unpack("<I", p)
+            if not 1 <= n_steps <= MAX_SYNC_STEPS:
+                raise CommandError(ErrorCode.BAD_VALUE, f"SYNC of {n_steps} steps outside 1..{MAX_SYNC_STEPS}")
+            with dev.lock:
+                dev.advance(n_steps)
+                return self._sample()
         if cmd is Cmd.HELLO:
             _expect_len(p, 2, cmd)
             if p[0] != PROTOCOL_MAJOR:
@@ -187,18 +198,11 @@ class SerialProtocolHandler:
             if mask >> len(SIGNAL_NAMES):
                 raise CommandError(ErrorCode.BAD_VALUE, f"live mask 0x{mask:X} selects unknown signals")
             self.live_mask = mask
+            self._live_index = _mask_index(mask)
             return b""
         if cmd is Cmd.SAMPLE:
             _expect_len(p, 0, cmd)
             return self._sample()
-        if cmd is Cmd.SYNC:
-            _expect_len(p, 4, cmd)
-            (n_steps,) = struct.unpack("<I", p)
-            if not 1 <= n_steps <= MAX_SYNC_STEPS:
-                raise CommandError(ErrorCode.BAD_VALUE, f"SYNC of {n_steps} steps outside 1..{MAX_SYNC_STEPS}")
-            with dev.lock:
-                dev.advance(n_steps)
-                return self._sample()
         raise CommandError(ErrorCode.UNKNOWN_COMMAND, f"command {cmd.name} not handled")
 
 

@@ -130,7 +130,8 @@ class FakeRtuMachine:
         self.silent = silent
         self.requests: list[bytes] = []
         self._stop = False
-        threading.Thread(target=self._run, daemon=True).start()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
 
     def _read(self, n):
         data = b""
@@ -157,7 +158,7 @@ class FakeRtuMachine:
 
     def close(self):
         self._stop = True
-        time.sleep(0)
+        self._thread.join(10)             # it polls every 0.1 s; close the fds only once it is gone
         for fd in (self.master, self.slave):
             os.close(fd)
 
