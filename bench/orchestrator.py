@@ -284,11 +284,12 @@ class _Run:
                 self.drive.write_parameter(inj.name, inj.value)
                 applied.append({"at_s": inj.at_s, "name": inj.name, "value": inj.value, "applied_t_s": t_cmd})
                 self.recorder.note("injections_applied", applied)
-            ref = self.scenario.speed_ref_at(t_cmd + period)
+            # commands for the coming SYNC period take the profile's values at its start
+            ref = self.scenario.speed_ref_at(t_cmd)
             if ref != self._speed_ref:
                 self.drive.set_speed_ref(ref)
                 self._speed_ref = ref
-            setting = self.scenario.load_at(t_cmd + period)
+            setting = self.scenario.load_at(t_cmd)
             if setting != self._load_setting:
                 self.load.set_load(*setting)
                 self._load_setting = setting
