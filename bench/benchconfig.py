@@ -110,11 +110,13 @@ def read_toml(path: Path) -> dict[str, Any]:
 
 def resolve_path(value: str, root: Path, also: Path | None = None) -> Path | None:
     """An existing file for `value`: absolute, else under the repo root, else under `also`."""
+    if not value.strip():
+        return None
     p = Path(value).expanduser()
     if p.is_absolute():
-        return p if p.exists() else None
+        return p if p.is_file() else None
     for base in (root, also):
-        if base is not None and (base / p).exists():
+        if base is not None and (base / p).is_file():
             return (base / p).resolve()
     return None
 

@@ -355,7 +355,8 @@ def evaluate(specs, t_s: np.ndarray, columns: dict[str, np.ndarray]) -> list[Cri
     results = []
     for spec in specs:
         try:
-            value, detail = KINDS[spec.kind].compute(_Window(t_s, columns, spec.window_s), spec)
+            with np.errstate(all="ignore"):   # overflow to inf fails the criterion like any large value
+                value, detail = KINDS[spec.kind].compute(_Window(t_s, columns, spec.window_s), spec)
             passed = bool(value <= spec.limit)
         except _Unusable as e:
             value, detail, passed = math.nan, str(e), False

@@ -194,3 +194,26 @@ def test_verdict_and_known_gaps():
     assert verdict([], aborted=False) == "pass"
     gap = run("peak_abs", "i_sx_a", {"i_sx_a": np.ones_like(T)}, 0.5, known_gap="why")
     assert gap.passed is False and gap.known_gap == "why"
+
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+_VALUES = st.floats(allow_nan=True, allow_infinity=True, width=64) | st.sampled_from([0.0, 1.0, -1.0])
+
+
+@settings(max_examples=150, deadline=None)
+@given(kind=st.sampled_from(sorted(KINDS)), n=st.integers(0, 30), data=st.data(),
+       a=st.floats(0, 1), b=st.floats(0, 2))
+def test_evaluate_never_raises(kind, n, data, a, b):
+    t = np.sort(np.array(data.draw(st.lists(st.floats(0, 2), min_size=n, max_size=n)), dtype=float))
+    names = ("speed_est_mech_rad_s", "speed_true_mech_rad_s", "speed_ref_mech_rad_s", "flux_est_wb", "flux_true_wb",
+             "pos_err_elec_rad")
+    cols = {k: np.array(data.draw(st.lists(_VALUES, min_size=n, max_size=n)), dtype=float) for k in names}
+    params = {"mean": {"expected": 0.0}, "settling_time": {"target": 1.0}, "overshoot_pct": {"target": 1.0},
+              "steady_state_error": {"reference": "speed_ref_mech_rad_s"}}.get(kind, {})
+    signal = {"flux": "flux_est_wb", "pos_": "pos_err_elec_rad"}.get(kind[:4], "speed_est_mech_rad_s")
+    (r,) = evaluate([CriterionSpec("c", kind, signal, (min(a, b), max(a, b) + 1e-3), 1.0, params)], t, cols)
+    assert isinstance(r.passed, bool) and isinstance(r.detail, str)
+    if r.passed:
+        assert r.value <= 1.0
