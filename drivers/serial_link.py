@@ -225,6 +225,8 @@ class SerialDriveLink:
             if state_from_statusword(status) != "SWITCH ON DISABLED":
                 raise LinkError(f"serial drive {self.url}: fault reset failed, drive in "
                                 f"{state_from_statusword(status)} ({fault_text(error_code)})")
+        elif state_from_statusword(status) not in ("SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON"):
+            self._step_to(0x0000, "SWITCH ON DISABLED")   # left running or in quick stop: start from scratch
         self._transact(Cmd.MODE, struct.pack("<b", MODE_PROFILE_VELOCITY))
         self._step_to(0x0006, "READY TO SWITCH ON")
         self._step_to(0x0007, "SWITCHED ON")
@@ -305,7 +307,8 @@ class SerialDriveLink:
 
     def disable(self) -> None:
         errors = []
-        for action in (lambda: self.set_speed_ref(0.0), lambda: self._controlword(0x0006)):
+        # disable voltage: power stage off from every state (shutdown 0x06 is refused in QUICK STOP ACTIVE)
+        for action in (lambda: self.set_speed_ref(0.0), lambda: self._controlword(0x0000)):
             try:
                 action()
             except LinkError as exc:

@@ -66,8 +66,15 @@ def test_round_trip_enable_speed_sync_trace(served):
     assert device.model.hooks["flux_est_scale"] == 0.5 and device.model.plant_factors["plant_rs"] == 1.5
     sample = link.sample()
     assert sample.t_s == pytest.approx(0.3)                              # SAMPLE does not advance
+    link.quick_stop()
+    assert link.status().state == "QUICK STOP ACTIVE" and device.device.power_enabled   # braking
     link.disable()
-    assert not device.device.power_enabled
+    assert link.status().state == "SWITCH ON DISABLED" and not device.device.power_enabled
+    link.enable_velocity_mode()
+    link.quick_stop()
+    link.enable_velocity_mode()                                  # from quick stop, as a next run finds it
+    assert link.status().state == "OPERATION ENABLED"
+    link.disable()
     link.close()
     assert link.stats["crc_errors"] == link.stats["retries"] == link.stats["seq_errors"] == 0
     assert server.stats["crc_errors"] == 0
