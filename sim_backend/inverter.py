@@ -15,13 +15,13 @@ from numba import njit
 SQRT3 = math.sqrt(3.0)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def clarke(i_a: float, i_b: float) -> tuple[float, float]:
     """(alpha, beta) from two phase quantities of a three-wire (zero-sum) system."""
     return i_a, (i_a + 2.0 * i_b) / SQRT3
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def inverse_clarke(x_alpha: float, x_beta: float) -> tuple[float, float, float]:
     """(a, b, c) phase quantities of an alpha-beta vector (no zero sequence)."""
     b = -0.5 * x_alpha + 0.5 * SQRT3 * x_beta
@@ -29,18 +29,18 @@ def inverse_clarke(x_alpha: float, x_beta: float) -> tuple[float, float, float]:
     return x_alpha, b, c
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def limit_to_linear_range(u_alpha: float, u_beta: float, vdc: float) -> tuple[float, float]:
     """Clamp a voltage vector to the circle inscribed in the SVPWM hexagon, |u| <= vdc/sqrt(3)."""
     u_max = vdc / SQRT3
-    mag = math.hypot(u_alpha, u_beta)
+    mag = math.sqrt(u_alpha * u_alpha + u_beta * u_beta)
     if mag > u_max and mag > 0.0:
         scale = u_max / mag
         return u_alpha * scale, u_beta * scale
     return u_alpha, u_beta
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def smooth_sign(x: float, width: float) -> float:
     """sign(x) made linear within +-width (a real inverter's dead-time error fades through zero current)."""
     if width <= 0.0:
@@ -48,7 +48,7 @@ def smooth_sign(x: float, width: float) -> float:
     return max(-1.0, min(1.0, x / width))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def switching_error_voltage(i_alpha: float, i_beta: float, vdc: float, dead_time_s: float, period_s: float,
                             device_drop_v: float, current_width_a: float) -> tuple[float, float]:
     """Average alpha-beta voltage lost to dead time and device drops: each phase loses
@@ -63,22 +63,25 @@ def switching_error_voltage(i_alpha: float, i_beta: float, vdc: float, dead_time
     return (2.0 * e_a - e_b - e_c) / 3.0, (e_b - e_c) / SQRT3
 
 
-@njit(cache=True)
-def adc_sample(value: float, noise_std: float, normal_draw: float, bits: int, full_scale: float,
+def adc_lsb(bits: int, full_scale: float, bipolar: bool) -> float:
+    """Size of one ADC step; 0.0 for bits <= 0 (ideal converter)."""
+    if bits <= 0:
+        return 0.0
+    return (2.0 if bipolar else 1.0) * full_scale / 2 ** bits
+
+
+@njit(cache=True, inline="always")
+def adc_sample(value: float, noise_std: float, normal_draw: float, lsb: float, full_scale: float,
                bipolar: bool) -> float:
     """One ADC conversion: additive Gaussian noise, clipping to the range, rounding to the LSB.
 
-    bits <= 0 means an ideal converter (no quantisation, no clipping).
+    lsb <= 0 means an ideal converter (no quantisation, no clipping).
     """
     x = value + noise_std * normal_draw
-    if bits <= 0:
+    if lsb <= 0.0:
         return x
-    if bipolar:
-        lsb = 2.0 * full_scale / (2 ** bits)
-        x = max(-full_scale, min(full_scale - lsb, x))
-    else:
-        lsb = full_scale / (2 ** bits)
-        x = max(0.0, min(full_scale - lsb, x))
+    low = -full_scale if bipolar else 0.0
+    x = max(low, min(full_scale - lsb, x))
     return math.floor(x / lsb + 0.5) * lsb
 
 

@@ -13,14 +13,20 @@ LOAD_VISCOUS = 1  # T_L = value * w (DC generator into a resistor)
 LOAD_BRAKE = 2    # T_L = value * sign(w), zero at standstill (passive brake)
 
 
-@njit(cache=True)
-def smooth_load_torque(mode: int, value: float, omega_mech: float) -> float:
-    """The part of the load torque that is a smooth function of speed (passive brake excluded)."""
+@njit(cache=True, inline="always")
+def smooth_load_torque_inline(mode: int, value: float, omega_mech: float) -> float:
+    """smooth_load_torque, inlined into the caller at numba IR level (for RK4 stages in tight kernels)."""
     if mode == LOAD_TORQUE:
         return value
     if mode == LOAD_VISCOUS:
         return value * omega_mech
     return 0.0
+
+
+@njit(cache=True)
+def smooth_load_torque(mode: int, value: float, omega_mech: float) -> float:
+    """The part of the load torque that is a smooth function of speed (passive brake excluded)."""
+    return smooth_load_torque_inline(mode, value, omega_mech)
 
 
 @njit(cache=True)

@@ -30,8 +30,8 @@ def test_instantaneous_power_balance():
         i_d, i_q, w = rng.normal(0, 3), rng.normal(0, 3), rng.normal(0, 100)
         angle = rng.uniform(-math.pi, math.pi)
         u_d, u_q = rng.normal(0, 200), rng.normal(0, 200)
-        d = pl.derivatives(i_d, i_q, PSI * math.cos(angle), PSI * math.sin(angle), w, u_d, u_q,
-                           a1, a2, float(P), 1e-3, 0.0, 0, 0.0)
+        d = pl.derivatives((i_d, i_q, PSI * math.cos(angle), PSI * math.sin(angle), w), u_d, u_q,
+                           (a1, a2, float(P), 1e3, 0.0, 0, 0.0))
         p_in = 1.5 * (u_d * i_d + u_q * i_q)
         copper = 1.5 * RS * (i_d ** 2 + i_q ** 2)
         magnetic = 1.5 * LS * (i_d * d[0] + i_q * d[1])

@@ -103,7 +103,7 @@ C_TORQUE_EST = SIGNAL_INDEX["torque_est_nm"]
 C_VDC = SIGNAL_INDEX["vdc_v"]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _wrap(angle: float) -> float:
     """Wrap to [-pi, pi) for an angle that moved by less than a turn."""
     if angle >= math.pi:
@@ -113,7 +113,7 @@ def _wrap(angle: float) -> float:
     return angle
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _small_rotation(a: float) -> complex:
     """e^(j a) for the per-period angle steps (|a| < 0.1 at 3000 rpm): 5th-order Taylor, error < a^6/720."""
     if abs(a) > 0.3:
@@ -122,14 +122,14 @@ def _small_rotation(a: float) -> complex:
     return complex(1.0 - a2 * (0.5 - a2 / 24.0), a * (1.0 - a2 * (1.0 / 6.0 - a2 / 120.0)))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _fade_sign(x: float, width: float) -> float:
     if width <= 0.0:
         return float(np.sign(x))
     return max(-1.0, min(1.0, x / width))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _start(s: np.ndarray, p: np.ndarray, i_meas_xy: complex) -> None:
     """Gates on: estimators restart from w^ = 0 and psi^ = nominal; rho^ keeps its last value."""
     s[S_RUNNING] = 1.0
@@ -149,7 +149,7 @@ def _start(s: np.ndarray, p: np.ndarray, i_meas_xy: complex) -> None:
     s[S_INT_IY] = 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _stop(s: np.ndarray) -> None:
     s[S_RUNNING] = 0.0
     s[S_M_ALPHA] = 0.0
@@ -158,7 +158,7 @@ def _stop(s: np.ndarray) -> None:
     s[S_U_BETA_LAST] = 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _update_estimators(s: np.ndarray, p: np.ndarray, i_alpha_beta: complex) -> complex:
     """Advance model (5) over the period that just ended, rotate the frame (5c), run (7)-(8).
 
@@ -206,7 +206,7 @@ def _update_estimators(s: np.ndarray, p: np.ndarray, i_alpha_beta: complex) -> c
     return i_xy
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _speed_controller(s: np.ndarray, p: np.ndarray) -> float:
     """Ramped reference, PI on the estimated speed, torque-current limit with back-calculation."""
     T = p[F_PERIOD]
@@ -227,7 +227,7 @@ def _speed_controller(s: np.ndarray, p: np.ndarray) -> float:
     return i_ref
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _current_controller(s: np.ndarray, p: np.ndarray, i_xy: complex, i_ref: complex, vdc: float) -> complex:
     """PI per axis (zero cancels the winding pole), decoupling feed-forward, circle limit, anti-windup."""
     T = p[F_PERIOD]
@@ -240,7 +240,7 @@ def _current_controller(s: np.ndarray, p: np.ndarray, i_xy: complex, i_ref: comp
     u_x = kp * err.real + int_x - w * p[F_LS] * i_ref.imag
     u_y = kp * err.imag + int_y + w * (p[F_LS] * i_ref.real + s[S_PSI])
     u_max = p[F_VOLTAGE_FRACTION] * vdc / SQRT3
-    mag = math.hypot(u_x, u_y)
+    mag = math.sqrt(u_x * u_x + u_y * u_y)
     if mag > u_max:
         u_x *= u_max / mag
         u_y *= u_max / mag
@@ -250,7 +250,7 @@ def _current_controller(s: np.ndarray, p: np.ndarray, i_xy: complex, i_ref: comp
     return complex(u_x, u_y)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def firmware_step(s: np.ndarray, p: np.ndarray, i_a: float, i_b: float, vdc: float, t: float,
                   row: np.ndarray) -> None:
     """One control period. i_a, i_b: measured phase currents (A); vdc: measured DC link (V); t: drive

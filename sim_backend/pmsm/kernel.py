@@ -27,10 +27,10 @@ I_DEAD_TIME = 1
 I_DEVICE_DROP = 2
 I_ERROR_WIDTH = 3
 I_CURRENT_NOISE = 4
-I_CURRENT_BITS = 5
+I_CURRENT_LSB = 5         # A, 0 = ideal
 I_CURRENT_FULL_SCALE = 6
 I_VDC_NOISE = 7
-I_VDC_BITS = 8
+I_VDC_LSB = 8             # V, 0 = ideal
 I_VDC_FULL_SCALE = 9
 I_SUBSTEPS = 10
 N_INV_PARAMS = 11
@@ -57,13 +57,13 @@ def run_steps(n: int, step0: int, x: np.ndarray, plant_p: np.ndarray, load_mode:
     period = fw_p[fw.F_PERIOD]
     substeps = int(inv_p[I_SUBSTEPS])
     ideal = not use_noise
-    i_bits = 0 if ideal else int(inv_p[I_CURRENT_BITS])
-    v_bits = 0 if ideal else int(inv_p[I_VDC_BITS])
+    i_lsb = 0.0 if ideal else inv_p[I_CURRENT_LSB]
+    v_lsb = 0.0 if ideal else inv_p[I_VDC_LSB]
+    row = np.empty(out.shape[1])
     i_noise = 0.0 if ideal else inv_p[I_CURRENT_NOISE]
     v_noise = 0.0 if ideal else inv_p[I_VDC_NOISE]
     vdc_true = inv_p[I_VDC]
     for k in range(n):
-        row = out[k]
         # --- measurement at t_k (two phase current sensors, DC-link divider) ---
         i_alpha = x[pl.X_ID]
         i_beta = x[pl.X_IQ]
@@ -72,9 +72,9 @@ def run_steps(n: int, step0: int, x: np.ndarray, plant_p: np.ndarray, load_mode:
         n_a = 0.0 if ideal else noise[k, 0]
         n_b = 0.0 if ideal else noise[k, 1]
         n_v = 0.0 if ideal else noise[k, 2]
-        ia_m = adc_sample(i_a, i_noise, n_a, i_bits, inv_p[I_CURRENT_FULL_SCALE], True)
-        ib_m = adc_sample(i_b, i_noise, n_b, i_bits, inv_p[I_CURRENT_FULL_SCALE], True)
-        vdc_m = adc_sample(vdc_true, v_noise, n_v, v_bits, inv_p[I_VDC_FULL_SCALE], False)
+        ia_m = adc_sample(i_a, i_noise, n_a, i_lsb, inv_p[I_CURRENT_FULL_SCALE], True)
+        ib_m = adc_sample(i_b, i_noise, n_b, i_lsb, inv_p[I_CURRENT_FULL_SCALE], True)
+        vdc_m = adc_sample(vdc_true, v_noise, n_v, v_lsb, inv_p[I_VDC_FULL_SCALE], False)
 
         # --- firmware ---
         t = (step0 + k) * period
@@ -88,6 +88,9 @@ def run_steps(n: int, step0: int, x: np.ndarray, plant_p: np.ndarray, load_mode:
         row[C_POS_ERR] = math.atan2(seen.imag, seen.real)
         row[C_FLUX_TRUE] = plant_p[pl.P_FLUX]
         row[C_TORQUE_LOAD] = pl.load_torque(x, load_mode, load_value)
+
+        for c in range(row.shape[0]):
+            out[k, c] = row[c]
 
         # --- inverter: the register written last period drives this period; a trip blocks at once ---
         gates_on = fw_s[fw.S_RUNNING] != 0.0 and inv_s[R_GATES] != 0.0

@@ -10,7 +10,7 @@ import numpy as np
 
 from drivers.signals import SIGNAL_NAMES
 from sim_backend.hooks import FIRMWARE_PARAMS, PLANT_PARAMS, TEST_HOOKS
-from sim_backend.inverter import draw_measurement_noise
+from sim_backend.inverter import adc_lsb, draw_measurement_noise
 from sim_backend.mechanics import LOAD_BRAKE, LOAD_TORQUE, LOAD_VISCOUS
 from sim_backend.pmsm import firmware as fw
 from sim_backend.pmsm import kernel as kn
@@ -90,11 +90,12 @@ class PmsmDrive:
         inv[kn.I_DEVICE_DROP] = _num(cfg, "inverter", "device_drop_v", 0.0)
         inv[kn.I_ERROR_WIDTH] = _num(cfg, "inverter", "error_current_width_a", 0.05)
         inv[kn.I_CURRENT_NOISE] = _num(cfg, "measurement", "current_noise_a", 0.0)
-        inv[kn.I_CURRENT_BITS] = _num(cfg, "measurement", "current_adc_bits", 0.0)
         inv[kn.I_CURRENT_FULL_SCALE] = _num(cfg, "measurement", "current_full_scale_a", positive=True)
+        inv[kn.I_CURRENT_LSB] = adc_lsb(int(_num(cfg, "measurement", "current_adc_bits", 0.0)),
+                                        inv[kn.I_CURRENT_FULL_SCALE], True)
         inv[kn.I_VDC_NOISE] = _num(cfg, "measurement", "vdc_noise_v", 0.0)
-        inv[kn.I_VDC_BITS] = _num(cfg, "measurement", "vdc_adc_bits", 0.0)
         inv[kn.I_VDC_FULL_SCALE] = _num(cfg, "measurement", "vdc_full_scale_v", positive=True)
+        inv[kn.I_VDC_LSB] = adc_lsb(int(_num(cfg, "measurement", "vdc_adc_bits", 0.0)), inv[kn.I_VDC_FULL_SCALE], False)
         inv[kn.I_SUBSTEPS] = _num(cfg, "plant", "substeps", 2.0, positive=True)
 
         f = np.zeros(fw.N_PARAMS)
@@ -131,7 +132,7 @@ class PmsmDrive:
 
     # ---- DriveModel ----
     def step(self, n: int) -> np.ndarray:
-        out = np.zeros((n, len(SIGNAL_NAMES)))
+        out = np.empty((n, len(SIGNAL_NAMES)))
         noise = draw_measurement_noise(self._rng, n, kn.NOISE_CHANNELS) if self._noise else self._no_noise
         mode, value = (self._load_mode, self._load_value) if self._load_enabled else (LOAD_TORQUE, 0.0)
         kn.run_steps(n, self._steps, self._x, self._plant_p, mode, value, self._inv_p, self._inv_s,

@@ -17,7 +17,7 @@ import numpy as np
 from numba import njit
 
 from sim_backend import mechanics
-from sim_backend.mechanics import apply_coulomb, coulomb_torque, smooth_load_torque
+from sim_backend.mechanics import apply_coulomb, coulomb_torque, smooth_load_torque, smooth_load_torque_inline
 from sim_backend.pmsm.numba_cache import drop_stale_cache
 
 drop_stale_cache(__file__, [mechanics.__file__])
@@ -31,59 +31,61 @@ P_RS, P_LS, P_FLUX, P_INERTIA, P_VISCOUS, P_POLE_PAIRS = 0, 1, 2, 3, 4, 5
 N_PARAMS = 6
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def electromagnetic_torque(x: np.ndarray, p: np.ndarray) -> float:
     return 1.5 * p[P_POLE_PAIRS] * (x[X_PSI_D] * x[X_IQ] - x[X_PSI_Q] * x[X_ID])
 
 
-@njit(cache=True)
-def derivatives(i_d: float, i_q: float, psi_d: float, psi_q: float, w: float, u_d: float, u_q: float,
-                a1: float, a2: float, pole_pairs: float, inertia: float, viscous: float,
-                load_mode: int, load_value: float) -> tuple[float, float, float, float, float]:
-    """d/dt of (i_sD, i_sQ, psi_rD, psi_rQ, w_mech)."""
+@njit(cache=True, inline="always")
+def derivatives(y: tuple, u_d: float, u_q: float, c: tuple) -> tuple[float, float, float, float, float]:
+    """d/dt of y = (i_sD, i_sQ, psi_rD, psi_rQ, w_mech); c = (a1, a2, p, 1/J, B, load_mode, load_value)."""
+    i_d, i_q, psi_d, psi_q, w = y
+    a1, a2, pole_pairs, inv_inertia, viscous, load_mode, load_value = c
     w_e = pole_pairs * w
     d_psi_d = -w_e * psi_q                                # (1a): J w psi = w [-psi_Q, psi_D]
     d_psi_q = w_e * psi_d
     d_i_d = -a1 * i_d + a2 * w_e * psi_q + a2 * u_d       # (1b): -J a2 w psi = a2 w [psi_Q, -psi_D]
     d_i_q = -a1 * i_q - a2 * w_e * psi_d + a2 * u_q
     torque = 1.5 * pole_pairs * (psi_d * i_q - psi_q * i_d)
-    d_w = (torque - smooth_load_torque(load_mode, load_value, w) - viscous * w) / inertia
+    d_w = (torque - smooth_load_torque_inline(load_mode, load_value, w) - viscous * w) * inv_inertia
     return d_i_d, d_i_q, d_psi_d, d_psi_q, d_w
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
+def _axpy(y: tuple, h: float, k: tuple) -> tuple[float, float, float, float, float]:
+    return (y[0] + h * k[0], y[1] + h * k[1], y[2] + h * k[2], y[3] + h * k[3], y[4] + h * k[4])
+
+
+@njit(cache=True, inline="always")
 def rk4_step(x: np.ndarray, p: np.ndarray, u_d: float, u_q: float, load_mode: int, load_value: float,
              h: float) -> None:
     """One classical Runge-Kutta step of length h, in place."""
-    a1 = p[P_RS] / p[P_LS]
     a2 = 1.0 / p[P_LS]
-    consts = (u_d, u_q, a1, a2, p[P_POLE_PAIRS], p[P_INERTIA], p[P_VISCOUS], load_mode, load_value)
+    c = (p[P_RS] * a2, a2, p[P_POLE_PAIRS], 1.0 / p[P_INERTIA], p[P_VISCOUS], load_mode, load_value)
     y0 = (x[X_ID], x[X_IQ], x[X_PSI_D], x[X_PSI_Q], x[X_W_MECH])
-    k1 = derivatives(*y0, *consts)
-    y = (y0[0] + 0.5 * h * k1[0], y0[1] + 0.5 * h * k1[1], y0[2] + 0.5 * h * k1[2],
-         y0[3] + 0.5 * h * k1[3], y0[4] + 0.5 * h * k1[4])
-    k2 = derivatives(*y, *consts)
-    y = (y0[0] + 0.5 * h * k2[0], y0[1] + 0.5 * h * k2[1], y0[2] + 0.5 * h * k2[2],
-         y0[3] + 0.5 * h * k2[3], y0[4] + 0.5 * h * k2[4])
-    k3 = derivatives(*y, *consts)
-    y = (y0[0] + h * k3[0], y0[1] + h * k3[1], y0[2] + h * k3[2], y0[3] + h * k3[3], y0[4] + h * k3[4])
-    k4 = derivatives(*y, *consts)
+    k1 = derivatives(y0, u_d, u_q, c)
+    k2 = derivatives(_axpy(y0, 0.5 * h, k1), u_d, u_q, c)
+    k3 = derivatives(_axpy(y0, 0.5 * h, k2), u_d, u_q, c)
+    k4 = derivatives(_axpy(y0, h, k3), u_d, u_q, c)
     for j in range(N_STATE):
         x[j] = y0[j] + h / 6.0 * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j])
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def advance(x: np.ndarray, p: np.ndarray, u_d: float, u_q: float, load_mode: int, load_value: float,
             period: float, substeps: int) -> None:
     """Advance the plant over one control period with the voltage held; Coulomb load after each substep."""
     h = period / substeps
     coulomb = coulomb_torque(load_mode, load_value)
     for _ in range(substeps):
-        w_before = x[X_W_MECH]
-        drive_torque = (electromagnetic_torque(x, p) - smooth_load_torque(load_mode, load_value, w_before)
-                        - p[P_VISCOUS] * w_before)
-        rk4_step(x, p, u_d, u_q, load_mode, load_value, h)
-        x[X_W_MECH] = apply_coulomb(w_before, x[X_W_MECH], drive_torque, coulomb, p[P_INERTIA], h)
+        if coulomb > 0.0:
+            w_before = x[X_W_MECH]
+            drive_torque = (electromagnetic_torque(x, p) - smooth_load_torque(load_mode, load_value, w_before)
+                            - p[P_VISCOUS] * w_before)
+            rk4_step(x, p, u_d, u_q, load_mode, load_value, h)
+            x[X_W_MECH] = apply_coulomb(w_before, x[X_W_MECH], drive_torque, coulomb, p[P_INERTIA], h)
+        else:
+            rk4_step(x, p, u_d, u_q, load_mode, load_value, h)
     # the magnet flux magnitude is a parameter: remove RK4's (tiny) amplitude drift of the rotation
     scale = p[P_FLUX] / math.sqrt(x[X_PSI_D] * x[X_PSI_D] + x[X_PSI_Q] * x[X_PSI_Q])
     x[X_PSI_D] *= scale

@@ -1,0 +1,172 @@
+"""Simulation speed: simulated seconds per wall second (real-time factor, RTF) of the simulated drives.
+
+plant + inverter + firmware at the 100 us control period, telemetry returned in blocks as the servers use
+them. One-off numba compile time is excluded from the RTFs and printed separately. The baseline is a
+plain-Python loop of a simple PMSM model (Euler, rotor frame, PI current and speed loops, no estimator),
+measured in the same run, so the ratios say what numba buys on this machine.
+The machine is shared (2 cores, other engineers' jobs): the numbers are pessimistic.
+
+    python benchmarks/sim_speed.py [--seconds 10] [--drives 8]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import multiprocessing as mp
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from sim_backend.drive import load_motor_config, make_drive  # noqa: E402
+from sim_backend.mechanics import LOAD_TORQUE  # noqa: E402
+
+PMSM = ROOT / "config/motors/pmsm-paper.toml"
+SPIM = ROOT / "config/motors/spim-paper.toml"
+BLOCK = 10000  # control periods per step() call (1 s of drive time)
+
+
+def rss_mib() -> float:
+    with open("/proc/self/statm") as fh:
+        return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def python_baseline_rtf(sim_seconds: float = 0.2) -> float:
+    rs, ls, psi, p, j, b, T = 3.58356, 0.02, 0.2592772, 3, 1e-3, 2e-4, 1e-4
+    i_d = i_q = w = 0.0
+    int_d = int_q = int_w = 0.0
+    n = int(sim_seconds / T)
+    t0 = time.perf_counter()
+    for _ in range(n):
+        i_ref = 0.0857 * (100.0 - w) + int_w
+        int_w += 2.14 * T * (100.0 - w)
+        e_d, e_q = -i_d, i_ref - i_q
+        int_d += rs * 2000 * T * e_d
+        int_q += rs * 2000 * T * e_q
+        w_e = p * w
+        u_d = ls * 2000 * e_d + int_d - w_e * ls * i_q
+        u_q = ls * 2000 * e_q + int_q + w_e * (ls * i_d + psi)
+        h = T / 2
+        for _ in range(2):
+            di_d = (u_d - rs * i_d + w_e * ls * i_q) / ls
+            di_q = (u_q - rs * i_q - w_e * (ls * i_d + psi)) / ls
+            dw = (1.5 * p * psi * i_q - 1.0 - b * w) / j
+            i_d += h * di_d
+            i_q += h * di_q
+            w += h * dw
+            w_e = p * w
+        _ = math.atan2(i_q, i_d)
+    return sim_seconds / (time.perf_counter() - t0)
+
+
+def drive_rtf(config: Path, sim_seconds: float, speed: float, load: float) -> tuple[float, float, float]:
+    """(rtf, first-call seconds in this process, RSS growth MiB over the run)."""
+    t0 = time.perf_counter()
+    drive = make_drive(config, seed=1)
+    drive.step(1)
+    first_call = time.perf_counter() - t0
+    drive.set_load(LOAD_TORQUE, load)
+    drive.set_enabled(True)
+    drive.set_speed_ref(speed)
+    drive.step(BLOCK)  # settle
+    rss0 = rss_mib()
+    blocks = max(1, int(round(sim_seconds / (BLOCK * drive.control_period_s))))
+    t0 = time.perf_counter()
+    for _ in range(blocks):
+        drive.step(BLOCK)
+    wall = time.perf_counter() - t0
+    return blocks * BLOCK * drive.control_period_s / wall, first_call, rss_mib() - rss0
+
+
+def cold_compile_seconds(config: Path) -> float:
+    """make_drive + first step in a fresh interpreter with an empty numba cache: the one-off compile."""
+    code = ("import time; t=time.perf_counter(); from sim_backend.drive import make_drive; "
+            f"d=make_drive({str(config)!r}, seed=0); d.set_enabled(True); d.step(2); "
+            "print(time.perf_counter()-t)")
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache, PYTHONPATH=str(ROOT))
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                             cwd=ROOT, timeout=600)
+    if out.returncode != 0:
+        return float("nan")
+    return float(out.stdout.strip().splitlines()[-1])
+
+
+def _sweep_worker(args: tuple[int, int, float]) -> float:
+    """Step a group of PMSM drives with different parameters together, block by block; return sim seconds."""
+    worker, count, sim_seconds = args
+    rng = np.random.default_rng(worker)
+    drives = []
+    for k in range(count):
+        drive = make_drive(PMSM, seed=1000 * worker + k)
+        drive.set_plant_param("plant_rs", float(rng.uniform(0.8, 1.2)))
+        drive.set_plant_param("plant_inertia", float(rng.uniform(0.5, 3.0)))
+        drive.set_load(LOAD_TORQUE, float(rng.uniform(0.0, 3.0)))
+        drive.set_enabled(True)
+        drive.set_speed_ref(float(rng.uniform(-150.0, 150.0)))
+        drives.append(drive)
+    blocks = max(1, int(round(sim_seconds / (BLOCK * 1e-4))))
+    for _ in range(blocks):
+        for drive in drives:
+            drive.step(BLOCK)
+    return count * blocks * BLOCK * 1e-4
+
+
+def _warm(_: int) -> None:
+    make_drive(PMSM, seed=0).step(1)
+
+
+def sweep_rtf(n_drives: int, sim_seconds: float, processes: int = 2) -> float:
+    per = [n_drives // processes + (1 if i < n_drives % processes else 0) for i in range(processes)]
+    with mp.get_context("fork").Pool(processes) as pool:
+        pool.map(_warm, range(processes))  # cache load outside the timed part
+        t0 = time.perf_counter()
+        simulated = sum(pool.map(_sweep_worker, [(i, per[i], sim_seconds) for i in range(processes)]))
+        wall = time.perf_counter() - t0
+    return simulated / wall
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=10.0, help="simulated seconds per drive")
+    parser.add_argument("--drives", type=int, default=8, help="drives in the parameter sweep")
+    args = parser.parse_args()
+
+    print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} (shared: numbers are pessimistic)")
+    baseline = python_baseline_rtf()
+    print(f"baseline (plain-Python simple PMSM loop, 100 us): {baseline:8.1f} x real time")
+
+    compile_s = cold_compile_seconds(PMSM)
+    pmsm, first_call, growth = drive_rtf(PMSM, args.seconds, speed=100.0, load=2.0)
+    print(f"PMSM compile (cold numba cache, one-off, excluded): {compile_s:.1f} s; first call with warm cache: {first_call:.2f} s")
+    print(f"PMSM drive (noise on, 100 rad/s, 2 N m): {pmsm:8.1f} x real time = {pmsm / baseline:6.1f} x baseline"
+          f"  ({1e6 / (pmsm * 1e4):.0f} ns per control period); RSS growth over {args.seconds:g} s: {growth:.2f} MiB")
+
+    spim = float("nan")
+    if SPIM.exists():
+        try:
+            spim, spim_first, spim_growth = drive_rtf(SPIM, args.seconds, speed=100.0, load=0.2)
+            print(f"SPIM drive: {spim:8.1f} x real time = {spim / baseline:6.1f} x baseline; first call {spim_first:.2f} s; "
+                  f"RSS growth {spim_growth:.2f} MiB")
+        except Exception as exc:  # the SPIM model belongs to another engineer; report, do not hide
+            print(f"SPIM drive: not measured ({type(exc).__name__}: {exc})")
+    else:
+        print("SPIM drive: config/motors/spim-paper.toml missing")
+
+    sweep = sweep_rtf(args.drives, args.seconds / 2)
+    print(f"sweep: {args.drives} PMSM drives (different Rs, J, load, speed) on 2 processes: {sweep:8.1f} x real time "
+          f"aggregate = {sweep / pmsm:4.2f} x one drive")
+    print(f"RESULT pmsm_rtf={pmsm:.0f} spim_rtf={spim:.0f} sweep_rtf={sweep:.0f} baseline_rtf={baseline:.1f} "
+          f"pmsm_compile_s={compile_s:.1f}")
+
+
+if __name__ == "__main__":
+    main()
