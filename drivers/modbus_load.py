@@ -105,7 +105,8 @@ class ModbusLoadLink:
     def _call(self, request: str, address: int, **kwargs):
         client = self._connected_client()
         n = kwargs.get("count") or len(kwargs.get("values", [0]))
-        names = list(dict.fromkeys(r.name if (r := register_at(a)) else "unmapped" for a in range(address, address + n)))
+        names = list(dict.fromkeys(r.name if (r := register_at(a)) else "unmapped"
+                                   for a in range(address, address + n)))
         span = f"register {address}" if n == 1 else f"registers {address}..{address + n - 1}"
         what = f"{request} of {span} ({', '.join(names)})"
         try:
@@ -129,11 +130,15 @@ class ModbusLoadLink:
         if not self._client.connect():
             self._client = None
             raise LinkError(f"load machine {self.where}: cannot connect")
-        (version,) = self.read(REG_MAP_VERSION)
-        if version != MAP_VERSION:
-            raise LinkError(f"load machine {self.where}: register map version {version}, this bench knows "
-                            f"{MAP_VERSION}")
-        return regs_to_str(self.read(REG_IDENTITY))
+        try:
+            (version,) = self.read(REG_MAP_VERSION)
+            if version != MAP_VERSION:
+                raise LinkError(f"load machine {self.where}: register map version {version}, this bench knows "
+                                f"{MAP_VERSION}")
+            return regs_to_str(self.read(REG_IDENTITY))
+        except LinkError:
+            self.close()
+            raise
 
     def set_load(self, mode: LoadMode, value: float) -> None:
         self._call("write_registers", REG_MODE.address, values=[int(LoadMode(mode))] + float_to_regs(value))

@@ -51,12 +51,12 @@ def test_float32_word_order_is_high_word_first():
 
 # --- exact bytes on the wire against scripted fake machines -----------------------------------------------------
 
-def answer(pdu: bytes) -> bytes:
-    """What a minimal, well-behaved Modbus machine answers (every holding register reads 1)."""
+def answer(pdu: bytes, value: int = 1) -> bytes:
+    """What a minimal, well-behaved Modbus machine answers (every holding register reads `value`)."""
     fc = pdu[0]
     if fc == 3:
         (count,) = struct.unpack(">H", pdu[3:5])
-        return bytes([3, 2 * count]) + b"\x00\x01" * count
+        return bytes([3, 2 * count]) + struct.pack(">H", value) * count
     if fc == 6:
         return pdu[:5]
     if fc == 16:
@@ -65,7 +65,8 @@ def answer(pdu: bytes) -> bytes:
 
 
 class FakeTcpMachine:
-    def __init__(self, silent: bool = False):
+    def __init__(self, silent: bool = False, value: int = 1):
+        self.value = value
         self.listener = socket.create_server(("127.0.0.1", 0))
         self.port = self.listener.getsockname()[1]
         self.silent = silent
@@ -91,7 +92,7 @@ class FakeTcpMachine:
                     pdu = self._recv(conn, length - 1)
                     self.requests.append(head + pdu)
                     if not self.silent:
-                        reply = answer(pdu)
+                        reply = answer(pdu, self.value)
                         conn.sendall(head[:4] + struct.pack(">H", len(reply) + 1) + head[6:7] + reply)
         except OSError:
             return
@@ -174,6 +175,16 @@ def test_setpoint_write_exact_modbus_rtu_frame():
     setpoint = fake.requests[-1]
     body = bytes.fromhex("03 10 0001 0003 06 0002 4020 0000")
     assert setpoint == body + struct.pack("<H", crc16_modbus_reference(body))
+
+
+def test_other_register_map_version_is_refused():
+    fake = FakeTcpMachine(value=2)
+    link = ModbusLoadLink({"transport": "modbus-tcp", "host": "127.0.0.1", "port": fake.port, "timeout_s": 2.0},
+                          ROOT)
+    with pytest.raises(LinkError, match="register map version 2, this bench knows 1"):
+        link.open()
+    assert link._client is None
+    fake.close()
 
 
 def test_modbus_tcp_timeout_is_a_clear_link_error():
