@@ -20,7 +20,9 @@ from sim_backend.mechanics import coulomb_torque, smooth_load_torque
 
 # plant parameter vector (effective values: nominal * injection factor)
 P_RSD, P_RSQ, P_RR, P_LSD, P_LSQ, P_LR, P_MSRD, P_MSRQ, P_NP, P_J, P_FRICTION, P_LOAD_MODE, P_LOAD_VALUE = range(13)
-N_PLANT_PARAMS = 13
+# derived: inverse inductance matrices, [[a, -b], [-b, c]] per axis (set by plant_params / derive)
+P_INV_D_A, P_INV_D_B, P_INV_D_C, P_INV_Q_A, P_INV_Q_B, P_INV_Q_C = range(13, 19)
+N_PLANT_PARAMS = 19
 
 # plant state vector
 X_PSD, X_PSQ, X_PRD, X_PRQ, X_WM, X_THETA_M, X_OPEN_D, X_OPEN_Q = range(8)
@@ -30,21 +32,18 @@ N_PLANT_STATE = 8
 @njit(cache=True, inline="always")
 def currents(psd, psq, prd, prq, p, open_d, open_q):
     """(i_sd, i_sq, i_rd, i_rq) from the flux linkages."""
-    lr = p[P_LR]
     if open_d:
         isd = 0.0
-        ird = prd / lr
+        ird = prd / p[P_LR]
     else:
-        det = p[P_LSD] * lr - p[P_MSRD] * p[P_MSRD]
-        isd = (lr * psd - p[P_MSRD] * prd) / det
-        ird = (p[P_LSD] * prd - p[P_MSRD] * psd) / det
+        isd = p[P_INV_D_A] * psd - p[P_INV_D_B] * prd
+        ird = p[P_INV_D_C] * prd - p[P_INV_D_B] * psd
     if open_q:
         isq = 0.0
-        irq = prq / lr
+        irq = prq / p[P_LR]
     else:
-        det = p[P_LSQ] * lr - p[P_MSRQ] * p[P_MSRQ]
-        isq = (lr * psq - p[P_MSRQ] * prq) / det
-        irq = (p[P_LSQ] * prq - p[P_MSRQ] * psq) / det
+        isq = p[P_INV_Q_A] * psq - p[P_INV_Q_B] * prq
+        irq = p[P_INV_Q_C] * prq - p[P_INV_Q_B] * psq
     return isd, isq, ird, irq
 
 
@@ -162,4 +161,13 @@ def plant_params(plant: dict, mech: dict, factors: dict[str, float], load_mode: 
     p[P_FRICTION] = mech["viscous_nm_s_rad"]
     p[P_LOAD_MODE] = load_mode
     p[P_LOAD_VALUE] = load_value
+    derive(p)
     return p
+
+
+def derive(p: np.ndarray) -> None:
+    """Fill the derived entries (inverse inductance matrices) after changing inductances in p."""
+    for ls, m, a, b, c in ((P_LSD, P_MSRD, P_INV_D_A, P_INV_D_B, P_INV_D_C),
+                           (P_LSQ, P_MSRQ, P_INV_Q_A, P_INV_Q_B, P_INV_Q_C)):
+        det = p[ls] * p[P_LR] - p[m] * p[m]
+        p[a], p[b], p[c] = p[P_LR] / det, p[m] / det, p[ls] / det
