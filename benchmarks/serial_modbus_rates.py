@@ -2,7 +2,7 @@
 
 Measures lockstep SYNC round trips per second (1 ms of drive time each) over TCP and a pty with the toy drive
 (protocol cost only) and with the PMSM paper drive (real-time factor: drive seconds per wall second, over
-serial vs calling the device directly), a full trace upload, and Modbus feedback reads per second over TCP
+serial in this process and to a server process vs calling the device directly), a full trace upload, and Modbus feedback reads per second over TCP
 and RTU on a pty. Numbers on a shared 2-core machine are pessimistic.
 
     python benchmarks/serial_modbus_rates.py [--syncs N]
@@ -11,6 +11,8 @@ and RTU on a pty. Numbers on a shared 2-core machine are pessimistic.
 from __future__ import annotations
 
 import argparse
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -48,6 +50,43 @@ def sync_rate(device: SimulatedDevice, start, n: int) -> tuple[float, float, flo
     link.close()
     server.stop()
     return n / wall, n * 1e-3 / wall, mb / upload
+
+
+SERVER_SCRIPT = """
+import sys, threading
+from sim_backend.device import SimulatedDevice
+from sim_backend.drive import make_drive
+from sim_backend.serial_server import start_serial_tcp
+drive = make_drive(sys.argv[1], 1)
+drive.step(1)
+server = start_serial_tcp(SimulatedDevice(drive))
+print(server.port, flush=True)
+sys.stdin.read()
+server.stop()
+"""
+
+
+def out_of_process_rtf(motor: Path, n: int) -> float:
+    """Drive s per wall s with the simulator in its own process (as `drivebench sim serve` runs it)."""
+    proc = subprocess.Popen([sys.executable, "-c", SERVER_SCRIPT, str(motor)], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        port = int(proc.stdout.readline())
+        link = SerialDriveLink({"port": f"socket://127.0.0.1:{port}", "timeout_s": 5.0}, ROOT)
+        link.open()
+        link.configure(list(SIGNAL_NAMES), list(SIGNAL_NAMES), 1)
+        link.enable_velocity_mode()
+        link.set_speed_ref(2.0)
+        link.sync()
+        t0 = time.perf_counter()
+        for _ in range(n):
+            link.sync()
+        rtf = n * 1e-3 / (time.perf_counter() - t0)
+        link.close()
+    finally:
+        proc.stdin.close()
+        proc.wait(30)
+    return rtf
 
 
 def direct_rtf(device: SimulatedDevice, n: int) -> float:
@@ -92,15 +131,16 @@ def main() -> None:
     rtf_direct = direct_rtf(make(), n)
     _, rtf_tcp, trace_mb_s = sync_rate(make(), start_serial_tcp, n)
     _, rtf_pty, _ = sync_rate(make(), start_serial_pty, n)
+    rtf_oop = out_of_process_rtf(motor, n)
     print(f"PMSM drive, drive s per wall s: direct {rtf_direct:.1f}  serial TCP {rtf_tcp:.1f}  pty {rtf_pty:.1f}"
-          f"  (serial/direct {rtf_tcp / rtf_direct:.2f})")
+          f"  TCP to another process {rtf_oop:.1f}  (in-process serial/direct {rtf_tcp / rtf_direct:.2f})")
     print(f"trace upload over TCP, all {len(SIGNAL_NAMES)} signals: {trace_mb_s:.1f} MB/s")
 
     mb_tcp = modbus_rate(start_modbus_tcp, {"transport": "modbus-tcp", "host": "127.0.0.1"}, 500)
     mb_rtu = modbus_rate(start_modbus_rtu_pty, {"transport": "modbus-rtu", "baudrate": 115200}, 200)
     print(f"Modbus feedback reads/s: TCP {mb_tcp:,.0f}  RTU/pty {mb_rtu:,.0f}")
     print(f"RESULT toy_sync_tcp_per_s={toy_tcp:.0f} toy_sync_pty_per_s={toy_pty:.0f} pmsm_rtf_direct={rtf_direct:.1f} "
-          f"pmsm_rtf_serial_tcp={rtf_tcp:.1f} pmsm_rtf_serial_pty={rtf_pty:.1f} "
+          f"pmsm_rtf_serial_tcp={rtf_tcp:.1f} pmsm_rtf_serial_pty={rtf_pty:.1f} pmsm_rtf_serial_oop={rtf_oop:.1f} "
           f"serial_over_direct={rtf_tcp / rtf_direct:.2f} trace_upload_mb_s={trace_mb_s:.1f} "
           f"modbus_tcp_reads_per_s={mb_tcp:.0f} modbus_rtu_reads_per_s={mb_rtu:.0f}")
 
