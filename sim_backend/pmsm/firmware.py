@@ -56,7 +56,18 @@ F_DEADTIME_COMP_V = 20     # per-phase dead-time/drop compensation voltage, V
 F_DEADTIME_COMP_WIDTH = 21  # current below which the compensation fades linearly, A
 F_ISX_REF = 22             # field-axis current reference, A (paper: 0)
 F_FLUX_EST_MAX_FRACTION = 23  # psi^ kept <= this fraction of F_FLUX (a magnet cannot grow)
-N_PARAMS = 24
+# derived values, recomputed by derive_gains() whenever a parameter is written (as the DSP does)
+F_A1 = 24                  # a1^ = Rs^/Ls^
+F_A2 = 25                  # a2 = 1/Ls^
+F_DECAY = 26               # exp(-a1^ T)
+F_KI_W = 27                # ki_w
+F_KI_PSI = 28              # ki_psi
+F_KP_SPEED = 29            # speed PI, A per mech rad/s
+F_KI_SPEED = 30
+F_KP_I = 31                # current PIs, V/A
+F_KI_I = 32
+F_INV_POLE_PAIRS = 33
+N_PARAMS = 34
 
 # ---- state (fw_state array) ----
 S_ENABLE_CMD = 0           # fieldbus: 1 = operation enabled
@@ -165,8 +176,8 @@ def _update_estimators(s: np.ndarray, p: np.ndarray, i_alpha_beta: complex) -> c
     Returns the measured current in the new estimated frame.
     """
     T = p[F_PERIOD]
-    a1 = p[F_RS] / p[F_LS]
-    a2 = 1.0 / p[F_LS]
+    a1 = p[F_A1]
+    a2 = p[F_A2]
     w = s[S_OMEGA]
     psi = s[S_PSI]
 
@@ -175,7 +186,7 @@ def _update_estimators(s: np.ndarray, p: np.ndarray, i_alpha_beta: complex) -> c
     to_mid_frame = complex(math.cos(s[S_THETA]), -math.sin(s[S_THETA])) * half_turn
     u_xy = complex(s[S_U_ALPHA_PREV], s[S_U_BETA_PREV]) * to_mid_frame
     lam = complex(-a1, -w)
-    e = math.exp(-a1 * T) * half_turn * half_turn                            # e^(lam T)
+    e = p[F_DECAY] * half_turn * half_turn                                   # e^(lam T)
     i_hat = complex(s[S_IHAT_X], s[S_IHAT_Y])
     i_hat = e * i_hat + (e - 1.0) / lam * a2 * (u_xy - 1j * w * psi)
     s[S_THETA] = _wrap(s[S_THETA] + w * T)                                   # (5c)
@@ -189,14 +200,14 @@ def _update_estimators(s: np.ndarray, p: np.ndarray, i_alpha_beta: complex) -> c
     delta = i_xy - i_hat
     if s[S_FREEZE_SPEED] == 0.0:
         kp_w = p[F_SPEED_EST_KP]
-        ki_w = kp_w * (p[F_SPEED_EST_KI_OVER_KP] if p[F_SPEED_EST_KI_OVER_KP] > 0.0 else a1)
+        ki_w = p[F_KI_W]
         eps_w = -delta.imag / (a2 * psi)                                      # (7a)
         s[S_INT_OMEGA] += ki_w * T * eps_w
         s[S_OMEGA] = kp_w * eps_w + s[S_INT_OMEGA]                            # (8a)
     w_min = p[F_FLUX_EST_MIN_SPEED]
     if s[S_FREEZE_FLUX] == 0.0 and abs(w) >= w_min:
         kp_psi = p[F_FLUX_EST_KP]
-        ki_psi = kp_psi * p[F_FLUX_EST_KI_OVER_KP]
+        ki_psi = p[F_KI_PSI]
         eps_psi = -delta.real / (a2 * max(w * w, w_min * w_min))              # (7b)
         s[S_INT_PSI] += ki_psi * T * eps_psi
         psi_min = p[F_FLUX_EST_MIN_FRACTION] * p[F_FLUX]
@@ -214,10 +225,9 @@ def _speed_controller(s: np.ndarray, p: np.ndarray) -> float:
     ref = s[S_SPEED_REF_RAMPED]
     ref += max(-step, min(step, s[S_SPEED_REF_CMD] - ref))
     s[S_SPEED_REF_RAMPED] = ref
-    torque_per_amp = 1.5 * p[F_POLE_PAIRS] * p[F_FLUX]
-    kp = p[F_INERTIA] * p[F_SPEED_BW] / torque_per_amp
-    ki = kp * p[F_SPEED_BW] * p[F_SPEED_ZERO_FRACTION]
-    err = ref - s[S_OMEGA] / p[F_POLE_PAIRS]
+    kp = p[F_KP_SPEED]
+    ki = p[F_KI_SPEED]
+    err = ref - s[S_OMEGA] * p[F_INV_POLE_PAIRS]
     s[S_INT_SPEED] += ki * T * err
     i_max = p[F_I_MAX]
     i_ref = kp * err + s[S_INT_SPEED]
@@ -231,15 +241,15 @@ def _speed_controller(s: np.ndarray, p: np.ndarray) -> float:
 def _current_controller(s: np.ndarray, p: np.ndarray, i_xy: complex, i_ref: complex, vdc: float) -> complex:
     """PI per axis (zero cancels the winding pole), decoupling feed-forward, circle limit, anti-windup."""
     T = p[F_PERIOD]
-    kp = p[F_LS] * p[F_CURRENT_BW]
-    ki = p[F_RS] * p[F_CURRENT_BW]
+    kp = p[F_KP_I]
+    ki = p[F_KI_I]
     w = s[S_OMEGA]
     err = i_ref - i_xy
     int_x = s[S_INT_IX] + ki * T * err.real
     int_y = s[S_INT_IY] + ki * T * err.imag
     u_x = kp * err.real + int_x - w * p[F_LS] * i_ref.imag
     u_y = kp * err.imag + int_y + w * (p[F_LS] * i_ref.real + s[S_PSI])
-    u_max = p[F_VOLTAGE_FRACTION] * vdc / SQRT3
+    u_max = p[F_VOLTAGE_FRACTION] * vdc * (1.0 / SQRT3)
     mag = math.sqrt(u_x * u_x + u_y * u_y)
     if mag > u_max:
         u_x *= u_max / mag
@@ -291,12 +301,12 @@ def firmware_step(s: np.ndarray, p: np.ndarray, i_a: float, i_b: float, vdc: flo
             e_b = comp * _fade_sign(i_b, width)
             e_c = comp * _fade_sign(i_c, width)
             u_ab += complex((2.0 * e_a - e_b - e_c) / 3.0, (e_b - e_c) / SQRT3)
-        vdc_safe = max(vdc, 1.0)
-        s[S_M_ALPHA] = u_ab.real / vdc_safe
-        s[S_M_BETA] = u_ab.imag / vdc_safe
+        inv_vdc = 1.0 / max(vdc, 1.0)
+        s[S_M_ALPHA] = u_ab.real * inv_vdc
+        s[S_M_BETA] = u_ab.imag * inv_vdc
 
     row[C_SPEED_REF] = s[S_SPEED_REF_RAMPED] if want_run else 0.0
-    row[C_SPEED_EST] = s[S_OMEGA] / p[F_POLE_PAIRS]
+    row[C_SPEED_EST] = s[S_OMEGA] * p[F_INV_POLE_PAIRS]
     row[C_POS_EST] = s[S_THETA]
     row[C_FLUX_EST] = s[S_PSI]
     row[C_I_SX] = i_xy.real
@@ -307,6 +317,28 @@ def firmware_step(s: np.ndarray, p: np.ndarray, i_a: float, i_b: float, vdc: flo
     row[C_U_SY] = u_xy.imag
     row[C_TORQUE_EST] = 1.5 * p[F_POLE_PAIRS] * s[S_PSI] * i_xy.imag
     row[C_VDC] = vdc
+
+
+def derive_gains(p: np.ndarray) -> None:
+    """Recompute the derived slots from the model parameters and design targets.
+
+    Speed PI: kp = J^ w_c / Kt^ (crossover w_c on the rigid shaft J^ s), Kt^ = 1.5 p psi_nominal, zero at
+    a fraction of w_c. Current PIs: kp = Ls^ w_i, ki = Rs^ w_i, so the zero cancels the winding pole
+    Rs/Ls and the closed current loop is first order with bandwidth w_i (plus the 1.5 T delay).
+    """
+    a1 = p[F_RS] / p[F_LS]
+    p[F_A1] = a1
+    p[F_A2] = 1.0 / p[F_LS]
+    p[F_DECAY] = math.exp(-a1 * p[F_PERIOD])
+    ratio = p[F_SPEED_EST_KI_OVER_KP]
+    p[F_KI_W] = p[F_SPEED_EST_KP] * (ratio if ratio > 0.0 else a1)      # paper: ki_w / kp_w = a1
+    p[F_KI_PSI] = p[F_FLUX_EST_KP] * p[F_FLUX_EST_KI_OVER_KP]
+    torque_per_amp = 1.5 * p[F_POLE_PAIRS] * p[F_FLUX]
+    p[F_KP_SPEED] = p[F_INERTIA] * p[F_SPEED_BW] / torque_per_amp
+    p[F_KI_SPEED] = p[F_KP_SPEED] * p[F_SPEED_BW] * p[F_SPEED_ZERO_FRACTION]
+    p[F_KP_I] = p[F_LS] * p[F_CURRENT_BW]
+    p[F_KI_I] = p[F_RS] * p[F_CURRENT_BW]
+    p[F_INV_POLE_PAIRS] = 1.0 / p[F_POLE_PAIRS]
 
 
 # ---- test hooks (the lab firmware's debug objects) ----

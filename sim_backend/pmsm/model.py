@@ -128,6 +128,7 @@ class PmsmDrive:
         f[fw.F_DEADTIME_COMP_V] = _num(cfg, s, "deadtime_comp_v", 0.0)
         f[fw.F_DEADTIME_COMP_WIDTH] = _num(cfg, s, "deadtime_comp_width_a", 0.05)
         f[fw.F_ISX_REF] = _num(cfg, s, "isx_ref_a", 0.0)
+        fw.derive_gains(f)
         return cls(plant, angle0, f, inv, seed, noise)
 
     # ---- DriveModel ----
@@ -172,6 +173,7 @@ class PmsmDrive:
             if not (value > 0 and math.isfinite(value)):
                 raise ValueError(f"{name}: must be a positive finite number, got {value!r}")
             self._fw_p[_FW_OVERRIDES[name]] = value
+            fw.derive_gains(self._fw_p)
         else:
             raise KeyError(f"unknown hook {name!r} for a pmsm drive; known: {', '.join(self.hook_names())}")
 
