@@ -123,6 +123,17 @@ class FrameDecoder:
             frames.append(frame)
         return frames
 
+    def resync(self) -> list[Frame]:
+        """The line went quiet inside a frame: drop its first byte, count it as bad, search the rest again.
+
+        Catches the rare corrupted header whose CRC-8 still matches and whose length would otherwise make the
+        receiver wait for bytes that never come."""
+        if not self.buffer:
+            return []
+        self.crc_errors += 1
+        self._skip(1)
+        return self.feed(b"")
+
     def bytes_wanted(self) -> int:
         """How many more bytes complete the next frame, as far as the buffer tells; never more than a frame
         still needs, so a blocking read of this many bytes cannot wait past the end of a good frame."""

@@ -89,6 +89,13 @@ class SerialDriveLink:
         while True:
             left = deadline - time.monotonic()
             if left <= 0:
+                # quiet inside a frame: maybe a corrupted length; look for our reply past its first byte
+                before = self._decoder.crc_errors
+                frames = self._decoder.resync()
+                self.stats["crc_errors"] += self._decoder.crc_errors - before
+                for frame in frames:
+                    if frame.seq == seq and frame.cmd & RESPONSE_FLAG:
+                        return frame, True
                 return None, crc_seen
             port.timeout = left
             try:

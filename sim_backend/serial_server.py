@@ -35,6 +35,7 @@ REVISION = 0x00010000
 MAX_SYNC_STEPS = 1_000_000
 ALL_SIGNALS = (1 << len(SIGNAL_NAMES)) - 1
 WRITE_TIMEOUT_S = 5.0
+STALE_FRAME_S = 0.2        # a partial frame with no new byte for this long is resynchronised past
 
 
 class CommandError(Exception):
@@ -214,9 +215,14 @@ class _Session:
         self.handler = SerialProtocolHandler(device)
         self.stats = stats
 
+    @property
+    def idle_timeout(self) -> float | None:
+        return STALE_FRAME_S if self.decoder.buffer else None
+
     def feed(self, data: bytes) -> bytes:
+        """Bytes from the line; b"" means the line stayed quiet for idle_timeout."""
         before = self.decoder.crc_errors
-        frames = self.decoder.feed(data)
+        frames = self.decoder.feed(data) if data else self.decoder.resync()
         self.stats["crc_errors"] += self.decoder.crc_errors - before
         out = b"".join(self.handler.handle(f) for f in frames)
         self.stats["frames"] += len(frames)
@@ -295,17 +301,20 @@ class SerialTcpServer(_ServerBase):
         session = _Session(self.device, self.stats)
         with conn:
             while True:
-                ready, _, _ = select.select([conn, self._listener, self._wake_r], [], [])
+                ready, _, _ = select.select([conn, self._listener, self._wake_r], [], [], session.idle_timeout)
                 if self._wake_r in ready:
                     return None
                 if self._listener in ready:          # like re-plugging a serial cable: the newcomer wins
                     return self._accept()
-                try:
-                    data = conn.recv(65536)
-                except OSError:
-                    return None
-                if not data:
-                    return None
+                if conn in ready:
+                    try:
+                        data = conn.recv(65536)
+                    except OSError:
+                        return None
+                    if not data:
+                        return None
+                else:
+                    data = b""                       # quiet inside a frame
                 reply = session.feed(data)
                 if reply:
                     try:
@@ -332,13 +341,16 @@ class SerialPtyServer(_ServerBase):
         session = _Session(self.device, self.stats)
         self.stats["sessions"] += 1
         while True:
-            ready, _, _ = select.select([self._master, self._wake_r], [], [])
+            ready, _, _ = select.select([self._master, self._wake_r], [], [], session.idle_timeout)
             if self._wake_r in ready:
                 return
-            try:
-                data = os.read(self._master, 65536)
-            except BlockingIOError:
-                continue
+            if self._master in ready:
+                try:
+                    data = os.read(self._master, 65536)
+                except BlockingIOError:
+                    continue
+            else:
+                data = b""                           # quiet inside a frame
             reply = session.feed(data)
             view = memoryview(reply)
             while view:

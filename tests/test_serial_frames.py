@@ -108,3 +108,14 @@ def test_frames_survive_junk_and_any_chunking(payloads, junk, chunk):
     for i in range(0, len(stream), chunk):
         got += dec.feed(stream[i:i + chunk])
     assert got[-len(frames):] == frames
+
+
+def test_resync_after_quiet_line_finds_the_frame_behind_a_lying_header():
+    head = struct.pack("<HBB", 60000, 1, 0x41)
+    lying = b"\xa5\x5a" + head + bytes([crc8(head)])       # passes its CRC-8, promises 60000 bytes
+    good = encode_frame(2, Cmd.SAMPLE)
+    dec = FrameDecoder()
+    assert dec.feed(lying + good) == []                      # waits for the promised payload...
+    assert dec.resync() == [Frame(2, Cmd.SAMPLE, b"")]       # ...until the line goes quiet
+    assert dec.crc_errors == 1 and not dec.buffer
+    assert dec.resync() == [] and dec.crc_errors == 1        # nothing buffered: nothing counted

@@ -415,3 +415,42 @@ def test_unopenable_port_is_a_link_error():
 def test_missing_port_is_a_config_error():
     with pytest.raises(ValueError, match=r"\[drive\] port: required"):
         SerialDriveLink({"transport": "serial"}, Path("."))
+
+
+def bogus_header(length: int = 60000) -> bytes:
+    """A corrupted header that still passes its CRC-8: it announces a payload that never comes."""
+    from drivers.serial_frames import crc8
+    head = struct.pack("<HBB", length, 0x33, 0xC2)
+    return b"\xa5\x5a" + head + bytes([crc8(head)])
+
+
+def test_drive_resyncs_past_a_header_announcing_a_payload_that_never_comes():
+    device = SimulatedDevice(ToyDrive())
+    with start_serial_tcp(device) as server:
+        with socket.create_connection(("127.0.0.1", server.port), timeout=10) as sock:
+            sock.sendall(bogus_header() + encode_frame(9, Cmd.SAMPLE))
+            dec = FrameDecoder()
+            frames = []
+            while not frames:
+                frames = dec.feed(sock.recv(4096))
+    assert frames[0].seq == 9 and frames[0].cmd == Cmd.SAMPLE | RESPONSE_FLAG
+    assert server.stats["crc_errors"] >= 1
+
+
+def test_link_resyncs_past_a_header_announcing_a_payload_that_never_comes(proxied):
+    device, _, proxy = proxied
+    link = make_link(f"socket://127.0.0.1:{proxy.port}", timeout_s=0.5)
+    link.open()
+    sent = [False]
+
+    def prepend_bogus(data: bytes) -> bytes:
+        if not sent[0]:
+            sent[0] = True
+            return bogus_header() + data
+        return data
+
+    proxy.to_client = prepend_bogus
+    assert link.sync()[0].t_s == pytest.approx(0.001)
+    assert link.stats["crc_errors"] >= 1 and link.stats["retries"] == 0    # found in the buffer, not resent
+    assert device.step_count == 10
+    link.close()
