@@ -81,15 +81,29 @@ def drive_rtf(config: Path, sim_seconds: float, speed: float, load: float) -> tu
     drive.set_enabled(True)
     drive.set_speed_ref(speed)
     drive.step(BLOCK)  # settle
-    rss0 = rss_mib()
     block = BLOCK // 2
     blocks = max(1, int(round(sim_seconds / (block * drive.control_period_s))))
     rtfs = []
-    for _ in range(blocks):
+    for k in range(blocks):
+        if k == blocks // 2:
+            rss0 = rss_mib()  # growth is measured over the second half: allocator warm-up excluded
         t0 = time.perf_counter()
         drive.step(block)
         rtfs.append(block * drive.control_period_s / (time.perf_counter() - t0))
+    if blocks < 2:
+        rss0 = rss_mib()
     return max(rtfs), float(np.median(rtfs)), first_call, rss_mib() - rss0
+
+
+def interpreted_kernel_rtf(config: Path, steps: int = 300) -> float:
+    """The same drive code with numba disabled (NUMBA_DISABLE_JIT=1): what the JIT buys, like for like."""
+    code = ("import time; from sim_backend.drive import make_drive; "
+            f"d=make_drive({str(config)!r}, seed=0); d.set_enabled(True); d.set_speed_ref(100.0); d.step(10); "
+            f"t=time.perf_counter(); d.step({steps}); print({steps}*d.control_period_s/(time.perf_counter()-t))")
+    env = dict(os.environ, NUMBA_DISABLE_JIT="1", PYTHONPATH=str(ROOT))
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, cwd=ROOT,
+                         timeout=600)
+    return float(out.stdout.strip().splitlines()[-1]) if out.returncode == 0 else float("nan")
 
 
 def cold_compile_seconds(config: Path) -> float:
@@ -149,13 +163,16 @@ def main() -> None:
     print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} (shared: numbers are pessimistic)")
     baseline = python_baseline_rtf()
     print(f"baseline (plain-Python simple PMSM loop, 100 us): {baseline:8.1f} x real time")
+    interpreted = interpreted_kernel_rtf(PMSM)
+    print(f"same PMSM drive code with numba disabled: {interpreted:8.2f} x real time")
 
     compile_s = cold_compile_seconds(PMSM)
     pmsm, pmsm_median, first_call, growth = drive_rtf(PMSM, args.seconds, speed=100.0, load=2.0)
     print(f"PMSM compile (cold numba cache, one-off, excluded): {compile_s:.1f} s; first call with warm cache: {first_call:.2f} s")
     print(f"PMSM drive (noise on, 100 rad/s, 2 N m): best block {pmsm:7.1f} x real time = {pmsm / baseline:6.1f} x baseline "
           f"({1e5 / pmsm:.0f} ns per control period); median block {pmsm_median:7.1f} x; "
-          f"RSS growth over {args.seconds:g} s: {growth:.2f} MiB")
+          f"RSS growth over the last {args.seconds / 2:g} s: {growth:.2f} MiB")
+    print(f"PMSM numba vs the same code interpreted: {pmsm / interpreted:8.0f} x")
 
     spim = float("nan")
     if SPIM.exists():
@@ -172,7 +189,7 @@ def main() -> None:
     print(f"sweep: {args.drives} PMSM drives (different Rs, J, load, speed) on 2 processes: {sweep:8.1f} x real time "
           f"aggregate (whole run, not best block) = {sweep / pmsm_median:4.2f} x one drive's median")
     print(f"RESULT pmsm_rtf={pmsm:.0f} spim_rtf={spim:.0f} sweep_rtf={sweep:.0f} baseline_rtf={baseline:.1f} "
-          f"pmsm_compile_s={compile_s:.1f}")
+          f"interpreted_rtf={interpreted:.2f} pmsm_compile_s={compile_s:.1f}")
 
 
 if __name__ == "__main__":
