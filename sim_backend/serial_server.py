@@ -87,6 +87,9 @@ class SerialProtocolHandler:
             reply = encode_frame(frame.seq, frame.cmd | RESPONSE_FLAG, self._execute(cmd, frame.payload))
         except CommandError as exc:
             reply = encode_frame(frame.seq, Cmd.ERROR | RESPONSE_FLAG, error_payload(frame.cmd, exc.code, str(exc)))
+        except Exception as exc:        # a simulator failure must reach the bench as an answer, not as silence
+            reply = encode_frame(frame.seq, Cmd.ERROR | RESPONSE_FLAG, error_payload(
+                frame.cmd, ErrorCode.NOT_ALLOWED, f"drive failure: {type(exc).__name__}: {exc}"))
         self._last_request, self._last_reply = key, reply
         return reply
 

@@ -454,3 +454,18 @@ def test_link_resyncs_past_a_header_announcing_a_payload_that_never_comes(proxie
     assert link.stats["crc_errors"] >= 1 and link.stats["retries"] == 0    # found in the buffer, not resent
     assert device.step_count == 10
     link.close()
+
+
+def test_a_simulator_exception_is_answered_not_silent():
+    class Broken(ToyDrive):
+        def step(self, n):
+            raise FloatingPointError("plant diverged")
+
+    with start_serial_tcp(SimulatedDevice(Broken())) as server:
+        link = make_link(server.url)
+        link.open()
+        with pytest.raises(LinkError, match=r"SYNC rejected: drive failure: FloatingPointError: plant diverged"):
+            link.sync()
+        assert link.status().state == "SWITCH ON DISABLED"       # the drive still answers
+        link.close()
+        assert server.error is None
