@@ -18,10 +18,19 @@ from typing import Any
 
 import numpy as np
 
-from sim_backend.drive import load_motor_config
+from sim_backend.drive import MotorConfigError, load_motor_config
 
 
 def estimator_gains(cfg: dict) -> dict[str, float]:
+    try:
+        return _estimator_gains(cfg)
+    except KeyError as exc:
+        raise MotorConfigError(f"[firmware] {exc.args[0]}: missing") from None
+    except (TypeError, ValueError) as exc:
+        raise MotorConfigError(f"[firmware] estimator gains: {exc}") from None
+
+
+def _estimator_gains(cfg: dict) -> dict[str, float]:
     fw = cfg["firmware"]
     a1 = float(fw["rs_ohm"]) / float(fw["ls_h"])
     ratio = fw["speed_est_ki_over_kp"]
@@ -62,7 +71,10 @@ def run_design_check(motor_config_path: str | Path, speeds: Any = None, i_sx: fl
                      i_sy: float = 2.0) -> dict:
     """Poles over the speed range; i_sx, i_sy are recorded (they do not move the poles, see module doc)."""
     cfg = load_motor_config(motor_config_path)
-    gains = estimator_gains(cfg)
+    try:
+        gains = estimator_gains(cfg)
+    except MotorConfigError as exc:
+        raise MotorConfigError(f"{motor_config_path}: {exc}") from None
     speeds = default_speeds() if speeds is None else np.asarray(speeds, dtype=float)
     per_speed = []
     worst: tuple[float, float, complex] | None = None

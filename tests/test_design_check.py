@@ -66,3 +66,12 @@ def test_table_lists_every_speed():
     table = format_table(result)
     assert len(table.splitlines()) == 4 + 3 + 1
     assert "all poles in the left half plane" in table
+
+
+def test_missing_gain_names_file_and_field(tmp_path):
+    from sim_backend.drive import MotorConfigError
+    text = open(CONFIG, encoding="utf-8").read().replace("flux_est_kp = 5000.0", "")
+    bad = tmp_path / "nogain.toml"
+    bad.write_text(text)
+    with pytest.raises(MotorConfigError, match=r"nogain\.toml: \[firmware\] flux_est_kp: missing"):
+        run_design_check(bad)
