@@ -33,19 +33,25 @@ FAULT_OVERCURRENT = 0x2310
 (F_TS, F_NP, F_K, F_RD1, F_RQ1, F_LSD, F_SIGMA_D, F_TAU_R, F_LQ1, F_J,
  F_KP_I, F_KI_I, F_FLUX_REF, F_KP_F, F_KI_F, F_KP_W, F_KI_W, F_KP_V, F_KI_V,
  F_T_MAX, F_I_MAX, F_RAMP, F_W_SPEED_LPF, F_W_FF_LPF, F_PHI_MIN, F_I_TRIP, F_M_MAX,
- F_DT_COMP_V, F_DT_COMP_BAND, F_T_MAG, F_COMMON_FIXED, F_DL, F_G_CM) = range(33)
-N_FW_PARAMS = 33
+ F_DT_COMP_V, F_DT_COMP_BAND, F_T_MAG, F_COMMON_FIXED, F_DL, F_G_CM, F_T_DEMAG) = range(34)
+N_FW_PARAMS = 34
 
 # ---- firmware state vector ----------------------------------------------------------------------------
 (S_ENABLED, S_FAULT, S_T_ON, S_THETA, S_PHI, S_WS, S_WS_FF, S_SLIP, S_SLIP_INT, S_IQ_MODEL,
  S_SPEED_EST, S_SPEED_INT, S_FLUX_INT, S_ID_INT, S_IQ_INT, S_U1A_P1, S_U1B_P1, S_U1A_P2, S_U1B_P2,
  S_I1A_PREV, S_I1B_PREV, S_SPEED_TARGET, S_SPEED_REF, S_FREEZE_SLIP, S_FREEZE_FLUX, S_RUNNING,
- S_ID_REF, S_LAM_D, S_LAM_Q, S_CM_D, S_CM_Q) = range(31)
-N_FW_STATE = 31
+ S_ID_REF, S_LAM_D, S_LAM_Q, S_CM_D, S_CM_Q, S_T_OFF) = range(32)
+N_FW_STATE = 32
 
 # telemetry columns the firmware writes (indices into drivers.signals.SIGNAL_NAMES)
 C_SPEED_REF, C_SPEED_EST, C_SPEED_TRUE, C_POS_EST, C_POS_ERR, C_FLUX_EST, C_FLUX_TRUE, C_ISX, C_ISY, \
     C_ISX_REF, C_ISY_REF, C_USX, C_USY, C_TORQUE_EST, C_TORQUE_LOAD, C_VDC = range(16)
+
+
+def new_state() -> np.ndarray:
+    s = np.zeros(N_FW_STATE)
+    s[S_T_OFF] = 1e9  # power-up: the machine has been de-energised for long
+    return s
 
 
 @njit(cache=True)
@@ -63,16 +69,22 @@ def firmware_step(s, f, isd_m, isq_m, vdc_m, row):
     """One control period. Returns (gates_on, d_a, d_b, d_c) to apply during the next period."""
     ts = f[F_TS]
     row[C_VDC] = vdc_m
-    if s[S_ENABLED] == 0.0 or s[S_FAULT] != 0.0:
-        s[S_RUNNING] = 0.0
-        row[C_SPEED_REF] = 0.0
-        return False, 0.5, 0.5, 0.5
     if s[S_RUNNING] == 0.0:
+        # gates stay blocked while disabled or faulted, and after that for the de-magnetising time: the
+        # estimators start from zero flux, so the rotor's residual flux must have decayed first
+        if s[S_ENABLED] == 0.0 or s[S_FAULT] != 0.0 or s[S_T_OFF] < f[F_T_DEMAG]:
+            s[S_T_OFF] += ts
+            return False, 0.5, 0.5, 0.5
         reset_controllers(s)
         s[S_RUNNING] = 1.0
+    elif s[S_ENABLED] == 0.0 or s[S_FAULT] != 0.0:
+        s[S_RUNNING] = 0.0
+        s[S_T_OFF] = ts
+        return False, 0.5, 0.5, 0.5
     if abs(isd_m) > f[F_I_TRIP] or abs(isq_m) > f[F_I_TRIP]:
         s[S_FAULT] = FAULT_OVERCURRENT
         s[S_RUNNING] = 0.0
+        s[S_T_OFF] = ts
         return False, 0.5, 0.5, 0.5
     running_time = s[S_T_ON]
     s[S_T_ON] += ts
@@ -97,9 +109,7 @@ def firmware_step(s, f, isd_m, isq_m, vdc_m, row):
     # ~g_cm rad/s the current model takes over from the voltage model
     g = f[F_G_CM]
     eq += g * s[S_CM_Q]
-    if not magnetised:
-        s[S_PHI] = s[S_CM_D]  # at standstill only the current model knows the flux
-    elif s[S_FREEZE_FLUX] == 0.0:
+    if s[S_FREEZE_FLUX] == 0.0:
         s[S_PHI] = max(s[S_PHI] + ts * (ed + g * (s[S_CM_D] - s[S_PHI])), 0.0)
     phi = s[S_PHI]
     ws = eq / max(phi, f[F_PHI_MIN])
@@ -143,6 +153,9 @@ def firmware_step(s, f, isd_m, isq_m, vdc_m, row):
     # 3. speed ramp, IP speed controller, current references
     accel = 0.0
     if magnetised:
+        if running_time < f[F_T_MAG] + ts:  # first speed-loop step: start bumpless from the estimate
+            s[S_SPEED_REF] = speed_est
+            s[S_SPEED_INT] = f[F_KP_V] * speed_est
         step = f[F_RAMP] * ts
         dref = s[S_SPEED_TARGET] - s[S_SPEED_REF]
         if dref > step:
@@ -292,6 +305,7 @@ def firmware_params(model: dict, fw: dict) -> np.ndarray:
     f[F_T_MAG] = fw["magnetising_time_s"]
     f[F_DL] = k * k * lsq - lsd
     f[F_G_CM] = fw["flux_current_model_gain_rad_s"]
+    f[F_T_DEMAG] = fw["demagnetising_time_s"]
     f[F_COMMON_FIXED] = 1.0 if fw["common_leg"] == "fixed" else 0.0
     return f
 

@@ -25,11 +25,11 @@ _FIRMWARE_NUMBERS = (
     "flux_kp_a_per_wb", "flux_ki_a_per_wbs", "slip_kp", "slip_ki", "speed_kp_nm_s_rad", "speed_ki_nm_rad",
     "torque_max_nm", "current_max_a", "overcurrent_trip_a", "speed_ramp_rad_s2", "speed_filter_rad_s",
     "emf_feedforward_filter_rad_s", "flux_min_wb", "modulation_max", "dead_time_comp_v",
-    "dead_time_comp_band_a", "magnetising_time_s", "flux_current_model_gain_rad_s") + FIRMWARE_PARAMS["spim"]
+    "dead_time_comp_band_a", "magnetising_time_s", "flux_current_model_gain_rad_s", "demagnetising_time_s") + FIRMWARE_PARAMS["spim"]
 _MAY_BE_ZERO = {"dead_time_s", "device_drop_v", "current_noise_a", "current_lsb_a", "vdc_noise_v", "vdc_lsb_v",
                 "dead_time_comp_v", "emf_feedforward_filter_rad_s", "flux_kp_a_per_wb", "flux_ki_a_per_wbs",
                 "slip_kp", "speed_kp_nm_s_rad", "magnetising_time_s", "viscous_nm_s_rad",
-                "flux_current_model_gain_rad_s"}
+                "flux_current_model_gain_rad_s", "demagnetising_time_s"}
 
 
 class ConfigError(ValueError):
@@ -79,7 +79,7 @@ class SpimDrive:
         self._x = np.zeros(pl.N_PLANT_STATE)
         self._ip = inv.inverter_params(inv_cfg, meas)
         self._fp = fw.firmware_params(self._fw_model, self._fw_cfg)
-        self._fs = np.zeros(fw.N_FW_STATE)
+        self._fs = fw.new_state()
         self._ks = np.array([0.0, 0.5, 0.5, 0.5])
         self._rng = np.random.default_rng(seed)
         self._noise = bool(noise)
