@@ -80,7 +80,8 @@ def wrap_angle(a: np.ndarray) -> np.ndarray:
 class _Window:
     """The samples of one criterion's time window, with coverage and NaN checks on access."""
 
-    def __init__(self, t_s: np.ndarray, columns: dict[str, np.ndarray], window_s: tuple[float, float]):
+    def __init__(self, t_s: np.ndarray, columns: dict[str, np.ndarray], window_s: tuple[float, float],
+                 smooth_s: float | None = None):
         a, b = window_s
         t = np.asarray(t_s, dtype=np.float64)
         if t.size == 0:
@@ -97,6 +98,9 @@ class _Window:
             raise _Unusable(f"no samples in window [{a:g}, {b:g}] s")
         self.columns = columns
         self.window_s = window_s
+        idx = np.flatnonzero(self.mask)
+        self.first, self.last = int(idx[0]), int(idx[-1])
+        self.smooth_n = max(1, int(round(smooth_s / dt))) if smooth_s and dt > 0 else 1
 
     def signal(self, name: str) -> np.ndarray:
         if name not in self.columns:
@@ -107,10 +111,31 @@ class _Window:
             raise _Unusable(f"signal {name} is NaN throughout the window (not measured on this bench?)")
         if nans:
             raise _Unusable(f"signal {name} has {nans} NaN/inf samples in the window")
+        if self.smooth_n > 1:
+            x = self._smoothed(name, x.size)
         return x
+
+    def _smoothed(self, name: str, n: int) -> np.ndarray:
+        """Trailing moving average over smooth_n samples, using history before the window when it is finite."""
+        full = np.asarray(self.columns[name], dtype=np.float64)
+        start = max(0, self.first - (self.smooth_n - 1))
+        seg = full[start:self.last + 1]
+        bad = np.flatnonzero(~np.isfinite(seg[: self.first - start]))
+        if bad.size:
+            seg = seg[bad[-1] + 1:]
+        if is_angle(name):
+            return np.arctan2(_moving_mean(np.sin(seg), self.smooth_n), _moving_mean(np.cos(seg), self.smooth_n))[-n:]
+        return _moving_mean(seg, self.smooth_n)[-n:]
 
     def after(self, spec: CriterionSpec) -> float:
         return float(spec.params.get("after_s", self.window_s[0]))
+
+
+def _moving_mean(x: np.ndarray, k: int) -> np.ndarray:
+    c = np.concatenate(([0.0], np.cumsum(x)))
+    hi = np.arange(1, x.size + 1)
+    lo = np.maximum(0, hi - k)
+    return (c[hi] - c[lo]) / (hi - lo)
 
 
 # --- helpers -------------------------------------------------------------------------------------------
@@ -351,12 +376,20 @@ KINDS: dict[str, Kind] = {
 }
 
 
+_SMOOTH = Param("number", help="trailing moving average over this many seconds applied to every signal first")
+for _kind in KINDS.values():
+    _kind.params["smooth_s"] = _SMOOTH
+
+
 def evaluate(specs, t_s: np.ndarray, columns: dict[str, np.ndarray]) -> list[CriterionResult]:
     results = []
     for spec in specs:
         try:
             with np.errstate(all="ignore"):   # overflow to inf fails the criterion like any large value
-                value, detail = KINDS[spec.kind].compute(_Window(t_s, columns, spec.window_s), spec)
+                window = _Window(t_s, columns, spec.window_s, spec.params.get("smooth_s"))
+                value, detail = KINDS[spec.kind].compute(window, spec)
+                if window.smooth_n > 1:
+                    detail += f" (moving average over {spec.params['smooth_s']:g} s)"
             passed = bool(value <= spec.limit)
         except _Unusable as e:
             value, detail, passed = math.nan, str(e), False

@@ -481,7 +481,7 @@ def _criterion_params(p: Problems, item: dict, where: str, kind_name: str,
             v = p.boolean(given, key, where)
         else:
             v = p.number(given, key, where)
-            if v is not None and (key.startswith(("band_", "base_")) and v <= 0):
+            if v is not None and (key.startswith(("band_", "base_", "smooth_")) and v <= 0):
                 p.add(f"{where}.{key}", f"must be > 0, got {v:g}")
                 v = None
         if v is None:

@@ -217,3 +217,28 @@ def test_evaluate_never_raises(kind, n, data, a, b):
     assert isinstance(r.passed, bool) and isinstance(r.detail, str)
     if r.passed:
         assert r.value <= 1.0
+
+
+def test_smoothing_filters_noise_before_the_criterion():
+    rng = np.random.default_rng(1)
+    true = np.full_like(T, 0.25)
+    est = true * (1 + 0.05 * rng.standard_normal(T.size))     # 5 % white noise, zero mean
+    cols = {"flux_est_wb": est, "flux_true_wb": true}
+    raw = run("flux_error_max_pct", "flux_est_wb", cols, 2.0, window=(1.0, 2.0))
+    assert not raw.passed and raw.value > 10
+    smooth = run("flux_error_max_pct", "flux_est_wb", cols, 2.0, window=(1.0, 2.0), smooth_s=0.1)
+    # 100 samples averaged: sigma 0.5 %, max over 1000 samples about 3.3 sigma
+    assert smooth.passed and smooth.value < 2.0 and "moving average over 0.1 s" in smooth.detail
+    biased = {"flux_est_wb": est * 1.03, "flux_true_wb": true}
+    assert not run("flux_error_max_pct", "flux_est_wb", biased, 2.0, window=(1.0, 2.0), smooth_s=0.1).passed
+
+
+def test_smoothing_angles_on_the_circle():
+    rng = np.random.default_rng(2)
+    err = wrap_angle(np.pi + 0.3 * rng.standard_normal(T.size))   # noise around the wrap point
+    r = run("mean", "pos_err_elec_rad", {"pos_err_elec_rad": err}, 0.05, window=(1.0, 2.0), expected=math.pi,
+            smooth_s=0.05)
+    assert r.passed, r.detail
+    r = run("pos_error_max", "pos_err_elec_rad", {"pos_err_elec_rad": wrap_angle(err - np.pi)}, 0.2,
+            window=(1.0, 2.0), smooth_s=0.05)
+    assert r.passed and r.value < 0.2, r.detail
