@@ -43,6 +43,17 @@ def _out_console(as_json: bool) -> Console:
     return err_console if as_json else make_console()
 
 
+def _bad_input_types() -> tuple[type[BaseException], ...]:
+    types: tuple[type[BaseException], ...] = (InputError, FileNotFoundError, tomllib.TOMLDecodeError, LinkError)
+    try:
+        from sim_backend.drive import MotorConfigError  # its message is already "file: field: reason"
+
+        types += (MotorConfigError,)
+    except ImportError:
+        pass
+    return types
+
+
 def _problem_lines(exc: BaseException) -> list[str]:
     if isinstance(exc, InputError):
         return exc.problems or [str(exc)]
@@ -52,13 +63,16 @@ def _problem_lines(exc: BaseException) -> list[str]:
         return [f"not valid TOML: {exc}"]
     if isinstance(exc, LinkError):
         return [f"cannot connect: {exc}"]
+    if isinstance(exc, _bad_input_types()):
+        return [str(exc)]
     return [f"{type(exc).__name__}: {exc}"]
 
 
 def _fail(exc: BaseException) -> int:
+    """One line per problem on stderr; a bug (not bad input) also gets a hint how to see its traceback."""
     for line in _problem_lines(exc):
         click.echo(line, err=True)
-    if not isinstance(exc, (InputError, FileNotFoundError, tomllib.TOMLDecodeError, LinkError)):
+    if not isinstance(exc, _bad_input_types()):
         if os.environ.get("DRIVEBENCH_DEBUG"):
             traceback.print_exc()
         else:
@@ -69,7 +83,7 @@ def _fail(exc: BaseException) -> int:
 def _guarded(fn: Callable[[], int]) -> int:
     try:
         return fn()
-    except (InputError, FileNotFoundError, tomllib.TOMLDecodeError, LinkError, OSError) as exc:
+    except Exception as exc:
         return _fail(exc)
 
 

@@ -246,8 +246,11 @@ class _Run:
         try:
             return self._finish(abort_reason, error, interrupted, stop_errors)
         finally:
-            self.supervisor.stop()
-            self.rerun.close()
+            for cleanup in (self.supervisor.stop, self.rerun.close):
+                try:
+                    cleanup()
+                except Exception:
+                    pass  # the record is written; a failing viewer or thread must not lose the result
             _close_quietly(self.drive, self.load)
 
     def _configure_and_enable(self) -> None:

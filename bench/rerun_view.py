@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import math
 import os
+import socket
 import sys
 import time
+import urllib.parse
 from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
@@ -19,6 +21,7 @@ import numpy as np
 RERUN_MODES = ("spawn", "connect", "save", "off")
 APPLICATION_ID = "drivebench"
 MAX_BATCH_ROWS = 20_000
+CLOSE_TIMEOUT_S = 10.0
 FLUX_VECTOR_PERIOD_S = 0.01  # arrows are decimated to 100 Hz of drive time: a phasor view needs no more
 
 PLOTS: tuple[tuple[str, tuple[str, ...]], ...] = (
@@ -29,6 +32,21 @@ PLOTS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("voltages", ("u_sx_v", "u_sy_v")),
     ("torque", ("torque_load_nm", "torque_est_nm")),
 )
+
+
+DEFAULT_VIEWER_URL = "rerun+http://127.0.0.1:9876/proxy"
+
+
+def viewer_reachable(url: str, timeout_s: float = 1.0) -> bool:
+    """Does something accept TCP connections at the URL's host:port? (the gRPC sink would retry silently)"""
+    parsed = urllib.parse.urlsplit(url)
+    host = parsed.hostname or "127.0.0.1"
+    port = parsed.port or (443 if parsed.scheme.endswith("https") else 9876)
+    try:
+        with socket.create_connection((host, port), timeout=timeout_s):
+            return True
+    except OSError:
+        return False
 
 
 def display_available() -> bool:
@@ -72,6 +90,7 @@ class RerunStream:
         self.min_wall_interval_s = min_wall_interval_s
         self.rrd_path = rrd_path
         self._rec = None
+        self._warn = warn
         self._times: list[float] = []
         self._rows: list[Mapping[str, float]] = []
         self._last_send = time.monotonic()
@@ -100,8 +119,12 @@ class RerunStream:
                 except Exception as exc:  # the viewer binary or its window may be missing
                     warn(f"rerun: could not spawn the viewer ({exc}); saving run.rrd only")
         elif mode == "connect":
-            sinks.append(rr.GrpcSink(url) if url else rr.GrpcSink())
-            self.sinks.append("viewer")
+            url = url or DEFAULT_VIEWER_URL
+            if viewer_reachable(url):
+                sinks.append(rr.GrpcSink(url))
+                self.sinks.append("viewer")
+            else:
+                warn(f"rerun: no viewer answers at {url}; saving run.rrd only")
         if not sinks:
             self._rec = None
             return
@@ -154,11 +177,15 @@ class RerunStream:
         self._send(t, columns)
 
     def _send(self, t: np.ndarray, columns: Mapping[str, np.ndarray]) -> None:
-        rr = self._rr
-        index = [rr.TimeColumn("t_s", duration=t)]
-        for name, values in columns.items():
-            self._rec.send_columns(name, indexes=index, columns=rr.Scalars.columns(scalars=values))
-        self._send_flux_vectors(t, columns)
+        try:
+            rr = self._rr
+            index = [rr.TimeColumn("t_s", duration=t)]
+            for name, values in columns.items():
+                self._rec.send_columns(name, indexes=index, columns=rr.Scalars.columns(scalars=values))
+            self._send_flux_vectors(t, columns)
+        except Exception as exc:  # the view must never break a run: stop logging, keep the run going
+            self._warn(f"rerun: logging stopped ({type(exc).__name__}: {exc}); run.rrd may be incomplete")
+            self._drop()
 
     def _send_flux_vectors(self, t: np.ndarray, columns: Mapping[str, np.ndarray]) -> None:
         needed = ("flux_est_wb", "flux_true_wb", "pos_est_elec_rad", "pos_err_elec_rad")
@@ -190,10 +217,20 @@ class RerunStream:
             return
         try:
             self.flush()
-            self._rec.flush()
+            if self._rec is not None:
+                self._rec.flush(timeout_sec=CLOSE_TIMEOUT_S)
+        except Exception as exc:
+            self._warn(f"rerun: could not deliver everything ({type(exc).__name__}: {exc})")
         finally:
-            self._rec.disconnect()  # writes the .rrd footer
-            self._rec = None
+            self._drop()
+
+    def _drop(self) -> None:
+        rec, self._rec = self._rec, None
+        if rec is not None:
+            try:
+                rec.disconnect()  # writes the .rrd footer
+            except Exception as exc:
+                self._warn(f"rerun: closing the stream failed ({type(exc).__name__}: {exc})")
 
 
 def rrd_entity_paths(path: Path) -> set[str]:

@@ -174,3 +174,53 @@ def test_list_shows_scenarios():
 def test_usage_error_exit_2():
     proc = drivebench("run", "--rerun", "bogus", "x.toml")
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
+
+
+SIGTERM_CHILD = """
+import sys
+import bench.orchestrator
+from bench.cli import main
+from tests.fakes import FakeRig
+
+rig = FakeRig()
+bench.orchestrator.make_links = lambda cfg, base: rig.links()
+code = main(sys.argv[1:])
+print("CALLS", ",".join(rig.names()), file=sys.stderr)
+sys.exit(code)
+"""
+
+
+def test_sigterm_ends_with_safe_stop_and_an_aborted_record(tmp_path):
+    import signal
+    import time
+
+    scenario = write_case(tmp_path, duration=60.0)
+    out = tmp_path / "runs"
+    child = subprocess.Popen(
+        [sys.executable, "-c", SIGTERM_CHILD, "run", str(scenario), "--out", str(out), "--rerun", "off", "--json"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not list(out.glob("*/telemetry.arrows")):
+        time.sleep(0.05)   # the journal appears with the first telemetry block: the drive is running
+    child.send_signal(signal.SIGTERM)
+    stdout, stderr = child.communicate(timeout=60)
+    assert child.returncode == 1, stderr
+    assert "Traceback" not in stderr
+    record = json.loads(stdout)
+    assert record["verdict"] == "aborted" and "SIGTERM" in record["abort_reason"]
+    calls = stderr.split("CALLS ", 1)[1].strip().split(",")
+    assert [c for c in calls if c in ("load.zero_and_disable", "drive.quick_stop", "drive.disable")] == [
+        "load.zero_and_disable", "drive.quick_stop", "drive.disable"]
+
+
+def test_connect_url_after_connect_and_unreachable_viewer_falls_back(tmp_path, fake_rig):
+    scenario = write_case(tmp_path)
+    result = invoke("run", "--rerun", "connect", "rerun+http://127.0.0.1:9/proxy", scenario, "--out", tmp_path / "runs")
+    assert result.exit_code == 0, result.stderr
+    assert "no viewer answers at rerun+http://127.0.0.1:9/proxy" in result.stderr
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    record = json.loads((run_dir / "record.json").read_text())
+    assert record["rerun"] == {"mode": "connect", "url": "rerun+http://127.0.0.1:9/proxy", "sinks": ["file"]}
+    assert (run_dir / "run.rrd").stat().st_size > 0

@@ -253,8 +253,12 @@ needs_inprocess = pytest.mark.skipif(_inprocess_missing() is not None, reason=st
 
 
 def sim_case(tmp_path: Path, overcurrent: float = 20.0) -> Path:
+    # the repo's bench with SDO timeouts for a loaded 2-core CI machine (0.5 s block uploads time out there)
+    bench = tmp_path / "sim-pmsm-patient.toml"
+    bench.write_text(INPROCESS.read_text().replace("sdo_timeout_s = 0.5", "sdo_timeout_s = 3.0")
+                     .replace("heartbeat_timeout_s = 0.5", "heartbeat_timeout_s = 3.0"))
     path = tmp_path / "sim-scenario.toml"
-    path.write_text(SIM_SCENARIO.format(bench=INPROCESS, overcurrent=overcurrent))
+    path.write_text(SIM_SCENARIO.format(bench=bench, overcurrent=overcurrent))
     return path
 
 
