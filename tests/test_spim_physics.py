@@ -66,7 +66,7 @@ def test_power_balance_on_the_asymmetric_plant():
     e_in = np.sum(vs[:, 0] * 0.5 * (i[1:, 0] + i[:-1, 0]) + vs[:, 1] * 0.5 * (i[1:, 1] + i[:-1, 1])) * dt
     e_out = integral(p_cu) + (w_mag[-1] - w_mag[0]) + integral(p_mech)
     assert wm[-1] > 10.0, "the machine should have started"
-    assert abs(e_in - e_out) / e_in < 2e-3
+    assert abs(e_in - e_out) / e_in < 2e-4   # measured 1.4e-5
     # and the mechanical side: integral of T_e w = kinetic energy + friction losses
     e_kin = 0.5 * p[pl.P_J] * wm[-1] ** 2
     e_fric = integral(p[pl.P_FRICTION] * wm ** 2)
