@@ -61,8 +61,9 @@ def load_serve_config(config_path: str | Path) -> dict:
     if not isinstance(serve, dict):
         raise ServeError(f"{path}: simulator.serve: missing table of endpoints")
     drive = cfg.get("drive", {})
+    toy = sim["motor"] == "toy"        # sim_backend.toy.ToyDrive: protocol tests without physics
     out = {
-        "motor": _resolve(path, sim["motor"]),
+        "motor": "toy" if toy else _resolve(path, sim["motor"]),
         "seed": int(sim.get("seed", 0)),
         "eds": _resolve(path, drive.get("eds", "config/od/drivebench-pmsm.eds")),
         "node_id": int(drive.get("node_id", 1)),
@@ -70,7 +71,7 @@ def load_serve_config(config_path: str | Path) -> dict:
         "serial": _endpoint(path, serve, "serial_tcp"),
         "modbus": _endpoint(path, serve, "modbus_tcp"),
     }
-    if not out["motor"].exists():
+    if not toy and not out["motor"].exists():
         raise ServeError(f"{path}: simulator.motor: file not found: {sim['motor']!r}")
     if not out["eds"].exists():
         raise ServeError(f"{path}: drive.eds: file not found: {drive.get('eds')!r}")
@@ -78,10 +79,13 @@ def load_serve_config(config_path: str | Path) -> dict:
 
 
 def serve(cfg: dict, stop: threading.Event, out=sys.stdout) -> None:
-    from sim_backend.drive import make_drive
-
-    make_drive(cfg["motor"], cfg["seed"]).step(1)     # compile the kernels before the first SYNC
-    device = SimulatedDevice(make_drive(cfg["motor"], cfg["seed"]))
+    if cfg["motor"] == "toy":
+        from sim_backend.toy import ToyDrive
+        device = SimulatedDevice(ToyDrive())
+    else:
+        from sim_backend.drive import make_drive
+        make_drive(cfg["motor"], cfg["seed"]).step(1)     # compile the kernels before the first SYNC
+        device = SimulatedDevice(make_drive(cfg["motor"], cfg["seed"]))
     stoppers = []
     try:
         if cfg["socketcand"]:
