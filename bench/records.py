@@ -137,7 +137,8 @@ class RunRecorder:
             "telemetry": {"rows": 0, "t_first_s": None, "t_last_s": None},
         }
         self._lock = threading.Lock()
-        self._pending: list[dict[str, np.ndarray]] = []
+        self._pending: dict[str, list[np.ndarray | None]] = {}   # per column, one entry per appended block
+        self._pending_sizes: list[int] = []
         self._schema: pa.Schema | None = None
         self._journal_file = None
         self._writer: pa.ipc.RecordBatchStreamWriter | None = None
@@ -168,7 +169,7 @@ class RunRecorder:
         """Rows: "t_s" + signal columns, equal lengths. Signals not given are NaN in the record."""
         if TIME_COLUMN not in columns:
             raise ValueError(f"append(): the {TIME_COLUMN!r} column is missing")
-        block = {k: np.array(v, dtype=np.float64, copy=True).reshape(-1) for k, v in columns.items()}
+        block = {k: np.array(v, dtype=np.float64).reshape(-1) for k, v in columns.items()}   # a copy
         n = block[TIME_COLUMN].size
         bad = [k for k, v in block.items() if v.size != n]
         if bad:
@@ -182,11 +183,13 @@ class RunRecorder:
                 extras = sorted(k for k in block if k != TIME_COLUMN and k not in SIGNAL_NAMES)
                 names = [TIME_COLUMN, *SIGNAL_NAMES, *extras]
                 self._schema = pa.schema([pa.field(k, pa.float64()) for k in names])
-            else:
-                unknown = [k for k in block if self._schema.get_field_index(k) < 0]
-                if unknown:
-                    raise ValueError(f"append(): columns {unknown} were not in the first block")
-            self._pending.append(block)
+                self._pending = {k: [] for k in names}
+            elif any(k not in self._pending for k in block):
+                unknown = [k for k in block if k not in self._pending]
+                raise ValueError(f"append(): columns {unknown} were not in the first block")
+            for name, parts in self._pending.items():
+                parts.append(block.get(name))
+            self._pending_sizes.append(n)
             due = time.monotonic() - self._last_flush >= self.flush_interval_s
         if due:
             self.flush()
@@ -241,23 +244,19 @@ class RunRecorder:
     def _flush_loop(self) -> None:
         while not self._stop.wait(self.flush_interval_s / 2):
             with self._lock:
-                if self._pending and time.monotonic() - self._last_flush >= self.flush_interval_s / 2:
+                if self._pending_sizes and time.monotonic() - self._last_flush >= self.flush_interval_s / 2:
                     self._flush_locked()
 
     def _flush_locked(self) -> None:
         self._last_flush = time.monotonic()
-        if not self._pending:
+        if not self._pending_sizes:
             return
-        n = sum(b[TIME_COLUMN].size for b in self._pending)
+        n = sum(self._pending_sizes)
         arrays = []
-        for f in self._schema:
-            parts = [b.get(f.name) for b in self._pending]
-            if all(p is not None for p in parts):
-                col = np.concatenate(parts)
-            else:
-                col = np.concatenate([p if p is not None else np.full(b[TIME_COLUMN].size, np.nan)
-                                      for p, b in zip(parts, self._pending)])
-            arrays.append(pa.array(col, type=pa.float64()))
+        for parts in self._pending.values():
+            if any(p is None for p in parts):
+                parts = [np.full(size, np.nan) if p is None else p for p, size in zip(parts, self._pending_sizes)]
+            arrays.append(pa.array(np.concatenate(parts) if len(parts) > 1 else parts[0], type=pa.float64()))
         batch = pa.RecordBatch.from_arrays(arrays, schema=self._schema)
         if self._writer is None:
             self._journal_file = open(self.run_dir / JOURNAL, "wb")
@@ -271,7 +270,9 @@ class RunRecorder:
         tel["t_last_s"] = float(t[n - 1].as_py())
         self._rows += n
         tel["rows"] = self._rows
-        self._pending.clear()
+        for parts in self._pending.values():
+            parts.clear()
+        self._pending_sizes.clear()
 
     def _write_parquet(self) -> None:
         journal = self.run_dir / JOURNAL

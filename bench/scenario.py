@@ -168,17 +168,6 @@ def load_scenario(path: str | Path, bench: str | Path | None = None) -> Scenario
                     criteria=criteria, drive_kind=kind)
 
 
-def check_against_bench(scenario: Scenario, bench_cfg: dict) -> list[str]:
-    """Problems running `scenario` on another bench than its own (plant injections, hook names)."""
-    p = Problems(scenario.path)
-    kind = drive_kind(bench_cfg)
-    allowed = set(writable_names(kind)) if kind else _all_names()
-    for i, inj in enumerate(scenario.injections):
-        _check_injection_name(p, f"injection[{i}].name", inj.name, kind, allowed, bench_cfg,
-                              Path(bench_cfg.get("_path", "?")))
-    return p.lines
-
-
 # --- sections ------------------------------------------------------------------------------------------
 
 def _bench(p: Problems, raw: dict, path: Path, override: str | Path | None) -> tuple[Path | None, dict | None]:

@@ -137,7 +137,7 @@ def test_memory_is_bounded_by_the_flush_interval(tmp_path):
     rec = RunRecorder(tmp_path, SCENARIO, 1, BENCH, flush_interval_s=0.0)
     for k in range(20):
         rec.append(block(k))
-        assert rec._pending == []          # every block went to the journal
+        assert rec._pending_sizes == [] and not any(rec._pending.values())   # every block went to the journal
     rec.finish("pass", [], None)
 
 
