@@ -305,8 +305,10 @@ class _Run:
                 self.supervisor.feed(samples)
                 if self.data_source == "pdo":
                     self.live_buffer.extend(samples)
-            elif time.monotonic() - last_sample_wall > STALL_TIMEOUT_S:
-                raise LinkError(f"no telemetry from the drive for {STALL_TIMEOUT_S:g} s (after t={t_drive:.3f} s)")
+            else:
+                if time.monotonic() - last_sample_wall > STALL_TIMEOUT_S:
+                    raise LinkError(f"no telemetry from the drive for {STALL_TIMEOUT_S:g} s (after t={t_drive:.3f} s)")
+                time.sleep(self.sync_period_s)  # real-time links: nothing arrived yet; do not spin
 
             if t_drive >= next_status:
                 self.supervisor.feed_status(t_drive, self.drive.status())
