@@ -15,10 +15,6 @@ import threading
 import tomllib
 from pathlib import Path
 
-from sim_backend.canopen_node import start_node
-from sim_backend.device import SimulatedDevice
-from sim_backend.inprocess import private_channel
-from sim_backend.socketcand_server import SocketcandServer
 
 
 class ServeError(Exception):
@@ -79,6 +75,11 @@ def load_serve_config(config_path: str | Path) -> dict:
 
 
 def serve(cfg: dict, stop: threading.Event, out=sys.stdout) -> None:
+    from sim_backend.canopen_node import start_node
+    from sim_backend.device import SimulatedDevice
+    from sim_backend.inprocess import private_channel
+    from sim_backend.socketcand_server import SocketcandServer
+
     if cfg["motor"] == "toy":
         from sim_backend.toy import ToyDrive
         device = SimulatedDevice(ToyDrive())

@@ -1,0 +1,100 @@
+"""`drivebench sim serve`: the out-of-process simulator's endpoints, and a clean exit on SIGINT/SIGTERM."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+from drivers.canopen_link import CanopenDriveLink
+from tests.canopen_helpers import EDS, REPO
+
+CONFIG = """
+[simulator]
+motor = "toy"
+[simulator.serve]
+canopen_socketcand = "127.0.0.1:0"
+serial_tcp = "127.0.0.1:0"
+modbus_tcp = "127.0.0.1:0"
+[drive]
+node_id = 3
+eds = "{eds}"
+"""
+
+
+def _serve(config: Path) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "sim_backend.serve", "--config", str(config)], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+
+def _endpoints(proc: subprocess.Popen, timeout: float = 60.0) -> list[str]:
+    lines: list[str] = []
+
+    def read():
+        for line in proc.stdout:
+            lines.append(line.strip())
+            if line.startswith("ready"):
+                return
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    reader.join(timeout)
+    assert lines and lines[-1].startswith("ready"), f"no 'ready' line: {lines} {proc.poll()}"
+    return lines
+
+
+@pytest.mark.parametrize("stop_signal", [signal.SIGINT, signal.SIGTERM])
+def test_serve_prints_its_endpoints_answers_on_them_and_exits_cleanly(tmp_path, stop_signal):
+    config = tmp_path / "bench.toml"
+    config.write_text(CONFIG.format(eds=EDS))
+    proc = _serve(config)
+    try:
+        lines = _endpoints(proc)
+        canopen_line = next(l for l in lines if l.startswith("canopen "))
+        m = re.fullmatch(r"canopen socketcand://127\.0\.0\.1:(\d+)/can0 node=3", canopen_line)
+        assert m, canopen_line
+        serial_port = int(re.fullmatch(r"serial socket://127\.0\.0\.1:(\d+)",
+                                       next(l for l in lines if l.startswith("serial "))).group(1))
+        modbus_port = int(re.fullmatch(r"modbus tcp://127\.0\.0\.1:(\d+) unit=1",
+                                       next(l for l in lines if l.startswith("modbus "))).group(1))
+        link = CanopenDriveLink(dict(transport="canopen", interface="socketcand",
+                                     channel=f"can0@127.0.0.1:{m.group(1)}", node_id=3, eds=str(EDS),
+                                     sync_period_s=0.01, sdo_timeout_s=2.0, heartbeat_timeout_s=2.0), REPO)
+        try:
+            identity = link.open()
+            assert identity.device_name == "drivebench simulated PMSM drive"
+            link.configure(["speed_est_mech_rad_s"], ["speed_est_mech_rad_s"], 10)
+            link.enable_velocity_mode()
+            link.set_speed_ref(5.0)
+            samples = [s for _ in range(5) for s in link.sync()]
+            assert [round(s.t_s, 6) for s in samples] == [0.01, 0.02, 0.03, 0.04, 0.05]
+            assert len(link.fetch_trace()["t_s"]) == 50
+            link.disable()
+        finally:
+            link.close()
+        for port in (serial_port, modbus_port):
+            socket.create_connection(("127.0.0.1", port), timeout=5).close()
+        proc.send_signal(stop_signal)
+        assert proc.wait(timeout=20) == 0, proc.stderr.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_serve_bad_config_is_one_line_and_exit_2(tmp_path):
+    config = tmp_path / "bench.toml"
+    config.write_text("[simulator]\nmotor = 'toy'\n[simulator.serve]\ncanopen_socketcand = 'localhost'\n")
+    proc = _serve(config)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2
+    assert err.strip().splitlines() == [
+        f"error: {config}: simulator.serve.canopen_socketcand: expected 'host:port', got 'localhost'"]
