@@ -259,13 +259,14 @@ class _Run:
         self.recorder.note("data_source", self.data_source)
         self.recorder.note("live_signals", list(LIVE_SIGNALS))
         self.recorder.note("trace_decimation", decimation)
+        # the drive holds the shaft before the load machine may pull on it (an active load drops a crane's mass)
+        self._speed_ref = self.scenario.speed_ref_at(0.0)
+        self.drive.set_speed_ref(self._speed_ref)
+        self.drive.enable_velocity_mode()
         mode, value = self.scenario.load_at(0.0)
         self.load.set_load(mode, value)
         self.load.enable(True)
         self._load_setting = (mode, value)
-        self.drive.set_speed_ref(self.scenario.speed_ref_at(0.0))
-        self._speed_ref = self.scenario.speed_ref_at(0.0)
-        self.drive.enable_velocity_mode()
 
     def _loop(self) -> str | None:
         duration = float(self.scenario.duration_s)
