@@ -353,9 +353,26 @@ def _injections(p: Problems, items: list[tuple[str, dict]], duration: float, kin
         if name is not None and not _check_injection_name(p, f"{where}.name", name, kind, allowed, bench_cfg,
                                                           bench_path):
             continue
+        if name is not None and value is not None:
+            reason = _injection_value_problem(name, value)
+            if reason:
+                p.add(f"{where}.value", reason)
+                continue
         if None not in (at, name, value):
             out.append(Injection(at, name, value))
     return tuple(sorted(out, key=lambda inj: inj.at_s))
+
+
+def _injection_value_problem(name: str, value: float) -> str | None:
+    if name.startswith("freeze_") and value not in (0.0, 1.0):
+        return f"{name} takes 1 (hold) or 0 (release), got {value:g}"
+    if name.startswith("plant_") and value <= 0:
+        return f"{name} is a factor on the nominal plant value and must be > 0, got {value:g} (0.8 means -20 %)"
+    if name.startswith("fw_") and value <= 0:
+        return f"{name} is an absolute parameter value in SI units and must be > 0, got {value:g}"
+    if name == "flux_est_scale" and value <= 0:
+        return f"flux_est_scale is a factor on the estimated flux and must be > 0, got {value:g}"
+    return None
 
 
 def _limits(p: Problems, raw: dict, duration: float | None, speed: tuple[SpeedSegment, ...]) -> Limits | None:

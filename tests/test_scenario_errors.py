@@ -65,6 +65,11 @@ CASES = [
      "not a parameter of a pmsm drive"),
     ("injection key", '[[injection]]\nat_s = 1.0\nname = "plant_rs"\nfactor = 1\n', "injection[0].factor",
      "unknown key"),
+    ("plant factor", '[[injection]]\nat_s = 1.0\nname = "plant_rs"\nvalue = -0.2\n', "injection[0].value",
+     "factor on the nominal plant value"),
+    ("freeze flag", '[[injection]]\nat_s = 1.0\nname = "freeze_speed_est"\nvalue = 2\n', "injection[0].value",
+     "1 (hold) or 0 (release)"),
+    ("fw value", '[[injection]]\nat_s = 1.0\nname = "fw_rs_ohm"\nvalue = 0\n', "injection[0].value", "must be > 0"),
     ("unknown signal", '[[criteria]]\nname = "a"\nkind = "peak_abs"\nsignal = "i_q"\nwindow_s = [1, 2]\nlimit = 1\n',
      "criteria[0].signal", "unknown signal 'i_q'"),
     ("window beyond", '[[criteria]]\nname = "a"\nkind = "peak_abs"\nsignal = "i_sx_a"\nwindow_s = [1, 20]\n'
