@@ -247,9 +247,12 @@ def firmware_step(s, f, isd_m, isq_m, vdc_m, row):
     comp = f[F_DT_COMP_V]
     if comp != 0.0:
         band = f[F_DT_COMP_BAND]
-        ua += comp * min(max(isd_m / band, -1.0), 1.0)
-        ub += comp * min(max(isq_m / band, -1.0), 1.0)
-        uc += comp * min(max(-(isd_m + isq_m) / band, -1.0), 1.0)
+        # signs from the reference currents at the middle of the next period (smooth, no ADC noise, no delay)
+        isd_next = c1 * id_ref - s1 * iq_ref
+        isq_next = k * (s1 * id_ref + c1 * iq_ref)
+        ua += comp * min(max(isd_next / band, -1.0), 1.0)
+        ub += comp * min(max(isq_next / band, -1.0), 1.0)
+        uc += comp * min(max(-(isd_next + isq_next) / band, -1.0), 1.0)
 
     # telemetry the firmware knows
     row[C_SPEED_REF] = s[S_SPEED_REF]
