@@ -297,6 +297,16 @@ def _scenario_root() -> Path:
     return here if here.is_dir() else find_repo_root() / "scenarios"
 
 
+def _first_comment(path: Path) -> str:
+    """A scenario without `description`: its leading comment line, if any."""
+    for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
+        if line.startswith("#"):
+            return line.lstrip("# ").strip()
+        if line.strip():
+            break
+    return ""
+
+
 @cli.command(name="list")
 def list_scenarios() -> None:
     """Scenarios under scenarios/ with their one-line descriptions."""
@@ -313,7 +323,7 @@ def list_scenarios() -> None:
     for f in files:
         try:
             description = load_scenario(f).description.strip().splitlines()
-            description = description[0] if description else ""
+            description = description[0] if description else _first_comment(f)
         except InputError as exc:
             description = f"[red]invalid[/red]: {exc.problems[0] if exc.problems else exc}"
         table.add_row(str(f), description)
