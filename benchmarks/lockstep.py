@@ -1,0 +1,233 @@
+"""CANopen stack speed: SDO block upload, lockstep real-time factor, real-time 1 kHz live telemetry.
+
+    python benchmarks/lockstep.py [--skip-realtime] [--duration 20]
+
+1. block upload: frames/s of the trace recorder's SDO block upload over python-can's virtual bus.
+2. lockstep (link): a 20 s profile (ramp, reversal, load, R_s injection) on the PMSM model through the
+   in-process CANopen stack — SYNC every 10 ms of drive time, 8 live REAL32 signals on TPDOs, the verdict's
+   signals (speed ref/true, flux est/true) recorded at 1 kHz by the drive and block-uploaded every 0.5 s.
+3. lockstep (orchestrator): the same kind of 20 s scenario through bench.orchestrator.run_scenario with the
+   sim-pmsm bench config at sync_period_s = 0.01 and trace_decimation = 10 (the orchestrator's own live and
+   trace signal choices, recording, criteria; Rerun off).
+4. realtime: 1 kHz SYNC on the wall clock for 20 s with the orchestrator's live signals; samples counted by
+   drive-clock continuity; bus load from the bits of every frame seen on the bus (worst-case stuffing).
+RESULT: lockstep_rtf is the orchestrator's end-to-end figure when the orchestrator exists (else the link's).
+The machine is shared (2 cores, other engineers' jobs): figures are pessimistic.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import sys
+import tempfile
+import time
+import tomllib
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from drivers.canopen_link import CanopenDriveLink, frame_bits  # noqa: E402
+from sim_backend.device import SimulatedDevice  # noqa: E402
+from sim_backend.drive import make_drive  # noqa: E402
+from sim_backend.inprocess import start_device  # noqa: E402
+from tests.canopen_helpers import Sniffer  # noqa: E402
+
+BENCH = REPO / "config/benches/sim-pmsm.toml"
+MOTOR = REPO / "config/motors/pmsm-paper.toml"
+EDS = REPO / "config/od/drivebench-pmsm.eds"
+DEFAULT_LIVE = ("speed_ref_mech_rad_s", "speed_est_mech_rad_s", "speed_true_mech_rad_s", "pos_err_elec_rad",
+                "i_sx_a", "i_sy_a", "vdc_v", "torque_load_nm")
+VERDICT_TRACE = ("speed_ref_mech_rad_s", "speed_true_mech_rad_s", "flux_est_wb", "flux_true_wb")
+
+
+def live_signals() -> tuple[str, ...]:
+    try:
+        from bench.orchestrator import LIVE_SIGNALS
+        return tuple(LIVE_SIGNALS)
+    except ImportError:
+        return DEFAULT_LIVE
+
+
+def profile(t: float) -> float:
+    """Speed reference (rad/s): ramp to 20, reverse at 8 s, back to 20 at 14 s."""
+    if t < 0.5:
+        return 40.0 * t
+    if t < 8.0:
+        return 20.0
+    if t < 14.0:
+        return -20.0
+    return 20.0
+
+
+def section(channel: str, **kw) -> dict:
+    base = dict(transport="canopen", interface="virtual", channel=channel, bitrate=1_000_000, node_id=1,
+                eds=str(EDS), sync_period_s=0.01, heartbeat_timeout_s=2.0, sdo_timeout_s=2.0)
+    base.update(kw)
+    return base
+
+
+@contextlib.contextmanager
+def pmsm_link(seed: int = 1, **kw):
+    make_drive(MOTOR, seed).step(1)                       # JIT compile outside the timed part
+    device = SimulatedDevice(make_drive(MOTOR, seed))
+    with start_device(device, EDS, load=False) as (overrides, node):
+        link = CanopenDriveLink(section(overrides["drive"]["channel"], **kw), REPO)
+        link.open()
+        try:
+            yield link, device, overrides["drive"]["channel"]
+        finally:
+            link.close()
+
+
+def lockstep_link(duration: float) -> dict:
+    with pmsm_link() as (link, device, _):
+        link.configure(live_signals(), VERDICT_TRACE, 10)
+        device.set_load(1, 0.05, True)                    # viscous load, as the load machine would set it
+        t0 = time.perf_counter()
+        link.enable_velocity_mode()
+        rows = samples = 0
+        t_drive, next_fetch, ref, injected = 0.0, 0.5, None, False
+        t_upload = 0.0
+        while t_drive < duration - 1e-9:
+            if not injected and t_drive >= 2.0:
+                link.write_parameter("plant_rs", 0.8)
+                injected = True
+            new_ref = profile(t_drive + link.sync_period_s)
+            if new_ref != ref:
+                link.set_speed_ref(new_ref)
+                ref = new_ref
+            got = link.sync()
+            samples += len(got)
+            t_drive = got[-1].t_s
+            if t_drive >= next_fetch:
+                u0 = time.perf_counter()
+                rows += len(link.fetch_trace()["t_s"])
+                t_upload += time.perf_counter() - u0
+                next_fetch += 0.5
+        u0 = time.perf_counter()
+        rows += len(link.fetch_trace()["t_s"])
+        t_upload += time.perf_counter() - u0
+        link.disable()
+        wall = time.perf_counter() - t0
+        row_bytes = 4 + 4 * len(VERDICT_TRACE)
+        frames = rows * row_bytes / 7
+        return {"rtf": duration / wall, "wall_s": wall, "rows": rows, "samples": samples,
+                "upload_s": t_upload, "upload_frames_per_s": frames / t_upload if t_upload else 0.0,
+                "row_bytes": row_bytes, "final_speed": device.latest[2]}
+
+
+def block_upload_rate() -> float:
+    with pmsm_link(sync_period_s=0.1) as (link, device, _):
+        link.configure(live_signals()[:2], ("speed_est_mech_rad_s", "i_sy_a", "flux_est_wb"), 1)
+        for _ in range(30):                               # 3 s of drive time, 30,000 rows of 16 bytes
+            link.sync()
+        t0 = time.perf_counter()
+        data = link._block_upload(0x2101)
+        dt = time.perf_counter() - t0
+        return len(data) / 7 / dt
+
+
+def lockstep_orchestrator(duration: float) -> dict | None:
+    try:
+        from bench.orchestrator import run_scenario
+    except ImportError:
+        return None
+    scenario_src = (REPO / "scenarios/examples/pmsm-rs-step.toml").read_text()
+    bench_src = BENCH.read_text()
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        bench = tmp / "bench.toml"
+        bench.write_text(bench_src.replace('"config/', f'"{REPO}/config/')
+                         .replace("sync_period_s = 0.001", "sync_period_s = 0.01")
+                         .replace("trace_decimation = 1 ", "trace_decimation = 10 "))
+        cfg = tomllib.loads(bench.read_text())
+        assert cfg["drive"]["sync_period_s"] == 0.01 and cfg["drive"]["trace_decimation"] == 10
+        scenario = tmp / "lockstep-20s.toml"
+        scenario.write_text(scenario_src.replace("duration_s = 5.0", f"duration_s = {duration}")
+                            .replace('bench = "config/benches/sim-pmsm.toml"', f'bench = "{bench}"'))
+        make_drive(MOTOR, 1).step(1)
+        t0 = time.perf_counter()
+        result = run_scenario(scenario, bench, out_root=tmp / "runs", seed=1, rerun_mode="off")
+        wall = time.perf_counter() - t0
+        return {"rtf": duration / wall, "wall_s": wall, "verdict": result.verdict, "error": result.error}
+
+
+def realtime(duration: float) -> dict:
+    with pmsm_link(timing="realtime", sync_period_s=0.001) as (link, device, channel):
+        sniffer = Sniffer(channel)
+        try:
+            link.configure(live_signals(), (), 1)
+            link.enable_velocity_mode()
+            link.set_speed_ref(20.0)
+            sniffer.frames()
+            samples = []
+            t0 = time.perf_counter()
+            while time.perf_counter() - t0 < duration:
+                samples += link.sync()
+                time.sleep(0.02)
+            link._stop_sync_producer()
+            wall = time.perf_counter() - t0
+            deadline = time.monotonic() + 5.0
+            while time.monotonic() < deadline:            # drain what is still in flight
+                more = link.sync()
+                samples += more
+                if not more:
+                    time.sleep(0.05)
+                    if not (more := link.sync()):
+                        break
+                    samples += more
+            frames = sniffer.frames()
+        finally:
+            sniffer.close()
+        bits = sum(frame_bits(len(m.data)) for m in frames)
+        syncs = sum(1 for m in frames if m.arbitration_id == 0x80)
+        steps = np.round(np.array([s.t_s for s in samples]) / device.model.control_period_s).astype(np.int64)
+        per_sync = round(0.001 / device.model.control_period_s)
+        gaps = np.diff(steps) // per_sync - 1
+        lost = int(gaps[gaps > 0].sum()) + max(0, syncs - len(samples))
+        first_frame, last_frame = frames[0].timestamp, frames[-1].timestamp
+        return {"samples": len(samples), "syncs": syncs, "lost": lost, "repeated": int((np.diff(steps) <= 0).sum()),
+                "rate_hz": len(samples) / wall, "bus_load_pct": 100.0 * bits / (1e6 * (last_frame - first_frame)),
+                "live_load_pct": link.live_bus_load_pct, "encoding": link.live_encoding}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--duration", type=float, default=20.0)
+    parser.add_argument("--skip-realtime", action="store_true")
+    args = parser.parse_args()
+
+    rate = block_upload_rate()
+    print(f"SDO block upload over the virtual bus: {rate:,.0f} frames/s ({rate * 7 / 1e3:,.0f} kB/s)")
+
+    link = lockstep_link(args.duration)
+    print(f"lockstep via link: {args.duration:g} s in {link['wall_s']:.2f} s -> {link['rtf']:.1f}x real time; "
+          f"{link['samples']} live samples, {link['rows']} trace rows of {link['row_bytes']} B "
+          f"({link['upload_s']:.2f} s uploading, {link['upload_frames_per_s']:,.0f} frames/s)")
+
+    orch = lockstep_orchestrator(args.duration)
+    if orch is not None:
+        print(f"lockstep via orchestrator (sync 10 ms, trace decimation 10): {args.duration:g} s in "
+              f"{orch['wall_s']:.2f} s -> {orch['rtf']:.1f}x real time; verdict {orch['verdict']}"
+              + (f" ({orch['error']})" if orch["error"] else ""))
+    rtf = orch["rtf"] if orch is not None else link["rtf"]
+
+    if args.skip_realtime:
+        live_lost, bus = "na", "na"
+    else:
+        rt = realtime(args.duration)
+        print(f"realtime 1 kHz: {rt['samples']} samples for {rt['syncs']} SYNCs ({rt['rate_hz']:.0f} Hz), "
+              f"lost {rt['lost']}, repeated {rt['repeated']}; live encoding {rt['encoding']}, "
+              f"planned load {rt['live_load_pct']:.1f} %, measured bus load {rt['bus_load_pct']:.1f} %")
+        live_lost, bus = rt["lost"], f"{rt['bus_load_pct']:.1f}"
+    print(f"RESULT lockstep_rtf={rtf:.1f} link_rtf={link['rtf']:.1f} block_upload_fps={rate:.0f} "
+          f"live_lost={live_lost} bus_load_pct={bus}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
