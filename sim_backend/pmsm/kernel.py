@@ -50,7 +50,7 @@ C_FLUX_TRUE = SIGNAL_INDEX["flux_true_wb"]
 C_TORQUE_LOAD = SIGNAL_INDEX["torque_load_nm"]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)  # the protocol servers' threads keep running while a block is stepped
 def run_steps(n: int, step0: int, x: np.ndarray, plant_p: np.ndarray, load_mode: int, load_value: float,
               inv_p: np.ndarray, inv_s: np.ndarray, fw_s: np.ndarray, fw_p: np.ndarray,
               noise: np.ndarray, use_noise: bool, out: np.ndarray) -> None:
