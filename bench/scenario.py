@@ -211,8 +211,11 @@ def _array_of_tables(p: Problems, raw: dict, key: str) -> list[tuple[str, dict]]
 def _time(p: Problems, table: dict, key: str, where: str, duration: float, *, required: bool = True,
           allow_end: bool = True) -> float | None:
     t = p.number(table, key, where, required=required, min_value=0.0)
-    if t is not None and (t > duration or (not allow_end and t >= duration)):
-        p.add(f"{where}.{key}", f"{t:g} s is not before the end of the run (duration_s = {duration:g})")
+    if t is not None and t > duration:
+        p.add(f"{where}.{key}", f"{t:g} s is after the end of the run (duration_s = {duration:g})")
+        return None
+    if t is not None and not allow_end and t == duration:
+        p.add(f"{where}.{key}", f"{t:g} s is the end of the run (duration_s): it would never take effect")
         return None
     return t
 

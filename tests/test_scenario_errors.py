@@ -45,7 +45,9 @@ CASES = [
     ("nan", '[[speed]]\nkind = "step"\nat_s = 1.0\nspeed_rpm = nan\n', "speed[0].speed_rpm", "finite"),
     ("inf", '[[speed]]\nkind = "step"\nat_s = 1.0\nspeed_mech_rad_s = inf\n', "speed[0].speed_mech_rad_s", "finite"),
     ("negative time", '[[speed]]\nkind = "step"\nat_s = -1.0\nspeed_rpm = 5\n', "speed[0].at_s", ">= 0"),
-    ("after the end", '[[speed]]\nkind = "step"\nat_s = 10.0\nspeed_rpm = 5\n', "speed[0].at_s", "not before the end"),
+    ("at the end", '[[speed]]\nkind = "step"\nat_s = 10.0\nspeed_rpm = 5\n', "speed[0].at_s", "never take effect"),
+    ("after the end", '[[load]]\nkind = "torque"\nstart_s = 1.0\nend_s = 11\ntorque_nm = 5\n', "load[0].end_s",
+     "after the end of the run"),
     ("ramp backwards", '[[speed]]\nkind = "ramp"\nstart_s = 2.0\nend_s = 1.0\nspeed_rpm = 5\n',
      "speed[0].end_s", "must be after"),
     ("unordered", '[[speed]]\nkind = "step"\nat_s = 3.0\nspeed_rpm = 5\n[[speed]]\nkind = "step"\nat_s = 1.0\n'
