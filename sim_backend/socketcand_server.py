@@ -181,7 +181,7 @@ class SocketcandServer:
             except OSError:
                 return
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            with self._lock:
+            with self._lock:        # held while the client starts, so its _forget() comes after this
                 self._clients.append(_Client(self, conn, addr))
 
     def _forget(self, client: _Client) -> None:
