@@ -1,0 +1,87 @@
+"""Acceptance suite: every scenario of scenarios/pmsm and scenarios/spim through the bench, in-process simulator.
+
+Each scenario's criteria carry the paper's claims (or a physical basis stated in the file). The test fails
+when a criterion fails that is not a listed known gap, and when a known gap closes: the list in
+tests/known_gaps.toml, the `known_gap` markings in the scenario files and the failing criteria must all be
+the same set. Runs go where `--drivebench-out` says (default runs/); `drivebench report DIR/*` turns them
+into docs/validation.md. Parametrised per scenario so `pytest -n 2` spreads it over two workers.
+"""
+
+from __future__ import annotations
+
+import tomllib
+import warnings
+from pathlib import Path
+
+import pytest
+
+from bench.scenario import load_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+KNOWN_GAPS_FILE = ROOT / "tests" / "known_gaps.toml"
+SCENARIOS = sorted((ROOT / "scenarios" / "pmsm").glob("*.toml")) + sorted((ROOT / "scenarios" / "spim").glob("*.toml"))
+REQUIRED = (
+    "pmsm/fig07-reversal-2rads-flux-kick", "pmsm/fig08-20rads-rs-step", "pmsm/fig09-crane-lift-lower",
+    "pmsm/fig10-startup-position-error", "pmsm/fig11-no-load-reversal", "spim/fig06-1500rpm-load-step",
+    "spim/fig07-reversal-1500rpm", "spim/fig08-low-speed-15rpm", "spim/rr-sensitivity",
+)
+
+
+def rel(path: Path) -> str:
+    return path.resolve().relative_to(ROOT).as_posix()
+
+
+def known_gaps() -> dict[str, set[str]]:
+    data = tomllib.loads(KNOWN_GAPS_FILE.read_text(encoding="utf-8"))
+    gaps: dict[str, set[str]] = {}
+    for entry in data.get("gap", []):
+        gaps.setdefault(entry["scenario"], set()).add(entry["criterion"])
+    return gaps
+
+
+def marked_gaps(path: Path) -> set[str]:
+    return {spec.name for spec in load_scenario(path).criteria if spec.known_gap}
+
+
+def test_required_scenarios_exist():
+    present = {f"{p.parent.name}/{p.stem}" for p in SCENARIOS}
+    assert set(REQUIRED) <= present, f"missing: {sorted(set(REQUIRED) - present)}"
+
+
+def test_known_gap_list_matches_the_scenario_files():
+    listed = known_gaps()
+    assert set(listed) <= {rel(p) for p in SCENARIOS}, "known_gaps.toml names a scenario that does not exist"
+    for path in SCENARIOS:
+        names = {spec.name for spec in load_scenario(path).criteria}
+        expected = listed.get(rel(path), set())
+        assert expected <= names, f"{rel(path)}: known_gaps.toml names unknown criteria {sorted(expected - names)}"
+        assert marked_gaps(path) == expected, (
+            f"{rel(path)}: known_gap markings {sorted(marked_gaps(path))} != known_gaps.toml {sorted(expected)}")
+
+
+def _run(drivebench, path: Path):
+    result = drivebench.run(path, rerun_mode="off")
+    if result.verdict == "error" and (result.error or "").startswith("link error"):
+        # The in-process CAN/Modbus links run on wall-clock timeouts; on an overloaded machine a heartbeat or
+        # an SDO block can miss one. That says nothing about the drive: run once more, loudly.
+        warnings.warn(f"{rel(path)}: {result.error}; running it again")
+        result = drivebench.run(path, rerun_mode="off")
+    return result
+
+
+@pytest.mark.parametrize("path", SCENARIOS, ids=lambda p: f"{p.parent.name}/{p.stem}")
+def test_scenario_meets_the_paper_except_known_gaps(drivebench, path: Path):
+    result = _run(drivebench, path)
+    assert result.verdict in ("pass", "fail"), (
+        f"{rel(path)}: verdict {result.verdict}: {result.record.get('abort_reason') or result.error}")
+    expected = known_gaps().get(rel(path), set())
+    failing = {c.name: c for c in result.criteria if not c.passed}
+    new = [f"{c.name}: {c.detail}" for name, c in failing.items() if name not in expected]
+    closed = [f"{c.name}: value {c.value:.6g} <= limit {c.limit:g}" for c in result.criteria
+              if c.name in expected and c.passed]
+    assert not new and not closed, (
+        f"{rel(path)} ({result.run_dir}):\n"
+        + "".join(f"  new failure: {line}\n" for line in new)
+        + "".join(f"  known gap closed (remove it from the scenario and tests/known_gaps.toml): {line}\n"
+                  for line in closed))
+    assert result.verdict == "pass"
