@@ -71,6 +71,9 @@ def run_design_check(motor_config_path: str | Path, speeds: Any = None, i_sx: fl
                      i_sy: float = 2.0) -> dict:
     """Poles over the speed range; i_sx, i_sy are recorded (they do not move the poles, see module doc)."""
     cfg = load_motor_config(motor_config_path)
+    if cfg["motor"]["kind"] != "pmsm":
+        raise MotorConfigError(f"{motor_config_path}: [motor] kind: the design check is eq. (13) of the PMSM "
+                               f"paper and needs kind = 'pmsm', got {cfg['motor']['kind']!r}")
     try:
         gains = estimator_gains(cfg)
     except MotorConfigError as exc:

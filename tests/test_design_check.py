@@ -75,3 +75,11 @@ def test_missing_gain_names_file_and_field(tmp_path):
     bad.write_text(text)
     with pytest.raises(MotorConfigError, match=r"nogain\.toml: \[firmware\] flux_est_kp: missing"):
         run_design_check(bad)
+
+
+def test_non_pmsm_config_is_refused_clearly(tmp_path):
+    from sim_backend.drive import MotorConfigError
+    other = tmp_path / "other.toml"
+    other.write_text('[motor]\nkind = "spim"\n')
+    with pytest.raises(MotorConfigError, match=r"other\.toml: \[motor\] kind: .*needs kind = 'pmsm'"):
+        run_design_check(other)
