@@ -37,7 +37,7 @@ def load_torque_now(x, pp, te):
     return smooth_load_torque(mode, value, wm)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)  # protocol-server threads keep answering while a block steps
 def run_steps(n, x, pp, ip, fs, fp, ks, noise, use_noise, substeps, out):
     ts = fp[fw.F_TS]
     k_true = pp[pl.P_MSRD] / pp[pl.P_MSRQ]
