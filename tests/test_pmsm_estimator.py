@@ -152,3 +152,16 @@ def test_firmware_resistance_override_acts_like_plant_mismatch():
     predicted = -(mean(tail, "i_sy_a") * LS / w_e) * delta_a1
     assert PSI - mean(tail, "flux_est_wb") == pytest.approx(predicted, rel=0.05)
     assert abs(mean(tail, "pos_err_elec_rad")) < 2e-3
+
+
+def test_flux_estimate_relaxes_to_nominal_at_standstill():
+    """Enabling at zero speed into a 2 N m active load: the rotor is pushed back, psi^ is disturbed during
+    that transient, then relaxes to the nominal flux once the shaft is held (no flux information there)."""
+    drive = make_drive(CONFIG, seed=4, noise=True)
+    drive.set_load(LOAD_TORQUE, 2.0)
+    drive.set_enabled(True)
+    block = drive.step(2000)
+    assert abs(block[:, COL["flux_est_wb"]] - PSI).max() > 0.02
+    tail = drive.step(40000)[-5000:]
+    assert abs(mean(tail, "speed_true_mech_rad_s")) < 0.05
+    assert mean(tail, "flux_est_wb") == pytest.approx(PSI, rel=0.03)

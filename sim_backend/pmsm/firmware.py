@@ -67,7 +67,9 @@ F_KI_SPEED = 30
 F_KP_I = 31                # current PIs, V/A
 F_KI_I = 32
 F_INV_POLE_PAIRS = 33
-N_PARAMS = 34
+F_FLUX_HOLD_RELAX_S = 34   # below F_FLUX_EST_MIN_SPEED psi^ relaxes to F_FLUX with this time constant; 0 = pure hold
+F_RELAX_FACTOR = 35        # derived: T / F_FLUX_HOLD_RELAX_S per period (0 = pure hold)
+N_PARAMS = 36
 
 # ---- state (fw_state array) ----
 S_ENABLE_CMD = 0           # fieldbus: 1 = operation enabled
@@ -205,7 +207,11 @@ def _update_estimators(s: np.ndarray, p: np.ndarray, i_alpha_beta: complex) -> c
         s[S_INT_OMEGA] += ki_w * T * eps_w
         s[S_OMEGA] = kp_w * eps_w + s[S_INT_OMEGA]                            # (8a)
     w_min = p[F_FLUX_EST_MIN_SPEED]
-    if s[S_FREEZE_FLUX] == 0.0 and abs(w) >= w_min:
+    if s[S_FREEZE_FLUX] == 0.0 and abs(w) < w_min:
+        # (7b) has no information near standstill: relax towards the nominal flux, the best prior
+        s[S_INT_PSI] += p[F_RELAX_FACTOR] * (p[F_FLUX] - s[S_INT_PSI])
+        s[S_PSI] = s[S_INT_PSI]
+    elif s[S_FREEZE_FLUX] == 0.0:
         kp_psi = p[F_FLUX_EST_KP]
         ki_psi = p[F_KI_PSI]
         eps_psi = -delta.real / (a2 * max(w * w, w_min * w_min))              # (7b)
@@ -339,6 +345,8 @@ def derive_gains(p: np.ndarray) -> None:
     p[F_KP_I] = p[F_LS] * p[F_CURRENT_BW]
     p[F_KI_I] = p[F_RS] * p[F_CURRENT_BW]
     p[F_INV_POLE_PAIRS] = 1.0 / p[F_POLE_PAIRS]
+    relax = p[F_FLUX_HOLD_RELAX_S]
+    p[F_RELAX_FACTOR] = min(1.0, p[F_PERIOD] / relax) if relax > 0.0 else 0.0
 
 
 # ---- test hooks (the lab firmware's debug objects) ----

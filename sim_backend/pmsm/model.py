@@ -117,6 +117,7 @@ class PmsmDrive:
         f[fw.F_FLUX_EST_MIN_SPEED] = _num(cfg, s, "flux_est_min_speed_elec_rad_s", positive=True)
         f[fw.F_FLUX_EST_MIN_FRACTION] = _num(cfg, s, "flux_est_min_fraction", positive=True)
         f[fw.F_FLUX_EST_MAX_FRACTION] = _num(cfg, s, "flux_est_max_fraction", positive=True)
+        f[fw.F_FLUX_HOLD_RELAX_S] = _num(cfg, s, "flux_est_standstill_relax_s", 0.0)
         f[fw.F_SPEED_BW] = _num(cfg, s, "speed_loop_bandwidth_rad_s", positive=True)
         f[fw.F_SPEED_ZERO_FRACTION] = _num(cfg, s, "speed_pi_zero_fraction", positive=True)
         f[fw.F_CURRENT_BW] = _num(cfg, s, "current_loop_bandwidth_rad_s", positive=True)
