@@ -60,6 +60,7 @@ class _Pdo:
     trans_type: int
     entries: list[tuple[int, int, int]]     # (index, subindex, bits)
     last: bytes = b""
+    packer: tuple | None = None             # (struct, getters) when every mapped object has a fast getter
 
     @property
     def length(self) -> int:
@@ -334,6 +335,7 @@ class SimCanopenNode:
             pdo = self._read_pdo(0x1800 + n, 0x1A00 + n)
             if not pdo.cob_id & 0x80000000 and pdo.entries:
                 pdo.cob_id &= 0x7FF
+                pdo.packer = self._fast_packer(pdo)
                 self._tpdos.append(pdo)
         for n in range(od_gen.N_RPDO):
             pdo = self._read_pdo(0x1400 + n, 0x1600 + n)
@@ -369,7 +371,28 @@ class SimCanopenNode:
             offset += n
 
     def _pack(self, pdo: _Pdo) -> bytes:
+        if pdo.packer is not None:
+            layout, getters = pdo.packer
+            return layout.pack(*[get() for get in getters])
         return b"".join(bytes(self.node.get_data(i, s)) for i, s, _ in pdo.entries)
+
+    def _fast_packer(self, pdo: _Pdo) -> tuple | None:
+        """Per-SYNC packing without the generic object lookup, for the objects TPDOs usually carry."""
+        dev = self.device
+        fast = {0x6041: ("H", lambda: dev.device.statusword), 0x6061: ("b", lambda: dev.mode_of_operation),
+                od_gen.IDX_STEP_COUNT: ("L", lambda: dev.step_count & 0xFFFFFFFF)}
+        fmt, getters = "<", []
+        for index, subindex, _ in pdo.entries:
+            if index in fast and subindex == 0:
+                code, get = fast[index]
+            elif od_gen.IDX_SIGNAL_BASE <= index < od_gen.IDX_SIGNAL_BASE + len(SIGNAL_NAMES):
+                code, column = "f", index - od_gen.IDX_SIGNAL_BASE
+                get = (lambda c: lambda: float(dev.latest[c]))(column)
+            else:
+                return None
+            fmt += code
+            getters.append(get)
+        return struct.Struct(fmt), getters
 
     def _on_sync(self, can_id, data, timestamp):
         if self._pdo_dirty:

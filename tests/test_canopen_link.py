@@ -227,3 +227,23 @@ def test_live_signals_fall_back_to_scaled_integers_when_real32_exceeds_the_bus()
     with rig(sync_period_s=0.0002) as r:
         with pytest.raises(LinkError, match="budget 80%"):
             r.link.configure(list(SIGNAL_NAMES), TRACE, 1)
+
+
+def test_inprocess_service_opens_private_endpoints():
+    from bench.benchconfig import load_bench_config
+    from drivers.canopen_link import CanopenDriveLink
+    from sim_backend.inprocess import start
+    from tests.canopen_helpers import REPO
+    import socket
+
+    cfg = load_bench_config(REPO / "config/benches/sim-pmsm.toml")
+    with start(cfg, seed=3) as first, start(cfg, seed=3) as second:
+        assert first["drive"]["channel"] != second["drive"]["channel"]      # parallel runs never cross-talk
+        link = CanopenDriveLink(dict(cfg["drive"], **first["drive"], sync_period_s=0.01), REPO)
+        try:
+            assert link.open().product_code == 0x04020001
+            link.configure(LIVE, TRACE, 10)
+            assert link.sync()[0].t_s == pytest.approx(0.01)
+        finally:
+            link.close()
+        socket.create_connection(("127.0.0.1", first["load"]["port"]), timeout=5).close()
