@@ -1,0 +1,389 @@
+"""Validation report: `drivebench report RUN_DIR...` -> docs/validation.md with plots in docs/validation/.
+
+Per paper (PMSM: scenarios/pmsm, SPIM: scenarios/spim, anything else: "other runs"), a table of every
+criterion of every run: test, the paper's claim or the stated basis (the criterion's comments in the
+scenario file), the measured value, the verdict (pass, FAIL, known gap). One PNG per run beside it, and the
+deviations from the papers (collected from docs/firmware*.md and the suite's own choices).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import re
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from bench.errors import InputError
+from bench.records import load_run
+
+PAPERS: dict[str, str] = {
+    "pmsm": "PMSM — Rashed, MacConnell, Stronach, Acarnley: sensorless IRFOC with MRAS speed and flux "
+            "estimators (`/work/shared/papers/pmsm-mras-irfoc.md`)",
+    "spim": "SPIM — Jemli, Ben Azza, Boussak, Gossa: sensorless ISFOC of a single-phase induction motor, "
+            "IEEE TPEL 24(6) 2009 (`/work/shared/papers/spim-sensorless-isfoc.md`)",
+    "other": "Other runs",
+}
+
+# The acceptance suite's own departures from the papers (the scenario files say the same at each place).
+SUITE_DEVIATIONS: tuple[str, ...] = (
+    "Speeds are mechanical everywhere (docs/scenarios.md); the PMSM paper's ±2, 10, 20 rad/s are read as "
+    "mechanical (its Figs. 9–11 label them so), the SPIM paper's r/min are mechanical.",
+    "Where the papers give no time, the scenarios choose it: reversals are steps of the reference (the drives' "
+    "ramp limiters shape them), holds last as long as the windows need (CI time), the R_r-sensitivity run "
+    "holds the load 4 s instead of Fig. 6's 10 s (the plant has no thermal model).",
+    "Loads: PMSM Figs. 7–8 active torque (paper: \"constant load torque\"); Fig. 10's DC generator into a "
+    "resistor is viscous 0.1 N·m·s/rad (paper: no data); Fig. 9's crane drum radius 0.024 m follows from "
+    "\"i_sy higher than 3 A\" with K_t = 1.5·p·ψ; SPIM loads are the paper's magnetic powder brake (passive).",
+    "The crane model is m·g·r only: no pulley friction, so the paper's \"i_sy below 3 A while lowering\" "
+    "cannot appear (kept as a known gap).",
+    "PMSM Fig. 10: the paper's \"+1.2 rad\" is read with its own sign convention (error = true − estimated): "
+    "pos_est_offset_rad = −1.2; a mirror scenario runs −1.2 rad too.",
+    "Numbers the papers do not give (position tolerance 0.05 rad, π/4 stability bound, recovery and reversal "
+    "times) are derived in the scenario files from eq. (13)'s poles, the drives' configured loops, or the "
+    "papers' 1 % accuracy figure.",
+    "The PMSM flux-recovery claim is judged on window averages (the per-sample estimate at 6 elec rad/s carries "
+    "~6.6 % rms noise from the 5 mA current noise; the criteria have no filter).",
+    "Starting steps are at 0.01 s, not 0: a reference set at t = 0 is sent before the drive is enabled and the "
+    "CANopen link's enable resets the target to zero, so the orchestrator never sends it again (bench issue).",
+)
+
+KIND_UNITS = {
+    "speed_error_max_pct": "%", "speed_error_rms_pct": "%", "flux_error_max_pct": "%",
+    "flux_error_rms_pct": "%", "overshoot_pct": "%", "pos_error_max": "rad", "pos_error_rms": "rad",
+    "flux_recovery_time": "s", "settling_time": "s", "reversal_time": "s",
+}
+SIGNAL_UNITS = (("_rad_s", "rad/s"), ("_rad", "rad"), ("_wb", "Wb"), ("_a", "A"), ("_nm", "N·m"), ("_v", "V"))
+
+PLOT_PANELS: tuple[tuple[str, str, tuple[tuple[str, str], ...]], ...] = (
+    ("speed", "rad/s (mech)", (("speed_ref_mech_rad_s", "reference"), ("speed_est_mech_rad_s", "estimated"),
+                               ("speed_true_mech_rad_s", "true"))),
+    ("position error", "rad (elec)", (("pos_err_elec_rad", "true − estimated"),)),
+    ("flux", "Wb", (("flux_est_wb", "estimated"), ("flux_true_wb", "true"))),
+    ("currents", "A", (("i_sx_a", "i_sx"), ("i_sy_a", "i_sy"))),
+    ("load", "N·m", (("torque_load_nm", "load torque"),)),
+)
+# a sentence ends at ". " before a capital, but not after "Eq.", "eqs.", "Fig.", "e.g." or "i.e."
+FIRST_SENTENCE_END = re.compile(r"(?<![Ee]q\.)(?<!eqs\.)(?<!Fig\.)(?<!e\.g\.)(?<!i\.e\.)(?<=[.!?])\s+(?=[A-Z])")
+SMOOTH_S = 0.01          # the plots draw a 10 ms moving average over the raw (light) trace
+PLOT_POINTS = 4000
+
+
+@dataclass
+class Run:
+    run_dir: Path
+    record: dict[str, Any]
+    columns: dict[str, np.ndarray]
+    complete: bool
+    paper: str
+    name: str
+    scenario_path: Path | None
+    basis: dict[str, str] = field(default_factory=dict)
+
+
+# -- reading -------------------------------------------------------------------------------------------------
+
+def paper_of(record: dict) -> str:
+    path = str((record.get("scenario") or {}).get("path") or "")
+    parts = Path(path).parts
+    for kind in ("pmsm", "spim"):
+        if len(parts) >= 2 and parts[-2] == kind:
+            return kind
+    bench = str((record.get("bench") or {}).get("name") or "")
+    for kind in ("pmsm", "spim"):
+        if kind in bench.lower() and f"/{kind}/" in path:
+            return kind
+    return "other"
+
+
+def criteria_comments(scenario_text: str) -> dict[str, str]:
+    """criterion name -> its comment lines in the scenario file (the stated basis), joined."""
+    out: dict[str, str] = {}
+    for block in re.split(r"^\[\[criteria\]\]\s*$", scenario_text, flags=re.M)[1:]:
+        block = re.split(r"^\[", block, maxsplit=1, flags=re.M)[0]
+        m = re.search(r'^name\s*=\s*"((?:[^"\\]|\\.)*)"', block, flags=re.M)
+        if not m:
+            continue
+        comments = [line.strip().lstrip("#").strip() for line in block.splitlines() if line.strip().startswith("#")]
+        out[m.group(1)] = " ".join(c for c in comments if c)
+    return out
+
+
+def read_run(run_dir: Path) -> Run:
+    record, columns, complete = load_run(run_dir)
+    scenario = record.get("scenario") or {}
+    name = str(scenario.get("name") or run_dir.name)
+    path = Path(scenario["path"]) if scenario.get("path") else None
+    basis: dict[str, str] = {}
+    if path is not None and path.is_file():
+        data = path.read_bytes()
+        if hashlib.sha256(data).hexdigest() == scenario.get("sha256"):  # the file the run used
+            basis = criteria_comments(data.decode("utf-8"))
+    return Run(run_dir, record, columns, complete, paper_of(record), name, path, basis)
+
+
+# -- formatting ----------------------------------------------------------------------------------------------
+
+def unit_of(criterion: dict, params: dict | None = None) -> str:
+    kind = criterion.get("kind", "")
+    if kind in KIND_UNITS:
+        return KIND_UNITS[kind]
+    if "% of" in str(criterion.get("detail", "")) and kind == "steady_state_error":
+        return "%"
+    signal = str(criterion.get("signal", ""))
+    for suffix, unit in SIGNAL_UNITS:
+        if signal.endswith(suffix):
+            return unit
+    return ""
+
+
+def fmt_number(value: Any) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else "∞"
+    v = float(value)
+    if v == 0.0:
+        return "0"
+    if abs(v) >= 1e4 or abs(v) < 1e-3:
+        return f"{v:.3g}"
+    return f"{v:.4g}"
+
+
+def verdict_of(criterion: dict) -> str:
+    if criterion.get("passed"):
+        return "pass"
+    return "known gap" if criterion.get("known_gap") else "**FAIL**"
+
+
+def md_cell(text: str) -> str:
+    return str(text).replace("|", "\\|").replace("\n", " ")
+
+
+def measured_text(criterion: dict) -> str:
+    unit = unit_of(criterion)
+    value = fmt_number(criterion.get("value"))
+    detail = re.sub(r"^value \S+ > limit \S+; ", "", str(criterion.get("detail") or ""))
+    return f"{value} {unit}".strip() + (f" ({detail})" if detail else "")
+
+
+def claim_text(run: Run, criterion: dict) -> str:
+    unit = unit_of(criterion)
+    lo, hi = criterion.get("window_s") or (None, None)
+    limit = f"≤ {fmt_number(criterion.get('limit'))} {unit}".strip()
+    window = f", window {fmt_number(lo)}–{fmt_number(hi)} s" if lo is not None else ""
+    basis = run.basis.get(criterion.get("name", ""), "")
+    return f"{limit}{window}" + (f"; {basis}" if basis else "")
+
+
+# -- plots ---------------------------------------------------------------------------------------------------
+
+def _moving_average(y: np.ndarray, n: int) -> np.ndarray:
+    if n <= 1 or len(y) < n:
+        return y
+    c = np.cumsum(np.insert(np.nan_to_num(y.astype(float)), 0, 0.0))
+    out = (c[n:] - c[:-n]) / n
+    return np.concatenate([np.full(n - 1, np.nan), out])
+
+
+def write_plot(run: Run, path: Path) -> Path | None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    t = np.asarray(run.columns.get("t_s", np.zeros(0)), dtype=float)
+    if len(t) < 2:
+        return None
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 1e-4
+    n_avg = max(1, int(round(SMOOTH_S / dt))) if dt > 0 else 1
+    stride = max(1, len(t) // PLOT_POINTS)
+    panels = [p for p in PLOT_PANELS if any(s in run.columns and np.isfinite(run.columns[s]).any() for s, _ in p[2])]
+    fig = Figure(figsize=(9, 1.9 * len(panels) + 0.6))
+    axes = fig.subplots(len(panels), 1, sharex=True, squeeze=False)[:, 0]
+    for ax, (title, unit, signals) in zip(axes, panels):
+        for signal, label in signals:
+            if signal not in run.columns:
+                continue
+            y = np.asarray(run.columns[signal], dtype=float)
+            if not np.isfinite(y).any():
+                continue
+            smooth = _moving_average(y, n_avg)
+            line, = ax.plot(t[::stride], smooth[::stride], lw=1.0, label=label)
+            ax.plot(t[::stride], y[::stride], lw=0.4, alpha=0.25, color=line.get_color())
+        ax.set_ylabel(f"{title}\n{unit}", fontsize=8)
+        ax.grid(True, lw=0.3)
+        ax.legend(fontsize=7, loc="upper right")
+        ax.tick_params(labelsize=7)
+    axes[-1].set_xlabel("drive time, s", fontsize=8)
+    fig.suptitle(f"{run.name} — {run.record.get('verdict')} (light: raw samples, solid: {SMOOTH_S * 1e3:g} ms mean)",
+                 fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    return path
+
+
+# -- deviations ----------------------------------------------------------------------------------------------
+
+LIST_ITEM = re.compile(r"^\s*(?:\d+\.|[-*])\s+(.*?)(?=^\s*(?:\d+\.|[-*])\s+|\Z)", re.M | re.S)
+CHOSEN_INTRO = re.compile(r"^(?:where the paper is silent|.*\bchosen:\s*$)", re.I | re.M)
+
+
+def _first_sentences(list_text: str) -> list[str]:
+    items = []
+    for m in LIST_ITEM.finditer(list_text):
+        item = " ".join(m.group(1).split())
+        items.append(FIRST_SENTENCE_END.split(item, maxsplit=1)[0])
+    return items
+
+
+def firmware_deviations(docs_dir: Path) -> list[tuple[str, list[str]]]:
+    """(doc file, items) from docs/firmware*.md: every list item of a section whose heading says
+    'deviation', and of a list introduced by "Where the paper is silent, chosen:"; first sentence of each."""
+    out = []
+    for doc in sorted(docs_dir.glob("firmware*.md")):
+        text = doc.read_text(encoding="utf-8")
+        items: list[str] = []
+        for section in re.split(r"^#+ ", text, flags=re.M):
+            heading, _, body = section.partition("\n")
+            if "deviation" in heading.lower():
+                items += _first_sentences(body)
+                continue
+            for intro in CHOSEN_INTRO.finditer(body):
+                rest = body[intro.end():]
+                block = re.split(r"\n\s*\n", rest.lstrip("\n"), maxsplit=1)[0]   # the list: up to a blank line
+                items += _first_sentences(block)
+        if items:
+            out.append((doc.name, items))
+    return out
+
+
+# -- report --------------------------------------------------------------------------------------------------
+
+def _rel(path: Path, start: Path) -> str:
+    try:
+        return Path(path).resolve().relative_to(start.resolve()).as_posix()
+    except ValueError:
+        import os
+        return Path(os.path.relpath(Path(path).resolve(), start.resolve())).as_posix()
+
+
+def _safe_name(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "-", name).strip("-.") or "run"
+
+
+def write_report(run_dirs: Sequence[Path], out_md: Path = Path("docs/validation.md")) -> Path:
+    """Write the validation report for `run_dirs` to `out_md` and its plots beside it; returns out_md.
+
+    Raises InputError when a run directory cannot be read.
+    """
+    out_md = Path(out_md)
+    plot_dir = out_md.parent / out_md.stem
+    all_runs = [read_run(Path(d)) for d in run_dirs]
+    if not all_runs:
+        raise InputError(["report: no run directories given"])
+    latest: dict[str, Run] = {}
+    for r in sorted(all_runs, key=lambda r: str(r.record.get("started_utc"))):
+        latest[r.name] = r  # one section per scenario: the latest of its runs
+    runs = list(latest.values())
+    superseded = [r for r in all_runs if latest[r.name] is not r]
+    runs.sort(key=lambda r: (list(PAPERS).index(r.paper), r.name))
+    out_md.parent.mkdir(parents=True, exist_ok=True)
+
+    lines = ["# Validation against the papers", ""]
+    revisions = sorted({str((r.record.get("software") or {}).get("git_revision")) for r in runs})
+    dirty = any((r.record.get("software") or {}).get("git_dirty") for r in runs)
+    started = sorted(str(r.record.get("started_utc")) for r in runs)
+    lines += [
+        f"Generated by `drivebench report` from {len(runs)} run(s), {started[0]} to {started[-1]} UTC, "
+        f"software {', '.join(revisions)}{' (work tree with uncommitted changes)' if dirty else ''}.",
+        "Each test is a criterion of a scenario file (`scenarios/pmsm`, `scenarios/spim`); its claim column "
+        "gives the limit, the window and the basis written in the scenario file. A **known gap** keeps the "
+        "paper's limit and fails without failing the run (tests/known_gaps.toml lists them).",
+        "",
+    ]
+    counts = {"pass": 0, "known gap": 0, "**FAIL**": 0}
+    for r in runs:
+        for c in r.record.get("criteria") or []:
+            counts[verdict_of(c)] += 1
+    lines += [f"Criteria: {counts['pass']} pass, {counts['known gap']} known gap(s), {counts['**FAIL**']} fail. "
+              f"Runs: " + ", ".join(f"{r.name} {r.record.get('verdict')}" for r in runs) + ".", ""]
+    if superseded:
+        lines += ["Older runs of the same scenarios, not reported: "
+                  + ", ".join(f"`{r.run_dir.name}` ({r.record.get('verdict')})" for r in superseded) + ".", ""]
+
+    for paper in PAPERS:
+        group = [r for r in runs if r.paper == paper]
+        if not group:
+            continue
+        lines += [f"## {PAPERS[paper]}", ""]
+        for r in group:
+            lines += _run_section(r, out_md, plot_dir)
+        gaps = [(r, c) for r in group for c in r.record.get("criteria") or [] if not c.get("passed") and c.get("known_gap")]
+        if gaps:
+            lines += ["### Known gaps", ""]
+            for r, c in gaps:
+                lines.append(f"- {r.name}: *{md_cell(c['name'])}* — measured {fmt_number(c.get('value'))} "
+                             f"{unit_of(c)}, limit {fmt_number(c.get('limit'))} {unit_of(c)}: {md_cell(c['known_gap'])}")
+            lines.append("")
+
+    lines += ["## Deviations from the papers", "", "### In the simulated drives", ""]
+    docs_dir = out_md.parent if (out_md.parent / "firmware.md").exists() else Path("docs")
+    found = firmware_deviations(docs_dir)
+    if not found:
+        lines.append("- (no `docs/firmware*.md` with a deviations section found)")
+    for doc, items in found:
+        lines.append(f"From [{doc}]({_rel(docs_dir / doc, out_md.parent)}):")
+        lines.append("")
+        lines += [f"{i}. {md_cell(item)}" for i, item in enumerate(items, 1)]
+        lines.append("")
+    lines += ["### In the acceptance suite", ""]
+    lines += [f"- {d}" for d in SUITE_DEVIATIONS]
+    lines.append("")
+    out_md.write_text("\n".join(lines), encoding="utf-8")
+    return out_md
+
+
+def _run_section(r: Run, out_md: Path, plot_dir: Path) -> list[str]:
+    rec = r.record
+    scenario_rel = rec.get("scenario", {}).get("path", "")
+    lines = [f"### {r.name}", ""]
+    desc = f"Scenario `{_rel(Path(scenario_rel), Path.cwd()) if scenario_rel else '?'}`, seed {rec.get('seed')}, " \
+           f"run `{r.run_dir.name}`: verdict **{rec.get('verdict')}**"
+    if rec.get("abort_reason"):
+        desc += f" ({md_cell(rec['abort_reason'])})"
+    if not r.complete:
+        desc += " — record incomplete (recovered from the journal)"
+    lines += [desc + ".", ""]
+    plot = None
+    try:
+        plot = write_plot(r, plot_dir / f"{_safe_name(r.name)}.png")
+    except Exception as exc:  # a plot must not cost the table
+        lines += [f"(plot failed: {type(exc).__name__}: {exc})", ""]
+    lines += ["| test | paper's claim / basis | measured | verdict |", "|---|---|---|---|"]
+    for c in rec.get("criteria") or []:
+        lines.append(f"| {md_cell(c.get('name', ''))} | {md_cell(claim_text(r, c))} | {md_cell(measured_text(c))} "
+                     f"| {verdict_of(c)} |")
+    lines.append("")
+    if plot is not None:
+        lines += [f"![{r.name}]({_rel(plot, out_md.parent)})", ""]
+    return lines
+
+
+def main(run_dirs: Sequence[str | Path], out_md: str | Path = "docs/validation.md") -> int:
+    """CLI entry: 0 written, 2 bad input (one line per problem on stderr)."""
+    try:
+        path = write_report([Path(d) for d in run_dirs], Path(out_md))
+    except InputError as exc:
+        for problem in exc.problems:
+            print(problem, file=sys.stderr)
+        return 2
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,161 @@
+"""bench.report on synthetic run directories written by bench.records.RunRecorder: the table says what the runs say."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench.criteria import evaluate, verdict
+from bench.records import RunRecorder
+from bench.report import criteria_comments, firmware_deviations, main, write_report
+from bench.scenario import load_scenario
+from drivers.signals import SIGNAL_NAMES
+
+ROOT = Path(__file__).resolve().parents[1]
+
+SCENARIO = """# synthetic
+schema_version = 1
+name = "{name}"
+bench = "{bench}"
+duration_s = 2.0
+seed = 3
+
+[[speed]]
+kind = "step"
+at_s = 0.5
+speed_mech_rad_s = 2.0
+
+[limits]
+overspeed_mech_rad_s = 30.0
+overcurrent_a = 10.0
+
+[[criteria]]
+name = "position error average is zero"
+# basis: made up for the test
+kind = "mean"
+signal = "pos_err_elec_rad"
+window_s = [1.0, 2.0]
+expected = 0.0
+limit = 0.05
+
+[[criteria]]
+name = "flux estimate within 1 %"
+kind = "flux_error_max_pct"
+signal = "flux_est_wb"
+window_s = [1.0, 2.0]
+limit = 1.0
+
+[[criteria]]
+name = "i_sy below 3 A"
+kind = "mean"
+signal = "i_sy_a"
+window_s = [1.0, 2.0]
+expected = 1.5
+limit = 1.5
+known_gap = "no pulley friction"
+"""
+
+
+def make_run(tmp_path: Path, kind: str, name: str, pos_err: float, flux_err: float, i_sy: float) -> Path:
+    """A finished run of a synthetic scenario under tmp/scenarios/<kind>/ with constant signals."""
+    scen_dir = tmp_path / "scenarios" / kind
+    scen_dir.mkdir(parents=True, exist_ok=True)
+    path = scen_dir / f"{name}.toml"
+    path.write_text(SCENARIO.format(name=name, bench=(ROOT / "config/benches/sim-pmsm.toml").as_posix()))
+    scenario = load_scenario(path)
+    recorder = RunRecorder(tmp_path / "runs", scenario, 3, {"bench": {"name": f"sim-{kind}"}, "_path": "x"})
+    t = np.arange(1, 20001) * 1e-4
+    cols = {name: np.zeros_like(t) for name in SIGNAL_NAMES}
+    cols["t_s"] = t
+    cols["speed_ref_mech_rad_s"] = np.where(t >= 0.5, 2.0, 0.0)
+    cols["speed_true_mech_rad_s"] = cols["speed_ref_mech_rad_s"]
+    cols["speed_est_mech_rad_s"] = cols["speed_ref_mech_rad_s"]
+    cols["pos_err_elec_rad"] = np.full_like(t, pos_err)
+    cols["flux_true_wb"] = np.full_like(t, 0.25)
+    cols["flux_est_wb"] = np.full_like(t, 0.25 * (1 + flux_err / 100))
+    cols["i_sy_a"] = np.full_like(t, i_sy)
+    recorder.append(cols)
+    results = evaluate(scenario.criteria, t, cols)
+    return recorder.finish(verdict(results, aborted=False), results, None)
+
+
+def table_rows(md: str, section: str) -> dict[str, list[str]]:
+    """test name -> cells of its row in the table under '### section'."""
+    body = md.split(f"### {section}\n", 1)[1].split("\n### ", 1)[0]
+    rows = {}
+    for line in body.splitlines():
+        if line.startswith("| ") and not line.startswith("| test ") and not line.startswith("|---"):
+            cells = [c.strip() for c in re.split(r"(?<!\\)\|", line)[1:-1]]
+            rows[cells[0]] = cells
+    return rows
+
+
+def test_report_tables_plots_and_gaps(tmp_path):
+    good = make_run(tmp_path, "pmsm", "pmsm-good", pos_err=0.01, flux_err=0.5, i_sy=3.03)
+    bad = make_run(tmp_path, "spim", "spim-bad", pos_err=0.2, flux_err=2.0, i_sy=2.5)
+    out = write_report([bad, good], tmp_path / "docs" / "validation.md")
+    md = out.read_text()
+
+    # per paper, PMSM first
+    assert md.index("## PMSM") < md.index("### pmsm-good") < md.index("## SPIM") < md.index("### spim-bad")
+    good_rows = table_rows(md, "pmsm-good")
+    assert good_rows["position error average is zero"][1].startswith("≤ 0.05 rad, window 1–2 s; basis: made up")
+    assert good_rows["position error average is zero"][2].startswith("0.01 rad (mean +0.01")
+    assert good_rows["position error average is zero"][3] == "pass"
+    assert good_rows["flux estimate within 1 %"][2].startswith("0.5 %")
+    assert good_rows["flux estimate within 1 %"][3] == "pass"
+    assert good_rows["i_sy below 3 A"][2].startswith("1.53 A (mean +3.03")
+    assert good_rows["i_sy below 3 A"][3] == "known gap"
+
+    bad_rows = table_rows(md, "spim-bad")
+    assert bad_rows["position error average is zero"][2].startswith("0.2 rad")
+    assert bad_rows["position error average is zero"][3] == "**FAIL**"
+    assert bad_rows["flux estimate within 1 %"][3] == "**FAIL**"
+    assert bad_rows["i_sy below 3 A"][3] == "pass"           # 2.5 A: the gap is closed in this run
+    assert "verdict **fail**" in md and "verdict **pass**" in md
+    assert "Criteria: 3 pass, 1 known gap(s), 2 fail." in md
+
+    # known-gap list with the measured value, plots beside the report, deviations section
+    assert "- pmsm-good: *i_sy below 3 A* — measured 1.53 A, limit 1.5 A: no pulley friction" in md
+    for name in ("pmsm-good", "spim-bad"):
+        png = tmp_path / "docs" / "validation" / f"{name}.png"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert f"![{name}](validation/{name}.png)" in md
+    assert "## Deviations from the papers" in md and "### In the acceptance suite" in md
+
+
+def test_latest_run_per_scenario_is_reported(tmp_path):
+    first = make_run(tmp_path, "pmsm", "pmsm-again", pos_err=0.2, flux_err=0.0, i_sy=3.0)
+    second = make_run(tmp_path, "pmsm", "pmsm-again", pos_err=0.0, flux_err=0.0, i_sy=3.0)
+    md = write_report([second, first], tmp_path / "v.md").read_text()
+    assert md.count("### pmsm-again") == 1
+    assert table_rows(md, "pmsm-again")["position error average is zero"][3] == "pass"
+    assert f"`{first.name}` (fail)" in md
+
+
+def test_bad_run_dir_is_one_line_and_exit_2(tmp_path, capsys):
+    assert main([tmp_path / "nothing"], tmp_path / "v.md") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "record.json" in err[0]
+    assert main([], tmp_path / "v.md") == 2
+
+
+def test_criteria_comments_and_firmware_deviations(tmp_path):
+    text = SCENARIO.format(name="x", bench="b")
+    comments = criteria_comments(text)
+    assert comments == {"position error average is zero": "basis: made up for the test",
+                        "flux estimate within 1 %": "", "i_sy below 3 A": ""}
+    (tmp_path / "firmware-x.md").write_text(
+        "# X\n\n## Deviations from the paper, and why\n1. **Gain.** Eq. (10) says so. More text.\n"
+        "2. **Inverter**: a doubler. Because.\n\n## Measured\n- not a deviation\n")
+    assert firmware_deviations(tmp_path) == [("firmware-x.md", ["**Gain.** Eq. (10) says so.",
+                                                                 "**Inverter**: a doubler."])]
+
+
+@pytest.mark.parametrize("doc", sorted((ROOT / "docs").glob("firmware*.md")), ids=lambda p: p.name)
+def test_real_firmware_docs_yield_deviations(doc):
+    found = dict(firmware_deviations(doc.parent))
+    assert found.get(doc.name), f"{doc.name}: no deviations section found"
