@@ -176,3 +176,22 @@ def test_python_can_loggers_capture_the_run(tmp_path):
             tpdo2 = [struct.unpack("<ff", bytes(m.data)) for m in frames if m.arbitration_id == 0x281]
             assert len(syncs) == 25, path.suffix
             assert [v[1] for v in tpdo2] == pytest.approx([s.values["speed_est_mech_rad_s"] for s in sent])
+
+
+def test_segmented_upload_of_the_trace_and_an_aborted_block_upload_loses_nothing():
+    with rig() as r:
+        r.link.configure(LIVE, LIVE, 1)
+        for _ in range(3):
+            r.link.sync()
+        data = r.link.node.sdo.upload(0x2101, 0)             # canopen's segmented upload also works
+        assert len(data) == 300 * 12
+        for _ in range(2):
+            r.link.sync()
+        # a block upload the client abandons after the first block: the rows are served again
+        r.sniffer.inject(0x601, bytes.fromhex("a40121007f000000"))
+        r.sniffer.inject(0x601, bytes.fromhex("a300000000000000"))
+        r.sniffer.inject(0x601, bytes.fromhex("8001210000000405"))   # abort 0x05040000
+        r.link.sync()
+        trace = r.link.fetch_trace()
+        t = np.round(trace["t_s"] / 1e-4).astype(int)
+        assert list(t) == list(range(301, 601))                  # 6 SYNCs x 100 steps, first 300 read before
