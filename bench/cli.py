@@ -441,8 +441,10 @@ def _json_default(value: Any) -> Any:
 
 @cli.command()
 @click.argument("run_dirs", nargs=-1, required=True)
-def report(run_dirs) -> None:
-    """Validation report over RUN_DIRs."""
+@click.option("--out", "out_md", type=click.Path(), default="docs/validation.md", show_default=True,
+              help="Markdown report to write (plots go beside it).")
+def report(run_dirs, out_md) -> None:
+    """Validation report over RUN_DIRs (bench/report.py)."""
     try:
         from bench import report as report_module
     except ImportError:
@@ -451,7 +453,7 @@ def report(run_dirs) -> None:
     if entry is None:
         click.echo("drivebench report: not yet implemented", err=True)
         sys.exit(EXIT_ERROR)
-    sys.exit(_guarded(lambda: int(entry(list(run_dirs)))))
+    sys.exit(_guarded(lambda: int(entry(list(run_dirs), out_md))))
 
 
 @cli.group()

@@ -158,11 +158,16 @@ def test_show_not_a_run_dir_exit_2(tmp_path):
     assert "record.json" in proc.stderr
 
 
-def test_report_not_yet_implemented_exit_2(tmp_path):
-    result = invoke("report", tmp_path)
-    if "not yet implemented" not in result.stderr:
-        pytest.skip("bench/report.py provides `report` now")
-    assert result.exit_code == 2
+def test_report_of_a_run_and_of_a_bad_dir(tmp_path, fake_rig):
+    scenario = write_case(tmp_path)
+    assert invoke("run", scenario, "--out", tmp_path / "runs", "--rerun", "off").exit_code == 0
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    out = tmp_path / "report" / "validation.md"
+    result = invoke("report", run_dir, "--out", out)
+    assert result.exit_code == 0, result.stderr
+    assert out.exists() and "speed steady" in out.read_text()
+    proc = drivebench("report", tmp_path / "nope", "--out", tmp_path / "r.md")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
 
 
 def test_list_shows_scenarios():
@@ -222,5 +227,6 @@ def test_connect_url_after_connect_and_unreachable_viewer_falls_back(tmp_path, f
     assert "no viewer answers at rerun+http://127.0.0.1:9/proxy" in result.stderr
     (run_dir,) = (tmp_path / "runs").iterdir()
     record = json.loads((run_dir / "record.json").read_text())
-    assert record["rerun"] == {"mode": "connect", "url": "rerun+http://127.0.0.1:9/proxy", "sinks": ["file"]}
+    assert record["rerun"] == {"mode": "connect", "url": "rerun+http://127.0.0.1:9/proxy", "sinks": ["file"],
+                               "rate_hz": 2000.0}
     assert (run_dir / "run.rrd").stat().st_size > 0
