@@ -39,7 +39,12 @@ def rss_mib() -> float:
         return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
-def python_baseline_rtf(sim_seconds: float = 0.2) -> float:
+def python_baseline_rtf(sim_seconds: float = 0.1, repeats: int = 5) -> float:
+    """Best of `repeats` runs (the machine is shared)."""
+    return max(_python_baseline_once(sim_seconds) for _ in range(repeats))
+
+
+def _python_baseline_once(sim_seconds: float) -> float:
     rs, ls, psi, p, j, b, T = 3.58356, 0.02, 0.2592772, 3, 1e-3, 2e-4, 1e-4
     i_d = i_q = w = 0.0
     int_d = int_q = int_w = 0.0
@@ -120,8 +125,12 @@ def cold_compile_seconds(config: Path) -> float:
     return float(out.stdout.strip().splitlines()[-1])
 
 
-def _sweep_worker(args: tuple[int, int, float]) -> float:
-    """Step a group of PMSM drives with different parameters together, block by block; return sim seconds."""
+def _sweep_worker(args: tuple[int, int, float]) -> tuple[float, float, float]:
+    """Step a group of PMSM drives with different parameters together, block by block.
+
+    Returns (simulated seconds, start, end) on the system-wide monotonic clock; building the drives is
+    not timed.
+    """
     worker, count, sim_seconds = args
     rng = np.random.default_rng(worker)
     drives = []
@@ -132,12 +141,14 @@ def _sweep_worker(args: tuple[int, int, float]) -> float:
         drive.set_load(LOAD_TORQUE, float(rng.uniform(0.0, 3.0)))
         drive.set_enabled(True)
         drive.set_speed_ref(float(rng.uniform(-150.0, 150.0)))
+        drive.step(1)
         drives.append(drive)
     blocks = max(1, int(round(sim_seconds / (BLOCK * 1e-4))))
+    start = time.perf_counter()
     for _ in range(blocks):
         for drive in drives:
             drive.step(BLOCK)
-    return count * blocks * BLOCK * 1e-4
+    return count * blocks * BLOCK * 1e-4, start, time.perf_counter()
 
 
 def _warm(_: int) -> None:
@@ -145,12 +156,13 @@ def _warm(_: int) -> None:
 
 
 def sweep_rtf(n_drives: int, sim_seconds: float, processes: int = 2) -> float:
+    """Aggregate simulated seconds per wall second from the first worker's start to the last one's end."""
     per = [n_drives // processes + (1 if i < n_drives % processes else 0) for i in range(processes)]
     with mp.get_context("fork").Pool(processes) as pool:
         pool.map(_warm, range(processes))  # cache load outside the timed part
-        t0 = time.perf_counter()
-        simulated = sum(pool.map(_sweep_worker, [(i, per[i], sim_seconds) for i in range(processes)]))
-        wall = time.perf_counter() - t0
+        results = pool.map(_sweep_worker, [(i, per[i], sim_seconds) for i in range(processes)])
+    simulated = sum(r[0] for r in results)
+    wall = max(r[2] for r in results) - min(r[1] for r in results)
     return simulated / wall
 
 
@@ -185,7 +197,7 @@ def main() -> None:
     else:
         print("SPIM drive: config/motors/spim-paper.toml missing")
 
-    sweep = sweep_rtf(args.drives, args.seconds / 2)
+    sweep = sweep_rtf(args.drives, args.seconds)
     print(f"sweep: {args.drives} PMSM drives (different Rs, J, load, speed) on 2 processes: {sweep:8.1f} x real time "
           f"aggregate (whole run, not best block) = {sweep / pmsm_median:4.2f} x one drive's median")
     print(f"RESULT pmsm_rtf={pmsm:.0f} spim_rtf={spim:.0f} sweep_rtf={sweep:.0f} baseline_rtf={baseline:.1f} "
