@@ -175,6 +175,7 @@ class SimCanopenNode:
         self._was_fault = False
         self.rpdo_length_errors = 0
         self.network.subscribe(0x80, self._on_sync)
+        self.steps_per_sync = self._read_steps_per_sync()
         self._rebuild_pdos()
         self.network.connect()
         self.network.notifier.add_listener(_ErrorLogger())
@@ -182,8 +183,7 @@ class SimCanopenNode:
         self.node.nmt.send_command(0x80)
 
     # -- drive clock ---------------------------------------------------------------------------------
-    @property
-    def steps_per_sync(self) -> int:
+    def _read_steps_per_sync(self) -> int:
         period_us = self._raw(0x1006, 0)
         return max(1, round(period_us * 1e-6 / self.device.model.control_period_s))
 
@@ -260,6 +260,8 @@ class SimCanopenNode:
             self._pdo_dirty = True
 
     def _after_write(self, index: int, subindex: int) -> None:
+        if index == 0x1006:
+            self.steps_per_sync = self._read_steps_per_sync()
         if self._pdo_dirty and 0x1400 <= index < 0x1C00:
             self._rebuild_pdos()
 
