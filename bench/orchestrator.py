@@ -120,8 +120,12 @@ class _SigtermAsInterrupt:
 
     def __enter__(self):
         self._previous = None
+        self._fired = False
         if threading.current_thread() is threading.main_thread():
             def handler(signum, frame):
+                if self._fired:   # already stopping: let the safe stop and the record finish
+                    return
+                self._fired = True
                 raise Interrupted("terminated (SIGTERM)")
             self._previous = signal.signal(signal.SIGTERM, handler)
         return self
@@ -213,9 +217,13 @@ class _Run:
         self.supervisor = Supervisor(scenario.limits)
         self.sync_period_s = float(cfg["drive"]["sync_period_s"])
         self.data_source = "trace" if identity.has_trace_recorder else "pdo"
-        self.rerun = RerunStream(rerun_mode, recorder.run_dir / "run.rrd", url=rerun_url,
-                                 recording_name=recorder.run_dir.name,
-                                 **({"warn": warn} if warn is not None else {}))
+        try:
+            self.rerun = RerunStream(rerun_mode, recorder.run_dir / "run.rrd", url=rerun_url,
+                                     recording_name=recorder.run_dir.name,
+                                     **({"warn": warn} if warn is not None else {}))
+        except Exception as exc:  # no view is better than no run
+            (warn or print)(f"rerun: cannot open the stream ({type(exc).__name__}: {exc}); no run.rrd")
+            self.rerun = RerunStream("off", None)
         recorder.set_drive(asdict(identity))
         recorder.note("load_machine", load_name)
         recorder.note("bench", {"name": cfg["bench"]["name"], "path": cfg["_path"], "timing": cfg["bench"]["timing"]})
