@@ -119,3 +119,19 @@ def test_closed_loop_no_load_steady_state():
     assert tail[:, COL["u_sx_v"]].mean() == pytest.approx(-w_e * LS * i_sy, rel=0.02)
     assert abs(tail[:, COL["pos_err_elec_rad"]]).max() < 2e-4
     assert tail[:, COL["flux_est_wb"]].mean() == pytest.approx(PSI, rel=1e-4)
+
+
+def test_noise_free_drive_is_mirror_symmetric():
+    """Reflecting beta (speed, load torque and angle error change sign) mirrors every trajectory."""
+    def run(sign: float) -> np.ndarray:
+        drive = make_drive(CONFIG, seed=0, noise=False)
+        drive.set_load(0, sign * 1.0)
+        drive.set_hook("pos_est_offset_rad", sign * 0.7)
+        drive.set_enabled(True)
+        drive.set_speed_ref(sign * 15.0)
+        return drive.step(5000)
+    plus, minus = run(1.0), run(-1.0)
+    for name in ("speed_true_mech_rad_s", "speed_est_mech_rad_s", "pos_err_elec_rad", "i_sy_a", "u_sy_v"):
+        assert np.allclose(plus[:, COL[name]], -minus[:, COL[name]], rtol=1e-9, atol=1e-9), name
+    for name in ("flux_est_wb", "i_sx_a", "u_sx_v"):
+        assert np.allclose(plus[:, COL[name]], minus[:, COL[name]], rtol=1e-9, atol=1e-9), name
