@@ -230,3 +230,27 @@ def test_connect_url_after_connect_and_unreachable_viewer_falls_back(tmp_path, f
     assert record["rerun"] == {"mode": "connect", "url": "rerun+http://127.0.0.1:9/proxy", "sinks": ["file"],
                                "rate_hz": 2000.0}
     assert (run_dir / "run.rrd").stat().st_size > 0
+
+
+def test_show_a_sigkilled_run_recovers_its_samples(tmp_path):
+    import signal
+    import time
+
+    scenario = write_case(tmp_path, duration=60.0)
+    out = tmp_path / "runs"
+    child = subprocess.Popen(
+        [sys.executable, "-c", SIGTERM_CHILD, "run", str(scenario), "--out", str(out), "--rerun", "off"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
+    deadline = time.monotonic() + 60
+    journal = []
+    while time.monotonic() < deadline and not (journal and journal[0].stat().st_size > 100_000):
+        time.sleep(0.05)
+        journal = list(out.glob("*/telemetry.arrows"))
+    child.send_signal(signal.SIGKILL)
+    child.wait(timeout=30)
+    proc = drivebench("show", journal[0].parent)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    assert "incomplete run" in proc.stdout
+    recovered = int(proc.stdout.split("; ")[1].split()[0])
+    assert recovered > 1000
