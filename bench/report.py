@@ -48,8 +48,6 @@ SUITE_DEVIATIONS: tuple[str, ...] = (
     "papers' 1 % accuracy figure.",
     "The PMSM flux-recovery claim is judged on window averages (the per-sample estimate at 6 elec rad/s carries "
     "~6.6 % rms noise from the 5 mA current noise; the criteria have no filter).",
-    "Starting steps are at 0.01 s, not 0: a reference set at t = 0 is sent before the drive is enabled and the "
-    "CANopen link's enable resets the target to zero, so the orchestrator never sends it again (bench issue).",
 )
 
 KIND_UNITS = {
@@ -59,9 +57,11 @@ KIND_UNITS = {
 }
 SIGNAL_UNITS = (("_rad_s", "rad/s"), ("_rad", "rad"), ("_wb", "Wb"), ("_a", "A"), ("_nm", "N·m"), ("_v", "V"))
 
+SPEED_ERROR = "speed_est_minus_true_mech_rad_s"   # derived for the plot (the papers' Figs. 6(c), 7c)
 PLOT_PANELS: tuple[tuple[str, str, tuple[tuple[str, str], ...]], ...] = (
     ("speed", "rad/s (mech)", (("speed_ref_mech_rad_s", "reference"), ("speed_est_mech_rad_s", "estimated"),
                                ("speed_true_mech_rad_s", "true"))),
+    ("speed estimate error", "rad/s (mech)", ((SPEED_ERROR, "estimated − true"),)),
     ("position error", "rad (elec)", (("pos_err_elec_rad", "true − estimated"),)),
     ("flux", "Wb", (("flux_est_wb", "estimated"), ("flux_true_wb", "true"))),
     ("currents", "A", (("i_sx_a", "i_sx"), ("i_sy_a", "i_sy"))),
@@ -194,20 +194,23 @@ def write_plot(run: Run, path: Path) -> Path | None:
     matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
-    t = np.asarray(run.columns.get("t_s", np.zeros(0)), dtype=float)
+    columns = dict(run.columns)
+    if "speed_est_mech_rad_s" in columns and "speed_true_mech_rad_s" in columns:
+        columns[SPEED_ERROR] = np.asarray(columns["speed_est_mech_rad_s"], float) - columns["speed_true_mech_rad_s"]
+    t = np.asarray(columns.get("t_s", np.zeros(0)), dtype=float)
     if len(t) < 2:
         return None
     dt = float(np.median(np.diff(t))) if len(t) > 1 else 1e-4
     n_avg = max(1, int(round(SMOOTH_S / dt))) if dt > 0 else 1
     stride = max(1, len(t) // PLOT_POINTS)
-    panels = [p for p in PLOT_PANELS if any(s in run.columns and np.isfinite(run.columns[s]).any() for s, _ in p[2])]
+    panels = [p for p in PLOT_PANELS if any(s in columns and np.isfinite(columns[s]).any() for s, _ in p[2])]
     fig = Figure(figsize=(9, 1.9 * len(panels) + 0.6))
     axes = fig.subplots(len(panels), 1, sharex=True, squeeze=False)[:, 0]
     for ax, (title, unit, signals) in zip(axes, panels):
         for signal, label in signals:
-            if signal not in run.columns:
+            if signal not in columns:
                 continue
-            y = np.asarray(run.columns[signal], dtype=float)
+            y = np.asarray(columns[signal], dtype=float)
             if not np.isfinite(y).any():
                 continue
             smooth = _moving_average(y, n_avg)
@@ -303,6 +306,8 @@ def write_report(run_dirs: Sequence[Path], out_md: Path = Path("docs/validation.
         "Each test is a criterion of a scenario file (`scenarios/pmsm`, `scenarios/spim`); its claim column "
         "gives the limit, the window and the basis written in the scenario file. A **known gap** keeps the "
         "paper's limit and fails without failing the run (tests/known_gaps.toml lists them).",
+        "Regenerate: `pytest tests/test_acceptance_suite.py -n 2 --drivebench-out runs/acceptance` then "
+        "`drivebench report runs/acceptance/*`.",
         "",
     ]
     counts = {"pass": 0, "known gap": 0, "**FAIL**": 0}
