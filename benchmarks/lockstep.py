@@ -32,6 +32,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from drivers.api import LinkError  # noqa: E402
 from drivers.canopen_link import CanopenDriveLink, frame_bits  # noqa: E402
 from sim_backend.device import SimulatedDevice  # noqa: E402
 from sim_backend.drive import make_drive  # noqa: E402
@@ -248,11 +249,16 @@ def main() -> int:
     if args.skip_realtime:
         live_lost, bus = "na", "na"
     else:
-        rt = realtime(args.duration)
-        print(f"realtime 1 kHz: {rt['samples']} samples for {rt['syncs']} SYNCs ({rt['rate_hz']:.0f} Hz), "
-              f"lost {rt['lost']}, repeated {rt['repeated']}; live encoding {rt['encoding']}, "
-              f"planned load {rt['live_load_pct']:.1f} %, bus load from frame bits at 1 kHz {rt['bus_load_pct']:.1f} % "
-              f"(over the achieved rate: {rt['wall_load_pct']:.1f} %)")
+        try:
+            rt = realtime(args.duration)
+        except LinkError as exc:
+            print(f"realtime 1 kHz: failed: {exc}")
+            rt = {"lost": "failed", "bus_load_pct": float("nan")}
+        if rt["lost"] != "failed":
+            print(f"realtime 1 kHz: {rt['samples']} samples for {rt['syncs']} SYNCs ({rt['rate_hz']:.0f} Hz), "
+                  f"lost {rt['lost']}, repeated {rt['repeated']}; live encoding {rt['encoding']}, planned load "
+                  f"{rt['live_load_pct']:.1f} %, bus load from frame bits at 1 kHz {rt['bus_load_pct']:.1f} % "
+                  f"(over the achieved rate: {rt['wall_load_pct']:.1f} %)")
         live_lost, bus = rt["lost"], f"{rt['bus_load_pct']:.1f}"
     stock_rtf = f"{stock['rtf']:.1f}" if stock is not None else "na"
     print(f"RESULT lockstep_rtf={rtf:.1f} link_rtf={link['rtf']:.1f} orch_all_signals_rtf={stock_rtf} "

@@ -138,6 +138,7 @@ class CanopenDriveLink:
         self.frames_sent = 0
         self.live_bus_load_pct = 0.0
         self.live_encoding = "real32"
+        self._rx_lag_s = 0.0
 
     # -- connection ----------------------------------------------------------------------------------
     def open(self) -> DriveIdentity:
@@ -353,6 +354,9 @@ class CanopenDriveLink:
                 self._lock.notify_all()
             return
         values = layout.unpack(data)
+        now = time.time()
+        if abs(now - timestamp) < 3600.0:       # interfaces stamping with the epoch clock: receive backlog
+            self._rx_lag_s = now - timestamp
         with self._lock:
             if position == 0:
                 self._partial = {}
@@ -380,7 +384,10 @@ class CanopenDriveLink:
             errors, self._errors = self._errors, []
             raise LinkError(f"node {self.node_id}: " + "; ".join(errors))
         if not self._heartbeat_ok():
-            raise LinkError(f"node {self.node_id}: no heartbeat for more than {self.heartbeat_timeout_s} s")
+            lag = self._rx_lag_s
+            behind = (f"; frames reach the link {lag:.1f} s after they were sent (this process is not keeping up)"
+                      if lag > 0.5 * self.heartbeat_timeout_s else "")
+            raise LinkError(f"node {self.node_id}: no heartbeat for more than {self.heartbeat_timeout_s} s{behind}")
 
     def _heartbeat_ok(self) -> bool:
         return time.monotonic() - self._last_heartbeat <= self.heartbeat_timeout_s
