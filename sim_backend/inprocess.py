@@ -65,4 +65,7 @@ def start(bench_cfg: dict, seed: int) -> Iterator[dict]:
     device = SimulatedDevice(make_model(bench_cfg, seed))
     drive = bench_cfg["drive"]
     with start_device(device, drive["eds"], int(drive.get("node_id", 1))) as (overrides, _node):
+        # the link reads these from its [drive] section; the bench keeps them in [bench]
+        bench = bench_cfg.get("bench", {})
+        overrides["drive"].update({k: bench[k] for k in ("timing", "fault_reset") if k in bench})
         yield overrides

@@ -239,6 +239,7 @@ def test_inprocess_service_opens_private_endpoints():
     cfg = load_bench_config(REPO / "config/benches/sim-pmsm.toml")
     with start(cfg, seed=3) as first, start(cfg, seed=3) as second:
         assert first["drive"]["channel"] != second["drive"]["channel"]      # parallel runs never cross-talk
+        assert (first["drive"]["timing"], first["drive"]["fault_reset"]) == ("lockstep", "once")
         link = CanopenDriveLink(dict(cfg["drive"], **first["drive"], sync_period_s=0.01), REPO)
         try:
             assert link.open().product_code == 0x04020001
