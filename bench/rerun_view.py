@@ -49,6 +49,17 @@ def viewer_reachable(url: str, timeout_s: float = 1.0) -> bool:
         return False
 
 
+def viewer_executable() -> str | None:
+    """The `rerun` viewer: on PATH, else next to this Python (a venv used without activating it)."""
+    import shutil
+
+    found = shutil.which("rerun")
+    if found:
+        return found
+    beside = Path(sys.executable).parent / "rerun"
+    return str(beside) if beside.exists() else None
+
+
 def display_available() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
@@ -113,8 +124,11 @@ class RerunStream:
                 warn("rerun: no display (DISPLAY/WAYLAND_DISPLAY unset); not spawning a viewer, saving run.rrd only")
             else:
                 try:
-                    self._rec.spawn(connect=False, detach_process=True)
-                    sinks.append(rr.GrpcSink())
+                    rr.spawn(connect=False, detach_process=True, executable_path=viewer_executable(),
+                             recording=self._rec)
+                    if not viewer_reachable(DEFAULT_VIEWER_URL):
+                        raise RuntimeError("the viewer did not start (no X/Wayland connection?)")
+                    sinks.append(rr.GrpcSink(DEFAULT_VIEWER_URL))
                     self.sinks.append("viewer")
                 except Exception as exc:  # the viewer binary or its window may be missing
                     warn(f"rerun: could not spawn the viewer ({exc}); saving run.rrd only")

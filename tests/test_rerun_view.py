@@ -99,7 +99,10 @@ def test_spawn_failure_falls_back(tmp_path, monkeypatch):
     import rerun as rr
 
     monkeypatch.setenv("DISPLAY", ":99")
-    monkeypatch.setattr(rr.RecordingStream, "spawn", lambda self, **kw: (_ for _ in ()).throw(RuntimeError("no rerun binary")))
+    def no_viewer(**kwargs):
+        raise RuntimeError("no rerun binary")
+
+    monkeypatch.setattr(rr, "spawn", no_viewer)
     said = []
     stream = RerunStream("spawn", tmp_path / "run.rrd", warn=said.append)
     stream.close()
