@@ -42,6 +42,9 @@ def main() -> int:
             print(line.strip())
     summary = next((line for line in reversed(proc.stdout.splitlines()) if " in " in line and "passed" in line
                     or "failed" in line), "")
+    if proc.returncode != 0:
+        for line in [ln for ln in proc.stdout.splitlines() if ln.startswith(("E ", "FAILED", "ERROR"))][:30]:
+            print(line)
     print(summary.strip("= "))
     passed = int(m.group(1)) if (m := re.search(r"(\d+) passed", summary)) else 0
     failed = int(m.group(1)) if (m := re.search(r"(\d+) failed", summary)) else 0

@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from bench.scenario import load_scenario
+from drivers.api import LinkError
 
 ROOT = Path(__file__).resolve().parents[1]
 KNOWN_GAPS_FILE = ROOT / "tests" / "known_gaps.toml"
@@ -60,13 +61,24 @@ def test_known_gap_list_matches_the_scenario_files():
 
 
 def _run(drivebench, path: Path):
-    result = drivebench.run(path, rerun_mode="off")
-    if result.verdict == "error" and (result.error or "").startswith("link error"):
-        # The in-process CAN/Modbus links run on wall-clock timeouts; on an overloaded machine a heartbeat or
-        # an SDO block can miss one. That says nothing about the drive: run once more, loudly.
-        warnings.warn(f"{rel(path)}: {result.error}; running it again")
-        result = drivebench.run(path, rerun_mode="off")
-    return result
+    """Run once; on a link failure (not a verdict on the drive) once more, with a warning.
+
+    The in-process CAN/Modbus links run on wall-clock timeouts: on an overloaded machine a heartbeat or an
+    SDO block can miss one, at connect (LinkError) or during the run (verdict "error", "link error: ...").
+    """
+    for attempt in (1, 2):
+        try:
+            result = drivebench.run(path, rerun_mode="off")
+        except LinkError as exc:
+            if attempt == 2:
+                raise
+            warnings.warn(f"{rel(path)}: cannot connect: {exc}; trying again")
+            continue
+        if attempt == 1 and result.verdict == "error" and (result.error or "").startswith("link error"):
+            warnings.warn(f"{rel(path)}: {result.error}; running it again")
+            continue
+        return result
+    raise AssertionError("unreachable")
 
 
 @pytest.mark.parametrize("path", SCENARIOS, ids=lambda p: f"{p.parent.name}/{p.stem}")
