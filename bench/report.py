@@ -274,6 +274,11 @@ def _rel(path: Path, start: Path) -> str:
         return Path(os.path.relpath(Path(path).resolve(), start.resolve())).as_posix()
 
 
+def _anchor(heading: str) -> str:
+    """GitHub-style anchor of a '### heading'."""
+    return re.sub(r"[^a-z0-9 _-]", "", heading.lower()).replace(" ", "-")
+
+
 def _safe_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "-", name).strip("-.") or "run"
 
@@ -324,7 +329,12 @@ def write_report(run_dirs: Sequence[Path], out_md: Path = Path("docs/validation.
         group = [r for r in runs if r.paper == paper]
         if not group:
             continue
-        lines += [f"## {PAPERS[paper]}", ""]
+        lines += [f"## {PAPERS[paper]}", "", "| scenario | verdict | pass | known gap | fail |", "|---|---|---|---|---|"]
+        for r in group:
+            verdicts = [verdict_of(c) for c in r.record.get("criteria") or []]
+            lines.append(f"| [{r.name}](#{_anchor(r.name)}) | {r.record.get('verdict')} | {verdicts.count('pass')} "
+                         f"| {verdicts.count('known gap')} | {verdicts.count('**FAIL**')} |")
+        lines.append("")
         for r in group:
             lines += _run_section(r, out_md, plot_dir)
         gaps = [(r, c) for r in group for c in r.record.get("criteria") or [] if not c.get("passed") and c.get("known_gap")]

@@ -117,6 +117,8 @@ def test_report_tables_plots_and_gaps(tmp_path):
     assert bad_rows["i_sy below 3 A"][3] == "pass"           # 2.5 A: the gap is closed in this run
     assert "verdict **fail**" in md and "verdict **pass**" in md
     assert "Criteria: 3 pass, 1 known gap(s), 2 fail." in md
+    assert "| [pmsm-good](#pmsm-good) | pass | 2 | 1 | 0 |" in md
+    assert "| [spim-bad](#spim-bad) | fail | 1 | 0 | 2 |" in md
 
     # known-gap list with the measured value, plots beside the report, deviations section
     assert "- pmsm-good: *i_sy below 3 A* — measured 1.53 A, limit 1.5 A: no pulley friction" in md
