@@ -67,8 +67,6 @@ PLOT_PANELS: tuple[tuple[str, str, tuple[tuple[str, str], ...]], ...] = (
     ("currents", "A", (("i_sx_a", "i_sx"), ("i_sy_a", "i_sy"))),
     ("load", "N·m", (("torque_load_nm", "load torque"),)),
 )
-# a sentence ends at ". " before a capital, but not after "Eq.", "eqs.", "Fig.", "e.g." or "i.e."
-FIRST_SENTENCE_END = re.compile(r"(?<![Ee]q\.)(?<!eqs\.)(?<!Fig\.)(?<!e\.g\.)(?<!i\.e\.)(?<=[.!?])\s+(?=[A-Z])")
 SMOOTH_S = 0.01          # the plots draw a 10 ms moving average over the raw (light) trace
 PLOT_POINTS = 4000
 
@@ -235,17 +233,13 @@ LIST_ITEM = re.compile(r"^\s*(?:\d+\.|[-*])\s+(.*?)(?=^\s*(?:\d+\.|[-*])\s+|\Z)"
 CHOSEN_INTRO = re.compile(r"^(?:where the paper is silent|.*\bchosen:\s*$)", re.I | re.M)
 
 
-def _first_sentences(list_text: str) -> list[str]:
-    items = []
-    for m in LIST_ITEM.finditer(list_text):
-        item = " ".join(m.group(1).split())
-        items.append(FIRST_SENTENCE_END.split(item, maxsplit=1)[0])
-    return items
+def _items(list_text: str) -> list[str]:
+    return [" ".join(m.group(1).split()) for m in LIST_ITEM.finditer(list_text)]
 
 
 def firmware_deviations(docs_dir: Path) -> list[tuple[str, list[str]]]:
     """(doc file, items) from docs/firmware*.md: every list item of a section whose heading says
-    'deviation', and of a list introduced by "Where the paper is silent, chosen:"; first sentence of each."""
+    'deviation', and of a list introduced by "Where the paper is silent, chosen:", whole (with the reasons)."""
     out = []
     for doc in sorted(docs_dir.glob("firmware*.md")):
         text = doc.read_text(encoding="utf-8")
@@ -253,12 +247,12 @@ def firmware_deviations(docs_dir: Path) -> list[tuple[str, list[str]]]:
         for section in re.split(r"^#+ ", text, flags=re.M):
             heading, _, body = section.partition("\n")
             if "deviation" in heading.lower():
-                items += _first_sentences(body)
+                items += _items(body)
                 continue
             for intro in CHOSEN_INTRO.finditer(body):
                 rest = body[intro.end():]
                 block = re.split(r"\n\s*\n", rest.lstrip("\n"), maxsplit=1)[0]   # the list: up to a blank line
-                items += _first_sentences(block)
+                items += _items(block)
         if items:
             out.append((doc.name, items))
     return out

@@ -153,8 +153,8 @@ def test_criteria_comments_and_firmware_deviations(tmp_path):
     (tmp_path / "firmware-x.md").write_text(
         "# X\n\n## Deviations from the paper, and why\n1. **Gain.** Eq. (10) says so. More text.\n"
         "2. **Inverter**: a doubler. Because.\n\n## Measured\n- not a deviation\n")
-    assert firmware_deviations(tmp_path) == [("firmware-x.md", ["**Gain.** Eq. (10) says so.",
-                                                                 "**Inverter**: a doubler."])]
+    assert firmware_deviations(tmp_path) == [("firmware-x.md", ["**Gain.** Eq. (10) says so. More text.",
+                                                                 "**Inverter**: a doubler. Because."])]
 
 
 @pytest.mark.parametrize("doc", sorted((ROOT / "docs").glob("firmware*.md")), ids=lambda p: p.name)
