@@ -90,8 +90,8 @@ class _Client:
             if command is None or command.strip("<> ") != "rawmode":
                 self._send_text("< error expected rawmode >")
                 return
-            self.bus = can.Bus(interface="virtual", channel=self.server.channel, receive_own_messages=False,
-                               preserve_timestamps=False)
+            from sim_backend.canopen_node import FastVirtualBus
+            self.bus = FastVirtualBus(channel=self.server.channel, receive_own_messages=False)
             self._send_text("< ok >")
             forwarder = threading.Thread(target=self._forward, name=f"socketcand-fwd-{self.addr[1]}", daemon=True)
             forwarder.start()
