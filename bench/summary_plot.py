@@ -57,5 +57,5 @@ def write_summary_png(path: Path, t_s: np.ndarray, columns: Mapping[str, np.ndar
     if title:
         fig.suptitle(title)
     path = Path(path)
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=100, pil_kwargs={"compress_level": 1})  # fast zlib: the plot is written every run
     return path
