@@ -11,7 +11,6 @@ import math
 import os
 import re
 import sys
-import time
 import tomllib
 import traceback
 from pathlib import Path
