@@ -21,6 +21,7 @@ import numpy as np
 from bench.errors import InputError
 from bench.records import load_run
 
+REPO_ROOT = Path(__file__).resolve().parents[1]
 PAPERS: dict[str, str] = {
     "pmsm": "PMSM — Rashed, MacConnell, Stronach, Acarnley: sensorless IRFOC with MRAS speed and flux "
             "estimators (`/work/shared/papers/pmsm-mras-irfoc.md`)",
@@ -340,7 +341,7 @@ def write_report(run_dirs: Sequence[Path], out_md: Path = Path("docs/validation.
             lines.append("")
 
     lines += ["## Deviations from the papers", "", "### In the simulated drives", ""]
-    docs_dir = out_md.parent if (out_md.parent / "firmware.md").exists() else Path("docs")
+    docs_dir = out_md.parent if any(out_md.parent.glob("firmware*.md")) else REPO_ROOT / "docs"
     found = firmware_deviations(docs_dir)
     if not found:
         lines.append("- (no `docs/firmware*.md` with a deviations section found)")
