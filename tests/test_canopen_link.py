@@ -248,3 +248,14 @@ def test_inprocess_service_opens_private_endpoints():
         finally:
             link.close()
         socket.create_connection(("127.0.0.1", first["load"]["port"]), timeout=5).close()
+
+
+def test_block_upload_that_stalls_times_out_with_a_clear_error():
+    with rig(sdo_timeout_s=0.3) as r:
+        r.link.configure(LIVE, TRACE, 1)
+        r.link.sync()
+        r.node.node.sdo._send_block = lambda: None          # the server goes quiet after "start upload"
+        started = time.monotonic()
+        with pytest.raises(LinkError, match=r"block upload of 0x2101:00: block segments stopped arriving"):
+            r.link.fetch_trace()
+        assert time.monotonic() - started < 2.0
