@@ -50,6 +50,7 @@ N_TPDO_MAX = 8
 TPDO_COB = (0x180, 0x280, 0x380, 0x480, 0x1C0, 0x2C0, 0x3C0, 0x4C0)
 SCALED_PREFIX = "scaled_"   # the EDS's INTEGER16 copy of a signal, value = raw * Factor
 BUS_BUDGET_PCT = 80.0
+MIN_STALL_TIMEOUT_S = 2.0
 REALTIME_BATCH_S = 0.01     # real time: sync() hands over samples in batches of at most this period
 BLOCK_SIZE = 127            # segments per SDO block       # live PDOs + SYNC may use at most this much of the bus
 
@@ -109,6 +110,9 @@ class CanopenDriveLink:
         self.heartbeat_timeout_s = float(section.get("heartbeat_timeout_s", 0.5))
         self.sdo_timeout_s = float(section.get("sdo_timeout_s", 0.5))
         self.timing = section.get("timing", "lockstep")
+        # Waits the drive's SDO timeout does not cover: a lockstep SYNC's TPDOs and the frames inside a running
+        # block transfer. Generous, because a simulator on a loaded host can stall for a few hundred ms.
+        self.stall_timeout_s = max(MIN_STALL_TIMEOUT_S, self.sdo_timeout_s, 10 * self.sync_period_s)
         self.fault_reset_policy = section.get("fault_reset", "once")
         if self.timing not in ("lockstep", "realtime"):
             raise ValueError(f"drive.timing: must be 'lockstep' or 'realtime', got {self.timing!r}")
@@ -417,7 +421,7 @@ class CanopenDriveLink:
                 return samples
             target = self._completed + 1
         self._send(0x80, b"")
-        deadline = time.monotonic() + max(self.sdo_timeout_s, 10 * self.sync_period_s)
+        deadline = time.monotonic() + self.stall_timeout_s
         with self._lock:
             while self._completed < target:
                 remaining = deadline - time.monotonic()
@@ -426,8 +430,7 @@ class CanopenDriveLink:
                 self._lock.wait(remaining)
             if self._completed < target:
                 self._check_health()
-                raise LinkError(f"node {self.node_id}: no TPDOs for SYNC within "
-                                f"{max(self.sdo_timeout_s, 10 * self.sync_period_s):g} s")
+                raise LinkError(f"node {self.node_id}: no TPDOs for SYNC within {self.stall_timeout_s:g} s")
             self._check_health()
             samples = list(self._samples)
             self._samples.clear()
@@ -582,7 +585,7 @@ class CanopenDriveLink:
         saved = self.network.subscribers.get(rx, [])
         self.network.subscribers[rx] = [collector.on_frame]
         where = f"node {self.node_id}: block upload of 0x{index:04X}:{subindex:02X}"
-        timeout = self.sdo_timeout_s
+        timeout = self.stall_timeout_s
 
         def request(data: bytes) -> None:
             self._send(0x600 + self.node_id, data.ljust(8, b"\0"))

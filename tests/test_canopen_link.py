@@ -149,13 +149,13 @@ def test_unknown_sdo_index_is_a_clear_link_error():
 
 
 def test_sync_without_answer_times_out():
-    with rig(sdo_timeout_s=0.3) as r:
+    with rig(sdo_timeout_s=0.3, heartbeat_timeout_s=30.0) as r:
         r.link.configure(LIVE, TRACE, 1)
         r.node.stop()
         started = time.monotonic()
-        with pytest.raises(LinkError, match="no TPDOs for SYNC within 0.3 s"):
+        with pytest.raises(LinkError, match="no TPDOs for SYNC within 2 s"):
             r.link.sync()
-        assert time.monotonic() - started < 2.0
+        assert 2.0 <= time.monotonic() - started < 4.0
 
 
 def test_sdo_timeout_names_the_object():
@@ -258,4 +258,4 @@ def test_block_upload_that_stalls_times_out_with_a_clear_error():
         started = time.monotonic()
         with pytest.raises(LinkError, match=r"block upload of 0x2101:00: block segments stopped arriving"):
             r.link.fetch_trace()
-        assert time.monotonic() - started < 2.0
+        assert time.monotonic() - started < 4.0
