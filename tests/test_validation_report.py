@@ -121,7 +121,8 @@ def test_report_tables_plots_and_gaps(tmp_path):
     assert "| [spim-bad](#spim-bad) | fail | 1 | 0 | 2 |" in md
 
     # known-gap list with the measured value, plots beside the report, deviations section
-    assert "- pmsm-good: *i_sy below 3 A* — measured 1.53 A, limit 1.5 A: no pulley friction" in md
+    assert ("- pmsm-good: *i_sy below 3 A* — measured 1.53 A (mean +3.03, expected +1.5), limit 1.5 A. "
+            "Why: no pulley friction") in md
     for name in ("pmsm-good", "spim-bad"):
         png = tmp_path / "docs" / "validation" / f"{name}.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
