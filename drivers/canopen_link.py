@@ -247,6 +247,7 @@ class CanopenDriveLink:
         maps = [[(idx, 0) for idx in tpdo1]] + [[(od[obj].index, od[obj].subindex) for obj, _, _ in g]
                                                 for g in groups]
 
+        self._stop_sync_producer()
         self.node.nmt.state = "PRE-OPERATIONAL"
         if 0x1006 in od:
             self._sdo_write(0x1006, 0, round(self.sync_period_s * 1e6))
@@ -444,6 +445,7 @@ class CanopenDriveLink:
             raise LinkError(f"CAN send of 0x{cob:03X} failed: {exc}") from None
 
     def _start_sync_producer(self) -> None:
+        self._stop_sync_producer()
         self._sync_stop.clear()
         self._sync_thread = threading.Thread(target=self._sync_producer, name="drivebench-sync", daemon=True)
         self._sync_thread.start()
