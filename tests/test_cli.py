@@ -33,7 +33,7 @@ def fake_rig(monkeypatch):
 
 
 def invoke(*args):
-    return CliRunner().invoke(cli, list(map(str, args)), catch_exceptions=False)
+    return CliRunner().invoke(cli, list(map(str, args)), catch_exceptions=False, env={"COLUMNS": "200"})
 
 
 def drivebench(*args, cwd=REPO):
@@ -243,10 +243,12 @@ def test_show_a_sigkilled_run_recovers_its_samples(tmp_path):
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)},
     )
     deadline = time.monotonic() + 60
-    journal = []
-    while time.monotonic() < deadline and not (journal and journal[0].stat().st_size > 100_000):
+    journal, sizes = [], set()
+    while time.monotonic() < deadline and len(sizes) < 3:  # 3 sizes seen: at least one batch written whole
         time.sleep(0.05)
         journal = list(out.glob("*/telemetry.arrows"))
+        if journal and journal[0].stat().st_size:
+            sizes.add(journal[0].stat().st_size)
     child.send_signal(signal.SIGKILL)
     child.wait(timeout=30)
     proc = drivebench("show", journal[0].parent)
