@@ -15,6 +15,7 @@ import binascii
 import logging
 import queue
 import struct
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -182,8 +183,13 @@ class SimCanopenNode:
         self._rebuild_pdos()
         self.network.connect()
         self.network.notifier.add_listener(_ErrorLogger())
-        self.node.nmt.send_command(0x81)     # boot-up message, then PRE-OPERATIONAL with heartbeat
-        self.node.nmt.send_command(0x80)
+        self.heartbeat = _HeartbeatProducer(self)
+        nmt = self.node.nmt                   # canopen's NmtSlave keeps the NMT state; we send its heartbeat
+        nmt.start_heartbeat = self.heartbeat.set_period_ms
+        nmt.stop_heartbeat = lambda: self.heartbeat.set_period_ms(0)
+        nmt.update_heartbeat = lambda: None   # the producer reads the state when it sends
+        nmt.send_command(0x81)                # boot-up message, then PRE-OPERATIONAL with heartbeat
+        nmt.send_command(0x80)
 
     # -- drive clock ---------------------------------------------------------------------------------
     def _read_steps_per_sync(self) -> int:
@@ -400,6 +406,7 @@ class SimCanopenNode:
         return struct.Struct(fmt), getters
 
     def _on_sync(self, can_id, data, timestamp):
+        self.heartbeat.maybe_send()
         if self._pdo_dirty:
             self._rebuild_pdos()
         pending, self._rpdo_pending = self._rpdo_pending, []
@@ -439,8 +446,60 @@ class SimCanopenNode:
         self.node.nmt.stop_heartbeat()
 
     def stop(self) -> None:
-        self.node.nmt.stop_heartbeat()
+        self.heartbeat.close()
         self.network.disconnect()
+
+
+class _HeartbeatProducer:
+    """Heartbeat (0x700 + id, NMT state) every producer heartbeat time (0x1017).
+
+    Sent from the SYNC handler when due, and from a thread when SYNCs are rare: a sleeping thread alone
+    (python-can's cyclic task) can starve for seconds behind a busy 1 kHz receive thread in one process.
+    """
+
+    def __init__(self, node: "SimCanopenNode"):
+        self._node = node
+        self._period_s = 0.0
+        self._last = 0.0
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name=f"heartbeat-{node.node_id}", daemon=True)
+        self._thread.start()
+
+    def set_period_ms(self, period_ms: int) -> None:
+        with self._lock:
+            self._period_s = period_ms / 1000.0
+            self._last = 0.0
+        self.maybe_send()             # the first heartbeat right away, then every period
+        self._wake.set()
+
+    def maybe_send(self) -> None:
+        with self._lock:
+            now = time.monotonic()
+            if self._period_s <= 0 or now - self._last < self._period_s or self._closed:
+                return
+            self._last = now
+        nmt = self._node.node.nmt
+        try:
+            self._node.network.send_message(0x700 + self._node.node_id, [nmt._state])
+        except Exception as exc:     # bus closed while stopping
+            log.debug("heartbeat: %s", exc)
+
+    def _run(self) -> None:
+        while not self._closed:
+            with self._lock:
+                period, last = self._period_s, self._last
+            timeout = None if period <= 0 else max(0.0, last + period - time.monotonic())
+            self._wake.wait(timeout)
+            self._wake.clear()
+            if not self._closed:
+                self.maybe_send()
+
+    def close(self) -> None:
+        self._closed = True
+        self._wake.set()
+        self._thread.join(timeout=1.0)
 
 
 class FastVirtualBus(VirtualBus):
