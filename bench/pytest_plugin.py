@@ -4,13 +4,14 @@
         result = drivebench.run("scenarios/examples/pmsm-start-reversal.toml")
         assert result.verdict == "pass"
 
-Every run adds user properties (drivebench_run_dir, drivebench_verdict: they land in pytest's JUnit XML)
-and a report section with the criteria table. Options: --drivebench-out DIR (default runs),
+Every run adds user properties (drivebench_run_dir, drivebench_verdict, drivebench_criteria as JSON: they
+land in pytest's JUnit XML) and a report section with the criteria table. Options: --drivebench-out DIR (default runs),
 --drivebench-bench CONFIG (override every scenario's bench), --drivebench-rerun MODE (default save).
 """
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 from typing import Any
@@ -49,6 +50,9 @@ class DriveBench:
         self.results.append(result)
         self.node.user_properties.append(("drivebench_run_dir", str(result.run_dir)))
         self.node.user_properties.append(("drivebench_verdict", result.verdict))
+        self.node.user_properties.append(("drivebench_criteria", json.dumps([
+            {k: c.get(k) for k in ("name", "signal", "window_s", "value", "limit", "passed", "known_gap")}
+            for c in result.record.get("criteria", [])])))
         return result
 
 

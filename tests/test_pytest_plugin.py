@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -51,3 +52,5 @@ def test_fixture_attaches_record_to_report(tmp_path):
     assert props["drivebench_verdict"] == "pass"
     assert Path(props["drivebench_run_dir"]).parent == out
     assert (Path(props["drivebench_run_dir"]) / "record.json").exists()
+    criteria = json.loads(props["drivebench_criteria"])
+    assert criteria[0]["name"] == "speed steady" and criteria[0]["passed"] is True
