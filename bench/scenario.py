@@ -19,7 +19,8 @@ from bench.criteria import KINDS, CriterionSpec
 from bench.errors import InputError, Problems, find_repo_root
 from drivers.api import LoadMode
 from drivers.signals import SIGNAL_NAMES
-from sim_backend.hooks import FIRMWARE_PARAMS, PLANT_PARAMS, TEST_HOOKS, writable_names
+from sim_backend.hooks import (FAULT_INJECTIONS, FIRMWARE_PARAMS, PLANT_PARAMS, TEST_HOOKS, injectable_names,
+                               is_simulator_only)
 
 SCHEMA_VERSION = 1
 GRAVITY_M_S2 = 9.80665
@@ -105,7 +106,8 @@ class Scenario:
         return LoadMode.TORQUE, 0.0
 
     def plant_injections(self) -> tuple[Injection, ...]:
-        return tuple(inj for inj in self.injections if inj.name.startswith("plant_"))
+        """Simulator-only injections: plant_* factors and fault_* injections."""
+        return tuple(inj for inj in self.injections if is_simulator_only(inj.name))
 
 
 _TOP_KEYS = ("schema_version", "name", "description", "bench", "duration_s", "seed",
@@ -322,7 +324,7 @@ def _load_segments(p: Problems, items: list[tuple[str, dict]], duration: float) 
 
 
 def _all_names() -> set[str]:
-    names = set(TEST_HOOKS)
+    names = set(TEST_HOOKS) | set(FAULT_INJECTIONS)
     for group in (FIRMWARE_PARAMS, PLANT_PARAMS):
         for names_of_kind in group.values():
             names.update(names_of_kind)
@@ -337,8 +339,8 @@ def _check_injection_name(p: Problems, field_: str, name: str, kind: str | None,
         else:
             p.add(field_, f"unknown hook {name!r} (known: {', '.join(sorted(allowed))})")
         return False
-    if name.startswith("plant_") and bench_cfg is not None and not bench_cfg["bench"]["plant_injections"]:
-        p.add(field_, f"plant injection {name!r} needs a simulator, but bench config {bench_path} has "
+    if is_simulator_only(name) and bench_cfg is not None and not bench_cfg["bench"]["plant_injections"]:
+        p.add(field_, f"simulator-only injection {name!r} needs a simulator, but bench config {bench_path} has "
                       f"plant_injections = false")
         return False
     return True
@@ -346,7 +348,7 @@ def _check_injection_name(p: Problems, field_: str, name: str, kind: str | None,
 
 def _injections(p: Problems, items: list[tuple[str, dict]], duration: float, kind: str | None,
                 bench_cfg: dict | None, bench_path: Path | None) -> tuple[Injection, ...]:
-    allowed = set(writable_names(kind)) if kind else _all_names()
+    allowed = set(injectable_names(kind)) if kind else _all_names()
     out = []
     for where, item in items:
         p.unknown_keys(item, ("at_s", "name", "value"), where)
@@ -373,6 +375,16 @@ def _injection_value_problem(name: str, value: float) -> str | None:
         return f"{name} is a factor on the nominal plant value and must be > 0, got {value:g} (0.8 means -20 %)"
     if name.startswith("fw_") and value <= 0:
         return f"{name} is an absolute parameter value in SI units and must be > 0, got {value:g}"
+    if name in ("fault_drop_frames_rate", "fault_corrupt_frames_rate") and not 0.0 <= value <= 1.0:
+        return f"{name} is a probability per frame and must be within 0..1, got {value:g}"
+    if name == "fault_delay_frames_s" and not 0.0 <= value <= 10.0:
+        return f"{name} is a delay in seconds and must be within 0..10, got {value:g}"
+    if name == "fault_kill_endpoint" and value not in (1.0, 2.0, 3.0):
+        return f"{name} takes 1 (drive), 2 (load machine) or 3 (both), got {value:g}"
+    if name in ("fault_stop_heartbeat", "fault_overcurrent", "fault_freeze_estimator", "fault_bus_error",
+                "fault_load_machine") \
+            and value not in (0.0, 1.0):
+        return f"{name} takes 1 (on) or 0 (off), got {value:g}"
     if name == "flux_est_scale" and value <= 0:
         return f"flux_est_scale is a factor on the estimated flux and must be > 0, got {value:g}"
     return None

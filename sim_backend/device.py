@@ -15,6 +15,8 @@ import numpy as np
 
 from drivers.signals import SIGNAL_NAMES
 from sim_backend.cia402 import MODE_PROFILE_VELOCITY, Cia402Device, State
+from sim_backend.faults import EMCY_OVERCURRENT, FaultState, apply_fault
+from sim_backend.hooks import FAULT_INJECTIONS
 from sim_backend.model import DriveModel
 from sim_backend.trace import TraceRecorder
 
@@ -41,6 +43,7 @@ class SimulatedDevice:
     lock: threading.RLock = field(default_factory=threading.RLock)
     pending_emcy: list[int] = field(default_factory=list)
     latest: np.ndarray = field(default_factory=lambda: np.zeros(len(SIGNAL_NAMES)))
+    faults: FaultState = field(default_factory=FaultState)
 
     @property
     def time_s(self) -> float:
@@ -48,15 +51,18 @@ class SimulatedDevice:
 
     def write_controlword(self, word: int) -> None:
         with self.lock:
-            self.device.write_controlword(word, fault_active=self.model.fault_code() != 0)
+            self.faults.log_command(f"controlword 0x{word:04X}")
+            self.device.write_controlword(word, fault_active=self._fault_code() != 0)
             self._apply_outputs()
 
     def reset_fault(self) -> None:
         with self.lock:
             self.model.reset_fault()
+            self.faults.overcurrent = False
 
     def set_load(self, mode: int | None = None, value: float | None = None, enabled: bool | None = None) -> None:
         with self.lock:
+            self.faults.log_command(f"load mode={mode} value={value} enabled={enabled}")
             if mode is not None:
                 self.load.mode = mode
             if value is not None:
@@ -68,7 +74,9 @@ class SimulatedDevice:
     def write_named(self, name: str, value: float) -> None:
         """A manufacturer object: test hook / firmware parameter / simulator plant injection."""
         with self.lock:
-            if name in self.model.plant_param_names():
+            if name in FAULT_INJECTIONS:
+                apply_fault(self, name, value)
+            elif name in self.model.plant_param_names():
                 self.model.set_plant_param(name, value)
             else:
                 self.model.set_hook(name, value)
@@ -86,7 +94,7 @@ class SimulatedDevice:
             self.trace.push(self.step_count + 1, block, self.device.power_enabled)
             self.step_count += n_steps
             self.latest = block[-1]
-            code = self.model.fault_code()
+            code = self._fault_code()
             if code and self.device.state is not State.FAULT:
                 self.device.fault(code)
                 self.pending_emcy.append(code)
@@ -95,6 +103,9 @@ class SimulatedDevice:
             self.device.target_reached = abs(speed - self.target_speed_mech_rad_s) <= 0.01 * max(
                 1.0, abs(self.target_speed_mech_rad_s))
             return block
+
+    def _fault_code(self) -> int:
+        return self.model.fault_code() or (EMCY_OVERCURRENT if self.faults.overcurrent else 0)
 
     def take_emcy(self) -> list[int]:
         with self.lock:

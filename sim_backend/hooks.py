@@ -28,5 +28,30 @@ PLANT_PARAMS: dict[str, tuple[str, ...]] = {
 }
 
 
+# Simulator-only fault injections (sim_backend/faults.py), both drive kinds. Handled by the simulated device and
+# its protocol front ends, not by the drive model; refused like plant_* on a bench with plant_injections = false.
+FAULT_INJECTIONS: tuple[str, ...] = (
+    "fault_drop_frames_rate",     # p in [0, 1]: the drive's CAN/serial output frames are dropped with probability p
+    "fault_corrupt_frames_rate",  # p in [0, 1]: one bit of each output frame is flipped with probability p
+    "fault_delay_frames_s",       # d >= 0: every output frame leaves d seconds late (wall clock)
+    "fault_stop_heartbeat",       # 1: the node stops producing heartbeats (everything else keeps working)
+    "fault_overcurrent",          # 1: the drive's own protection trips: FAULT, EMCY 0x2310, power stage off
+    "fault_freeze_estimator",     # 1: speed and flux estimators hold their outputs (both freeze_* hooks)
+    "fault_kill_endpoint",        # 1: the drive endpoint goes silent; 2: the load machine's; 3: both
+    "fault_bus_error",            # 1: the drive's CAN controller floods error frames (bus heavy / error passive)
+    "fault_load_machine",         # 1: the load machine faults: status fault bit set, torque off
+)
+
+
 def writable_names(kind: str) -> tuple[str, ...]:
+    """What the drive model itself accepts."""
     return TEST_HOOKS + FIRMWARE_PARAMS[kind] + PLANT_PARAMS[kind]
+
+
+def injectable_names(kind: str) -> tuple[str, ...]:
+    """What a simulated drive accepts through its protocols: the model's names plus the fault injections."""
+    return writable_names(kind) + FAULT_INJECTIONS
+
+
+def is_simulator_only(name: str) -> bool:
+    return name.startswith("plant_") or name in FAULT_INJECTIONS

@@ -9,7 +9,7 @@ Layout (see docs/canopen.md):
   0x2010-0x201F  live telemetry, REAL32, one object per drivers.signals.SIGNAL_NAMES entry (PDO mappable)
   0x2030-0x203F  the same as scaled INTEGER16 (EDS Factor), for when REAL32 does not fit the bus budget
   0x2100/0x2101  trace recorder: configuration record and DOMAIN data (SDO block upload)
-  0x2200+/0x2300+/0x2400+  test hooks / firmware parameters / simulator plant injections, REAL32 rw
+  0x2200+/0x2300+/0x2400+/0x2480+  test hooks / firmware parameters / plant injections / fault injections, REAL32 rw
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from drivers.signals import SIGNALS
-from sim_backend.hooks import FIRMWARE_PARAMS, PLANT_PARAMS, TEST_HOOKS
+from sim_backend.hooks import FAULT_INJECTIONS, FIRMWARE_PARAMS, PLANT_PARAMS, TEST_HOOKS
 
 VENDOR_ID = 0x00DB0001
 PRODUCT_CODES = {"pmsm": 0x0402_0001, "spim": 0x0402_0002}
@@ -43,6 +43,7 @@ IDX_TRACE_DATA = 0x2101
 IDX_HOOK_BASE = 0x2200
 IDX_FW_PARAM_BASE = 0x2300
 IDX_PLANT_PARAM_BASE = 0x2400
+IDX_FAULT_BASE = 0x2480            # simulator fault injections (inside the plant block the node routes to write_named)
 TRACE_SUBS = {  # subindex: (name, type, access)
     1: ("trace_signal_mask", UNSIGNED32, "rw"),
     2: ("trace_decimation", UNSIGNED16, "rw"),
@@ -183,7 +184,7 @@ def objects(kind: str) -> list[Obj]:
         "trace_data", DOMAIN, "ro",
         description="oldest recorded rows (drivers.trace_format), removed once the upload completes")))
     for base, names in ((IDX_HOOK_BASE, TEST_HOOKS), (IDX_FW_PARAM_BASE, FIRMWARE_PARAMS[kind]),
-                        (IDX_PLANT_PARAM_BASE, PLANT_PARAMS[kind])):
+                        (IDX_PLANT_PARAM_BASE, PLANT_PARAMS[kind]), (IDX_FAULT_BASE, FAULT_INJECTIONS)):
         for i, name in enumerate(names):
             objs.append(Obj(base + i, name, Var(name, REAL32, "rw", "0")))
     objs += [

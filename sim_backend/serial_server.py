@@ -27,6 +27,7 @@ from drivers.serial_frames import (
 from drivers.signals import SIGNAL_NAMES
 from sim_backend.cia402 import CONTROL_FAULT_RESET, State
 from sim_backend.device import FIRMWARE_VERSION, SimulatedDevice
+from sim_backend.hooks import FAULT_INJECTIONS
 from sim_backend.trace import TRIGGER_IMMEDIATE, TRIGGER_ON_ENABLE
 
 VENDOR_ID = 0x00000DB0
@@ -69,7 +70,7 @@ class SerialProtocolHandler:
     def __post_init__(self) -> None:
         self._live_index = _mask_index(self.live_mask)
         model = self.device.model
-        self._params = tuple(model.hook_names()) + tuple(model.plant_param_names())
+        self._params = tuple(model.hook_names()) + tuple(model.plant_param_names()) + FAULT_INJECTIONS
 
     def handle(self, frame: Frame) -> bytes:
         key = (frame.seq, frame.cmd, frame.payload)

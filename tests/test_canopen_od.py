@@ -9,7 +9,7 @@ from canopen.objectdictionary import ODVariable
 from drivers.signals import SIGNAL_NAMES
 from sim_backend import od_gen
 from sim_backend.device import FIRMWARE_VERSION
-from sim_backend.hooks import writable_names
+from sim_backend.hooks import injectable_names
 from tests.canopen_helpers import REPO
 
 
@@ -26,7 +26,7 @@ def test_eds_files_are_generated_and_complete(kind):
         assert od["scaled_" + name].factor > 0
     manufacturer = {v.name for v in od.values() if isinstance(v, ODVariable) and v.writable
                     and 0x2200 <= v.index < 0x2500}
-    assert manufacturer == set(writable_names(kind))
+    assert manufacturer == set(injectable_names(kind))
     assert od[0x2101].data_type == 0xF
     assert od[0x60FF].data_type == 0x4 and od[0x606C].data_type == 0x4      # INTEGER32, mrad/s
     assert od[0x1800][1].default == 0x181 and od[0x1A00][0].default == 3
