@@ -42,6 +42,7 @@ RERUN_MAX_RATE_HZ = 2000.0 # run.rrd / viewer: a 10 kHz trace is thinned to 2 kH
 STATUS_PERIOD_S = 0.02     # poll the drive's status (fault, EMCY, heartbeat) every 20 ms of drive time
 PROGRESS_PERIOD_S = 0.1
 STALL_TIMEOUT_S = 5.0      # wall seconds without any live sample -> the link is dead
+LOAD_POLL_PERIOD_S = 0.1   # read the load machine's status (fault bit; a dead Modbus link) every 0.1 s of drive time
 
 DEFAULT_SEED = 0           # a scenario without a seed runs with this one (recorded), so reruns are identical
 ProgressFn = Callable[[float, float], None]
@@ -115,24 +116,36 @@ def prepare(scenario_path: str | Path, bench_path: str | Path | None = None):
     return scenario, cfg
 
 
-class _SigtermAsInterrupt:
-    """SIGTERM raises Interrupted in the main thread for the duration of the run (so finally blocks run)."""
+class _StopSignals:
+    """Ctrl-C (SIGINT) and SIGTERM raise Interrupted in the main thread for the duration of the run, once.
+
+    Every further signal — a second Ctrl-C, SIGTERM after SIGINT — and any signal once the safe stop has begun
+    is only counted: the safe-stop sequence and the record must finish, and they run exactly once.
+    """
+
+    NAMES = {signal.SIGINT: "interrupted (Ctrl-C)", signal.SIGTERM: "terminated (SIGTERM)"}
+
+    def __init__(self):
+        self._previous: dict = {}
+        self.fired: str | None = None
+        self.stopping = False
+        self.ignored = 0
 
     def __enter__(self):
-        self._previous = None
-        self._fired = False
         if threading.current_thread() is threading.main_thread():
             def handler(signum, frame):
-                if self._fired:   # already stopping: let the safe stop and the record finish
+                if self.fired is not None or self.stopping:
+                    self.ignored += 1
                     return
-                self._fired = True
-                raise Interrupted("terminated (SIGTERM)")
-            self._previous = signal.signal(signal.SIGTERM, handler)
+                self.fired = self.NAMES[signum]
+                raise Interrupted(self.fired)
+            for sig in self.NAMES:
+                self._previous[sig] = signal.signal(sig, handler)
         return self
 
     def __exit__(self, *exc):
-        if self._previous is not None:
-            signal.signal(signal.SIGTERM, self._previous)
+        for sig, previous in self._previous.items():
+            signal.signal(sig, previous)
         return False
 
 
@@ -156,13 +169,14 @@ def run_scenario(
     scenario, cfg = prepare(scenario_path, bench_path)
     if seed is None:
         seed = scenario.seed if scenario.seed is not None else DEFAULT_SEED
-    with _SigtermAsInterrupt():
+    with _StopSignals() as signals:
         if links is not None:
-            return _run_connected(scenario, cfg, seed, *links, Path(out_root), rerun_mode, rerun_url, progress, warn)
+            return _run_connected(scenario, cfg, seed, *links, Path(out_root), rerun_mode, rerun_url, progress, warn,
+                                  signals)
         with started_services(cfg, seed) as live_cfg:
             drive, load = make_links(live_cfg, find_repo_root(cfg["_path"]))
             return _run_connected(scenario, live_cfg, seed, drive, load, Path(out_root), rerun_mode, rerun_url,
-                                  progress, warn)
+                                  progress, warn, signals)
 
 
 def _open(drive, load):
@@ -185,7 +199,8 @@ def _close_quietly(*links) -> list[str]:
     return errors
 
 
-def _run_connected(scenario, cfg, seed, drive, load, out_root, rerun_mode, rerun_url, progress, warn) -> RunResult:
+def _run_connected(scenario, cfg, seed, drive, load, out_root, rerun_mode, rerun_url, progress, warn,
+                   signals: _StopSignals | None = None) -> RunResult:
     identity, load_name = _open(drive, load)  # LinkError here: nothing started, nothing to stop
     recorder = None
     safe_stop = SafeStop(drive, load)
@@ -197,6 +212,7 @@ def _run_connected(scenario, cfg, seed, drive, load, out_root, rerun_mode, rerun
         raise
     run = _Run(scenario, cfg, seed, drive, load, identity, load_name, recorder, safe_stop, rerun_mode, rerun_url,
                progress, warn)
+    run.signals = signals
     return run.execute()
 
 
@@ -217,6 +233,11 @@ class _Run:
         self.supervisor = Supervisor(scenario.limits)
         self.sync_period_s = float(cfg["drive"]["sync_period_s"])
         self.data_source = "trace" if identity.has_trace_recorder else "pdo"
+        self.signals: _StopSignals | None = None
+        self.trips: list[dict] = []          # every cause of the abort, in the order they were seen
+        self._link_in_use = "drive"          # which link a LinkError came from
+        self._t_drive = 0.0
+        self._started_wall = time.monotonic()
         try:
             self.rerun = RerunStream(rerun_mode, recorder.run_dir / "run.rrd", url=rerun_url,
                                      recording_name=recorder.run_dir.name,
@@ -241,18 +262,20 @@ class _Run:
         try:
             self._configure_and_enable()
             abort_reason = self._loop()
-        except Interrupted as exc:
+        except KeyboardInterrupt as exc:      # Interrupted (SIGINT/SIGTERM handler) or a bare KeyboardInterrupt
             interrupted = True
-            abort_reason = str(exc) or "interrupted"
-        except KeyboardInterrupt:
-            interrupted = True
-            abort_reason = "interrupted (Ctrl-C)"
+            abort_reason = (str(exc) if isinstance(exc, Interrupted) else "") or "interrupted (Ctrl-C)"
+            self._add_trip("operator", abort_reason)
         except LinkError as exc:
             error = f"link error: {exc}"
+            self._add_trip(f"{self._link_in_use}_link", str(exc))
         except Exception as exc:
             error = f"{type(exc).__name__}: {exc}"
             self.recorder.note("traceback", traceback.format_exc())
+            self._add_trip("exception", error)
         finally:
+            if self.signals is not None:
+                self.signals.stopping = True     # from here on a signal is counted, never raised
             stop_errors = self.safe_stop.run()
         try:
             return self._finish(abort_reason, error, interrupted, stop_errors)
@@ -263,6 +286,16 @@ class _Run:
                 except Exception:
                     pass  # the record is written; a failing viewer or thread must not lose the result
             _close_quietly(self.drive, self.load)
+
+    def _add_trip(self, reason: str, message: str, values: dict | None = None, t_s: float | None = None) -> None:
+        self.trips.append({"reason": reason, "t_s": self._t_drive if t_s is None else t_s, "values": values or {},
+                           "message": message, "wall_s": round(time.monotonic() - self._started_wall, 4)})
+
+    def _load_call(self, fn, *args):
+        self._link_in_use = "load"
+        result = fn(*args)
+        self._link_in_use = "drive"
+        return result
 
     def _configure_and_enable(self) -> None:
         decimation = int(self.cfg["drive"]["trace_decimation"])
@@ -276,8 +309,8 @@ class _Run:
         self._speed_ref = self.scenario.speed_ref_at(0.0)
         self.drive.set_speed_ref(self._speed_ref)
         mode, value = self.scenario.load_at(0.0)
-        self.load.set_load(mode, value)
-        self.load.enable(True)
+        self._load_call(self.load.set_load, mode, value)
+        self._load_call(self.load.enable, True)
         self._load_setting = (mode, value)
 
     def _loop(self) -> str | None:
@@ -288,6 +321,7 @@ class _Run:
         t_drive = 0.0
         next_fetch = FETCH_PERIOD_S
         next_status = 0.0
+        next_load_poll = 0.0
         next_progress = 0.0
         last_sample_wall = time.monotonic()
         k = 0
@@ -307,7 +341,7 @@ class _Run:
                 self._speed_ref = ref
             setting = self.scenario.load_at(t_cmd)
             if setting != self._load_setting:
-                self.load.set_load(*setting)
+                self._load_call(self.load.set_load, *setting)
                 self._load_setting = setting
 
             samples = self.drive.sync()
@@ -315,6 +349,7 @@ class _Run:
             if samples:
                 last_sample_wall = time.monotonic()
                 t_drive = samples[-1].t_s
+                self._t_drive = t_drive
                 self.supervisor.feed(samples)
                 if self.data_source == "pdo":
                     self.live_buffer.extend(samples)
@@ -326,6 +361,9 @@ class _Run:
             if t_drive >= next_status:
                 self.supervisor.feed_status(t_drive, self.drive.status())
                 next_status = t_drive + STATUS_PERIOD_S
+            if t_drive >= next_load_poll and hasattr(self.load, "feedback"):
+                self.supervisor.feed_load(t_drive, self._load_call(self.load.feedback))
+                next_load_poll = t_drive + LOAD_POLL_PERIOD_S
             if t_drive >= next_fetch:
                 self._record_pending()
                 next_fetch = t_drive + FETCH_PERIOD_S
@@ -376,6 +414,10 @@ class _Run:
         trip = self.supervisor.trip
         if trip is not None:
             self.recorder.note("supervisor_trip", trip.as_dict())
+            self.trips.insert(0, {**trip.as_dict(), "wall_s": None})
+        self.recorder.note("trips", self.trips)
+        if self.signals is not None and self.signals.ignored:
+            self.recorder.note("signals_ignored_while_stopping", self.signals.ignored)
         self.recorder.note("safe_stop", {"steps": self.safe_stop.steps, "errors": stop_errors})
         try:
             self._record_pending()  # final trace upload (includes the stop)

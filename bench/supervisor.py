@@ -13,7 +13,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Protocol
 
-from drivers.api import DriveStatus, LiveSample
+from drivers.api import DriveStatus, LiveSample, LoadFeedback
 
 
 class SupervisorLimits(Protocol):
@@ -26,7 +26,7 @@ class SupervisorLimits(Protocol):
 
 @dataclass(frozen=True)
 class Trip:
-    reason: str  # overspeed overcurrent position_error dc_link_overvoltage max_duration fault emcy heartbeat
+    reason: str  # overspeed overcurrent position_error dc_link_overvoltage max_duration fault emcy heartbeat load_fault
     t_s: float | None            # drive time of the sample or status that tripped
     values: dict[str, float] = field(default_factory=dict)
     message: str = ""
@@ -75,6 +75,15 @@ def check_status(t_s: float | None, status: DriveStatus) -> Trip | None:
     return None
 
 
+def check_load(t_s: float | None, feedback: LoadFeedback) -> Trip | None:
+    if feedback.fault:
+        when = "" if t_s is None else f" at t={t_s:.4f} s"
+        return Trip("load_fault", t_s, {"load_speed_mech_rad_s": feedback.speed_mech_rad_s,
+                                        "load_torque_nm": feedback.torque_nm},
+                    f"load machine reports a fault{when}")
+    return None
+
+
 _STOP = object()
 WATCHDOG_PERIOD_S = 0.05
 
@@ -111,6 +120,10 @@ class Supervisor:
     def feed_status(self, t_s: float | None, status: DriveStatus) -> None:
         if not self.tripped.is_set():
             self._put(("status", (t_s, status)))
+
+    def feed_load(self, t_s: float | None, feedback: LoadFeedback) -> None:
+        if not self.tripped.is_set():
+            self._put(("load", (t_s, feedback)))
 
     def _put(self, item) -> None:
         with self._idle:
@@ -162,6 +175,8 @@ class Supervisor:
 
     def _judge(self, item) -> Trip | None:
         kind, payload = item
+        if kind == "load":
+            return check_load(*payload)
         if kind == "status":
             if payload[0] is not None:
                 self._last_t_s = payload[0]
@@ -174,16 +189,22 @@ class Supervisor:
         return None
 
 
+STEP_TIMEOUT_S = 6.0   # one safe-stop step; above a serial link's 4 x 0.5 s retries or Modbus's 2 x 2 x 0.5 s
+
+
 class SafeStop:
     """The end-of-run sequence: load to zero torque and disabled, drive quick stop, drive disabled.
 
     Runs at most once however often it is requested (trip, Ctrl-C, SIGTERM, normal end). Every step is
-    tried even if an earlier one fails; the failures are returned so the record can say so.
+    tried even if an earlier one fails or hangs: each runs in a worker thread and is given up after
+    `step_timeout_s` (a dead link must not keep the other link's steps from running). The failures are
+    returned so the record can say so.
     """
 
-    def __init__(self, drive, load):
+    def __init__(self, drive, load, step_timeout_s: float = STEP_TIMEOUT_S):
         self.drive = drive
         self.load = load
+        self.step_timeout_s = step_timeout_s
         self._lock = threading.Lock()
         self.done = False
         self.errors: list[str] = []
@@ -201,10 +222,29 @@ class SafeStop:
                 steps.append(("drive quick stop", self.drive.quick_stop))
                 steps.append(("drive disabled", self.drive.disable))
             for label, action in steps:
-                try:
-                    action()
+                error = _bounded(action, self.step_timeout_s)
+                if error is None:
                     self.steps.append(label)
-                except BaseException as exc:  # keep going: the remaining steps matter more than this error
-                    self.errors.append(f"{label}: {type(exc).__name__}: {exc}")
+                else:              # keep going: the remaining steps matter more than this error
+                    self.errors.append(f"{label}: {error}")
             return self.errors
+
+
+def _bounded(action: Callable[[], None], timeout_s: float) -> str | None:
+    """Run action in a daemon thread; None when it returned, else what went wrong (exception or timeout)."""
+    outcome: list[str | None] = []
+
+    def target() -> None:
+        try:
+            action()
+            outcome.append(None)
+        except BaseException as exc:
+            outcome.append(f"{type(exc).__name__}: {exc}")
+
+    worker = threading.Thread(target=target, name="drivebench-safe-stop", daemon=True)
+    worker.start()
+    worker.join(timeout_s)
+    if worker.is_alive():
+        return f"no answer within {timeout_s:g} s (step abandoned)"
+    return outcome[0]
 
