@@ -54,6 +54,8 @@ MIN_STALL_TIMEOUT_S = 2.0
 REALTIME_BATCH_S = 0.01     # real time: sync() hands over samples in batches of at most this period
 BLOCK_SIZE = 127            # segments per SDO block       # live PDOs + SYNC may use at most this much of the bus
 
+ERROR_PASSIVE_LEVEL = 128    # CAN receive error counter at which a controller goes error passive (ISO 11898-1)
+
 CW_DISABLE_VOLTAGE, CW_QUICK_STOP, CW_SHUTDOWN, CW_SWITCH_ON, CW_ENABLE = 0x00, 0x02, 0x06, 0x07, 0x0F
 CW_FAULT_RESET = 0x80
 MODE_PROFILE_VELOCITY = 3
@@ -145,6 +147,7 @@ class CanopenDriveLink:
         self.live_encoding = "real32"
         self._rx_lag_s = 0.0
         self._last_return = 0.0
+        self.bus_errors = _BusErrorCounter()
 
     # -- connection ----------------------------------------------------------------------------------
     def open(self) -> DriveIdentity:
@@ -163,6 +166,7 @@ class CanopenDriveLink:
             od = canopen.import_od(str(self.eds_path), self.node_id)
         except Exception as exc:
             raise LinkError(f"{self.eds_path}: cannot load the object dictionary: {exc}") from None
+        self.network.notifier.add_listener(self.bus_errors)
         self.node = self.network.add_node(self.node_id, od)
         self.node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout_s
         self.node.sdo.MAX_RETRIES = 1
@@ -387,6 +391,9 @@ class CanopenDriveLink:
 
     # -- SYNC ----------------------------------------------------------------------------------------
     def _check_health(self) -> None:
+        bus_problem = self.bus_errors.problem(self.network.bus if self.network is not None else None)
+        if bus_problem:
+            raise LinkError(f"node {self.node_id}: {bus_problem}")
         if self._errors:
             errors, self._errors = self._errors, []
             raise LinkError(f"node {self.node_id}: " + "; ".join(errors))
@@ -660,6 +667,36 @@ class CanopenDriveLink:
             return data
         finally:
             self.network.subscribers[rx] = saved
+
+
+class _BusErrorCounter(can.Listener):
+    """Error frames as a receive error counter would count them (+8 per error frame, -1 per good frame), and
+    the interface's own bus state where it reports one (python-can BusState; socketcan, pcan, ... do)."""
+
+    def __init__(self):
+        self.counter = 0
+        self.error_frames = 0
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            self.error_frames += 1
+            self.counter += 8
+        elif self.counter:
+            self.counter -= 1
+
+    def problem(self, bus: can.BusABC | None) -> str | None:
+        try:
+            state = bus.state if bus is not None else can.BusState.ACTIVE
+        except (NotImplementedError, can.CanError, OSError):
+            state = can.BusState.ACTIVE
+        if state is can.BusState.ERROR:
+            return "CAN bus off (the interface reports BusState.ERROR)"
+        if state is can.BusState.PASSIVE:
+            return "CAN controller error passive (the interface reports BusState.PASSIVE)"
+        if self.counter >= ERROR_PASSIVE_LEVEL:
+            return (f"CAN bus errors: {self.error_frames} error frames, receive error count ~{self.counter} "
+                    f">= {ERROR_PASSIVE_LEVEL} (error passive)")
+        return None
 
 
 class _BlockCollector:
