@@ -36,7 +36,14 @@ LIVE_SIGNALS: tuple[str, ...] = (
     "speed_ref_mech_rad_s", "speed_est_mech_rad_s", "speed_true_mech_rad_s", "pos_err_elec_rad",
     "i_sx_a", "i_sy_a", "vdc_v", "torque_load_nm",
 )
-TRACE_SIGNALS: tuple[str, ...] = SIGNAL_NAMES
+# Trace recorder (the verdict's data): what the record promises — speeds, position error, fluxes, currents,
+# voltages, load torque — plus the frame angle for the flux-vector view. A bench config may name its own set
+# ([drive] trace_signals); the criteria's signals are always added. Each signal costs bus time: the trace is
+# uploaded by SDO block transfer at 7 bytes per frame.
+TRACE_SIGNALS: tuple[str, ...] = (
+    "speed_ref_mech_rad_s", "speed_est_mech_rad_s", "speed_true_mech_rad_s", "pos_est_elec_rad",
+    "pos_err_elec_rad", "flux_est_wb", "flux_true_wb", "i_sx_a", "i_sy_a", "u_sx_v", "u_sy_v", "torque_load_nm",
+)
 FETCH_PERIOD_S = 0.5       # upload the trace recorder every 0.5 s of drive time
 RERUN_MAX_RATE_HZ = 2000.0 # run.rrd / viewer: a 10 kHz trace is thinned to 2 kHz (3.6 -> 0.8 MB/s); parquet has all
 STATUS_PERIOD_S = 0.02     # poll the drive's status (fault, EMCY, heartbeat) every 20 ms of drive time
@@ -96,6 +103,14 @@ def live_columns(samples: Sequence[LiveSample], names: Sequence[str]) -> dict[st
     for n in names:
         cols[n] = np.fromiter((s.values.get(n, math.nan) for s in samples), dtype=np.float64, count=len(samples))
     return cols
+
+
+def trace_signals_for(cfg: dict, scenario) -> tuple[str, ...]:
+    """The configured trace set (or the default) plus every signal a criterion reads, in catalogue order."""
+    wanted = set(cfg["drive"].get("trace_signals") or TRACE_SIGNALS)
+    wanted |= {c.signal for c in scenario.criteria if c.signal in SIGNAL_NAMES}
+    wanted |= {v for c in scenario.criteria for v in c.params.values() if isinstance(v, str) and v in SIGNAL_NAMES}
+    return tuple(name for name in SIGNAL_NAMES if name in wanted)
 
 
 def check_plant_injections(scenario, cfg: dict) -> None:
@@ -233,6 +248,9 @@ class _Run:
         self.supervisor = Supervisor(scenario.limits)
         self.sync_period_s = float(cfg["drive"]["sync_period_s"])
         self.data_source = "trace" if identity.has_trace_recorder else "pdo"
+        self.trace_signals = trace_signals_for(cfg, scenario)
+        # t_s in the record is drive time since this run's first SYNC; the drive clock counts from power-up
+        self._clock_start: float | None = None
         self.signals: _StopSignals | None = None
         self.trips: list[dict] = []          # every cause of the abort, in the order they were seen
         self._link_in_use = "drive"          # which link a LinkError came from
@@ -299,7 +317,8 @@ class _Run:
 
     def _configure_and_enable(self) -> None:
         decimation = int(self.cfg["drive"]["trace_decimation"])
-        self.drive.configure(LIVE_SIGNALS, TRACE_SIGNALS, decimation)
+        self.drive.configure(LIVE_SIGNALS, self.trace_signals, decimation)
+        self.recorder.note("trace_signals", list(self.trace_signals))
         self.recorder.note("data_source", self.data_source)
         self.recorder.note("live_signals", list(LIVE_SIGNALS))
         self.recorder.note("trace_decimation", decimation)
@@ -344,15 +363,16 @@ class _Run:
                 self._load_call(self.load.set_load, *setting)
                 self._load_setting = setting
 
-            samples = self.drive.sync()
+            samples = self._run_time(self.drive.sync())
             k += 1
             if samples:
                 last_sample_wall = time.monotonic()
                 t_drive = samples[-1].t_s
                 self._t_drive = t_drive
                 self.supervisor.feed(samples)
-                if self.data_source == "pdo":
-                    self.live_buffer.extend(samples)
+                # kept in trace mode too (until the next upload): if the drive's link dies, the live samples
+                # are the only record of the time since the last upload
+                self.live_buffer.extend(samples)
             else:
                 if time.monotonic() - last_sample_wall > STALL_TIMEOUT_S:
                     raise LinkError(f"no telemetry from the drive for {STALL_TIMEOUT_S:g} s (after t={t_drive:.3f} s)")
@@ -378,19 +398,41 @@ class _Run:
             return self.supervisor.trip.message
         return None
 
+    def _run_time(self, samples: list[LiveSample]) -> list[LiveSample]:
+        """Shift drive-clock stamps to time since this run's first SYNC (the drive may have run before)."""
+        if not samples:
+            return samples
+        if self._clock_start is None:
+            self._clock_start = samples[0].t_s - self.sync_period_s
+            self.recorder.note("drive_clock_start_s", self._clock_start)
+        return [LiveSample(s.t_s - self._clock_start, s.values) for s in samples]
+
     def _record_pending(self) -> None:
         if self.data_source == "trace":
             block = self.drive.fetch_trace()
+            if block is not None and len(block.get(TIME_COLUMN, ())):
+                block[TIME_COLUMN] = block[TIME_COLUMN] - (self._clock_start or 0.0)
             if block is None:  # the drive said it has a recorder but gives nothing: fall back to live data
                 self.data_source = "pdo"
                 self.recorder.note("data_source", "pdo")
                 return
+            self.live_buffer = []
             if len(block.get(TIME_COLUMN, ())):
                 self._append(block)
         elif self.live_buffer:
             block = live_columns(self.live_buffer, LIVE_SIGNALS)
             self.live_buffer = []
             self._append(block)
+
+    def _record_live_tail(self) -> None:
+        """The trace since the last upload is out of reach (dead link): keep the live samples of that time."""
+        t_last = self.collected.chunks[-1][TIME_COLUMN][-1] if self.collected.chunks else -math.inf
+        tail = [s for s in self.live_buffer if s.t_s > t_last]
+        self.live_buffer = []
+        if tail:
+            self._append(live_columns(tail, LIVE_SIGNALS))
+            self.recorder.note("live_tail", {"rows": len(tail), "t_first_s": tail[0].t_s, "t_last_s": tail[-1].t_s,
+                                             "signals": list(LIVE_SIGNALS)})
 
     def _append(self, block: dict[str, np.ndarray]) -> None:
         block = {k: np.asarray(v) for k, v in block.items()}
@@ -425,6 +467,7 @@ class _Run:
             self.recorder.note("final_fetch_error", f"{type(exc).__name__}: {exc}")
             if error is None and abort_reason is None:
                 error = f"final trace upload failed: {exc}"
+            self._record_live_tail()
         t, columns = self.collected.columns()
         duration = float(self.scenario.duration_s)
         in_test = t <= duration + 1e-9

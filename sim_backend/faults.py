@@ -37,6 +37,8 @@ EMCY_OVERCURRENT = 0x2310
 LOAD_FAULT_CODE = 0x7000
 ERROR_FLOOD_PER_FRAME = 4        # error frames sent for every frame the drive sends while fault_bus_error is on
 CW_QUICK_STOP, CW_DISABLE_VOLTAGE = 0x0002, 0x0000
+COMM_LOSS_S = 2.0                # the drive's / load machine's own reaction to a lost master (CiA 402 0x6007 style)
+WATCHDOG_PERIOD_S = 0.05
 
 
 @dataclass
@@ -57,6 +59,10 @@ class FaultState:
     counts: collections.Counter = field(default_factory=collections.Counter)
     frames: collections.Counter = field(default_factory=collections.Counter)   # sent / dropped / corrupted / ...
     first_stop_wall: float | None = None     # monotonic time of the first safe-stop command after a fault
+    last_master_wall: float = field(default_factory=time.monotonic)   # last frame / byte from the bench
+    drive_killed_wall: float | None = None
+    load_killed_wall: float | None = None
+    self_stops: list[str] = field(default_factory=list)   # what the device's own comm-loss watchdog did
 
     def __post_init__(self) -> None:
         self.rng = np.random.default_rng(self.seed)
@@ -128,8 +134,10 @@ def apply_fault(device: "SimulatedDevice", name: str, value: float) -> None:
         which = int(value)
         if which & 1:
             f.drive_dead = True
+            f.drive_killed_wall = time.monotonic()
         if which & 2:
             f.load_dead = True
+            f.load_killed_wall = time.monotonic()
             if callable(f.kill_load):   # not on this thread: the Modbus server's loop may wait for device.lock
                 threading.Thread(target=f.kill_load, name="kill-load-endpoint", daemon=True).start()
     elif name == "fault_bus_error":
@@ -184,8 +192,10 @@ def _faulty_bus_class():
 
         def _recv_internal(self, timeout):
             msg, filtered = super()._recv_internal(timeout)
-            if msg is not None and self.faults.drive_dead:
-                return None, filtered
+            if msg is not None:
+                if self.faults.drive_dead:
+                    return None, filtered
+                self.faults.last_master_wall = time.monotonic()
             return msg, filtered
 
     return FaultyBus
@@ -238,6 +248,7 @@ class FaultyStreamProxy:
                 if not data:
                     return
                 if sock is client:
+                    f.last_master_wall = time.monotonic()
                     upstream.sendall(data)
                     continue
                 if f.drive_dead:
@@ -263,6 +274,62 @@ class FaultyStreamProxy:
         self._stop.set()
         self._thread.join(timeout=2.0)
         self._listener.close()
+
+
+# -- the device's own reaction to a lost master -------------------------------------------------------------
+
+def comm_loss_watchdog(device: "SimulatedDevice", done: threading.Event, linger_s: float = 2 * COMM_LOSS_S) -> None:
+    """What a drive and a dynamometer do on their own when their master goes silent (CiA 402 0x6007 "abort
+    connection" = disable voltage; a dyno's Modbus watchdog): power stage off / load disabled at zero torque
+    once nothing came from the bench for COMM_LOSS_S, or COMM_LOSS_S after their endpoint died. Keeps watching
+    for linger_s after the bench has gone (`done`), as a drive's firmware would."""
+    from sim_backend.cia402 import State
+
+    f = device.faults
+    done_at: float | None = None
+    while True:
+        now = time.monotonic()
+        if done.is_set():
+            done_at = done_at or now
+            if now - done_at > linger_s:
+                return
+        with device.lock:
+            silent = now - f.last_master_wall > COMM_LOSS_S or (
+                f.drive_killed_wall is not None and now - f.drive_killed_wall > COMM_LOSS_S)
+            if silent and device.device.power_enabled and device.device.state is not State.FAULT:
+                device.device.write_controlword(CW_DISABLE_VOLTAGE, fault_active=False)
+                device.model.set_enabled(device.device.power_enabled)
+                f.self_stops.append(f"drive: master silent for {now - f.last_master_wall:.2f} s, disable voltage")
+            if (f.load_killed_wall is not None and now - f.load_killed_wall > COMM_LOSS_S
+                    and device.load.enabled):
+                device.load.enabled = False
+                device.load.value = 0.0
+                device.model.set_load(device.load.mode, 0.0, False)
+                f.self_stops.append("load machine: Modbus endpoint dead, torque off and disabled")
+        time.sleep(WATCHDOG_PERIOD_S)
+
+
+@contextlib.contextmanager
+def _watchdog(device: "SimulatedDevice") -> Iterator[None]:
+    done = threading.Event()
+    device.faults.last_master_wall = time.monotonic()
+    thread = threading.Thread(target=comm_loss_watchdog, args=(device, done), name="comm-loss-watchdog",
+                              daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+
+
+def wait_safe(device: "SimulatedDevice", timeout_s: float = COMM_LOSS_S + 2.0) -> bool:
+    """True once the device is in the safe state (polled; the watchdog may still be about to act)."""
+    deadline = time.monotonic() + timeout_s
+    while not is_safe(device):
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(WATCHDOG_PERIOD_S)
+    return True
 
 
 # -- [services] starters -----------------------------------------------------------------------------------
@@ -315,7 +382,8 @@ def start_canopen(bench_cfg: dict, seed: int) -> Iterator[dict]:
             overrides = {"drive": {"channel": channel, **{k: bench[k] for k in ("timing", "fault_reset")
                                                           if k in bench}},
                          "load": {"port": load_server.port}}
-            yield overrides
+            with _watchdog(device):
+                yield overrides
         finally:
             _stopper(load_server)()
     finally:
@@ -336,8 +404,9 @@ def start_serial(bench_cfg: dict, seed: int) -> Iterator[dict]:
         device.faults.kill_load = _stopper(load_server)
         try:
             bench = bench_cfg.get("bench", {})
-            yield {"drive": {"port": proxy.url, **{k: bench[k] for k in ("timing", "fault_reset") if k in bench}},
-                   "load": {"host": "127.0.0.1", "port": load_server.port}}
+            with _watchdog(device):
+                yield {"drive": {"port": proxy.url, **{k: bench[k] for k in ("timing", "fault_reset") if k in bench}},
+                       "load": {"host": "127.0.0.1", "port": load_server.port}}
         finally:
             _stopper(load_server)()
     finally:
