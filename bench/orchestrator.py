@@ -13,6 +13,7 @@ import threading
 import time
 import traceback
 from dataclasses import asdict, dataclass, field
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -307,7 +308,8 @@ class _Run:
 
     def _add_trip(self, reason: str, message: str, values: dict | None = None, t_s: float | None = None) -> None:
         self.trips.append({"reason": reason, "t_s": self._t_drive if t_s is None else t_s, "values": values or {},
-                           "message": message, "wall_s": round(time.monotonic() - self._started_wall, 4)})
+                           "message": message, "wall_s": round(time.monotonic() - self._started_wall, 4),
+                           "utc": datetime.now(timezone.utc).isoformat(timespec="milliseconds")})
 
     def _load_call(self, fn, *args):
         self._link_in_use = "load"
@@ -456,7 +458,7 @@ class _Run:
         trip = self.supervisor.trip
         if trip is not None:
             self.recorder.note("supervisor_trip", trip.as_dict())
-            self.trips.insert(0, {**trip.as_dict(), "wall_s": None})
+            self.trips.insert(0, {**trip.as_dict(), "wall_s": None, "utc": self.supervisor.trip_utc})
         self.recorder.note("trips", self.trips)
         if self.signals is not None and self.signals.ignored:
             self.recorder.note("signals_ignored_while_stopping", self.signals.ignored)

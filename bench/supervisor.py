@@ -11,6 +11,7 @@ import queue
 import threading
 import time
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from typing import Callable, Iterable, Protocol
 
 from drivers.api import DriveStatus, LiveSample, LoadFeedback
@@ -100,6 +101,7 @@ class Supervisor:
         self.on_trip = on_trip
         self.tripped = threading.Event()
         self.trip: Trip | None = None
+        self.trip_utc: str | None = None
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._thread = threading.Thread(target=self._run, name="drivebench-supervisor", daemon=True)
         self._idle = threading.Condition()
@@ -155,6 +157,7 @@ class Supervisor:
                         trip = self._check_wall_clock()
                     if trip is not None:
                         self.trip = trip
+                        self.trip_utc = datetime.now(timezone.utc).isoformat(timespec="milliseconds")
                         self.tripped.set()
                         if self.on_trip is not None:
                             self.on_trip(trip)
