@@ -1,0 +1,180 @@
+"""Safety supervisor end to end: trips recorded (what, when, values), the reaction sequence, operator abort once.
+
+The subprocess tests run the real CLI against the in-process simulator (`sim_backend.faults:start_canopen`)
+and count what arrived at the simulated drive (controlwords over the CAN bus) and load machine (Modbus writes).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from bench.orchestrator import run_scenario
+from bench.supervisor import SafeStop
+from drivers.api import LoadFeedback
+from tests.fakes import SAFE_STOP, FakeRig
+from tests.test_orchestrator import write_case
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+from benchmarks.fault_campaign import write_bench, write_scenario  # noqa: E402
+
+
+def run_fake(tmp_path, rig, **case):
+    return run_scenario(write_case(tmp_path, **case), out_root=tmp_path / "runs", rerun_mode="off",
+                        links=rig.links())
+
+
+def test_overspeed_trip_is_recorded_with_time_values_and_the_reaction_sequence(tmp_path):
+    rig = FakeRig(overspeed_offset=1000.0)
+    result = run_fake(tmp_path, rig)
+    rec = result.record
+    assert result.verdict == "aborted"
+    trip = rec["trips"][0]
+    assert trip["reason"] == "overspeed" and trip["t_s"] is not None and trip["t_s"] < 0.1
+    assert trip["values"]["speed_true_mech_rad_s"] > trip["values"]["limit"]
+    assert trip["utc"] and "overspeed" in rec["abort_reason"]
+    assert [c for c in rig.names() if c in SAFE_STOP] == SAFE_STOP      # load first, then quick stop, disable
+
+
+def test_load_machine_fault_trips(tmp_path):
+    rig = FakeRig()
+    real = rig.load.feedback
+
+    def faulted() -> LoadFeedback:
+        fb = real()
+        return LoadFeedback(fb.speed_mech_rad_s, fb.torque_nm, fb.enabled, rig.model.time_s > 0.3)
+
+    rig.load.feedback = faulted
+    result = run_fake(tmp_path, rig)
+    assert result.verdict == "aborted"
+    assert result.record["trips"][0]["reason"] == "load_fault"
+    assert 0.3 < result.record["trips"][0]["t_s"] < 0.5       # polled every 0.1 s of drive time
+
+
+def test_drive_fault_and_emcy_are_in_the_trips(tmp_path):
+    result = run_fake(tmp_path, FakeRig(fault_at_s=0.25))
+    trip = result.record["trips"][0]
+    assert result.verdict == "aborted" and trip["reason"] == "fault" and "0x2310" in trip["message"]
+
+
+def test_a_hanging_safe_stop_step_is_abandoned_and_the_others_still_run():
+    rig = FakeRig()
+    never = threading.Event()
+
+    def hangs():
+        rig.calls.append(("load.zero_and_disable", ()))
+        never.wait()
+
+    rig.load.zero_and_disable = hangs
+    stop = SafeStop(rig.drive, rig.load, step_timeout_s=0.3)
+    started = time.monotonic()
+    errors = stop.run()
+    assert time.monotonic() - started < 5.0
+    assert rig.names() == SAFE_STOP
+    assert len(errors) == 1 and errors[0].startswith("load zero torque and disabled: no answer within 0.3 s")
+    assert stop.steps == ["drive quick stop", "drive disabled"]
+    never.set()
+
+
+CHILD = """
+import json, sys
+import bench.orchestrator as orchestrator
+from bench.cli import main
+from sim_backend import faults
+
+real_make_links = orchestrator.make_links
+
+def make_links(cfg, base):
+    drive, load = real_make_links(cfg, base)
+    first_step = load.zero_and_disable
+    def gated():
+        print("SAFE-STOP-BEGIN", file=sys.stderr, flush=True)
+        sys.stdin.readline()          # the test sends more signals now, then lets the stop go on
+        first_step()
+    load.zero_and_disable = gated
+    return drive, load
+
+orchestrator.make_links = make_links
+code = main(sys.argv[1:])
+device = faults.RIGS[-1]
+print("DEVICE " + json.dumps({"counts": dict(device.faults.counts), "safe": faults.safe_state(device)}),
+      file=sys.stderr, flush=True)
+sys.exit(code)
+"""
+
+
+def _start_child(tmp_path: Path, duration: float = 30.0) -> tuple[subprocess.Popen, Path]:
+    bench = write_bench(tmp_path, "canopen", sync_period_s=0.002)
+    scenario = write_scenario(tmp_path, bench, "operator-abort", [], duration_s=duration)
+    out = tmp_path / "runs"
+    child = subprocess.Popen(
+        [sys.executable, "-c", CHILD, "run", str(scenario), "--out", str(out), "--rerun", "off", "--json"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO), "DRIVEBENCH_DEBUG": ""})
+    return child, out
+
+
+def _wait_running(child: subprocess.Popen, out: Path, timeout: float = 90.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not list(out.glob("*/telemetry.arrows")):      # the first telemetry block: the drive is running
+        assert child.poll() is None, child.communicate()[1]
+        assert time.monotonic() < deadline, "the run never started"
+        time.sleep(0.05)
+
+
+def _wait_line(stream, needle: str, timeout: float = 60.0) -> list[str]:
+    lines: list[str] = []
+
+    def read():
+        for line in stream:
+            lines.append(line)
+            if needle in line:
+                return
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    reader.join(timeout)
+    assert lines and needle in lines[-1], lines
+    return lines
+
+
+@pytest.mark.parametrize("signals", [(signal.SIGINT, signal.SIGINT), (signal.SIGTERM, signal.SIGINT, signal.SIGTERM)])
+def test_operator_abort_twice_runs_the_reaction_sequence_once(tmp_path, signals):
+    child, out = _start_child(tmp_path)
+    try:
+        _wait_running(child, out)
+        child.send_signal(signals[0])
+        _wait_line(child.stderr, "SAFE-STOP-BEGIN")
+        for sig in signals[1:]:                 # pressed again while the safe stop is running
+            child.send_signal(sig)
+        child.stdin.write("go\n")
+        child.stdin.flush()
+        stdout, stderr = child.communicate(timeout=90)
+    finally:
+        if child.poll() is None:
+            child.kill()
+    assert child.returncode == 1, stderr
+    assert "Traceback" not in stderr
+    record = json.loads(stdout)
+    first = "Ctrl-C" if signals[0] == signal.SIGINT else "SIGTERM"
+    assert record["verdict"] == "aborted" and first in record["abort_reason"]
+    assert record["trips"][0]["reason"] == "operator"
+    assert record["signals_ignored_while_stopping"] == len(signals) - 1
+    assert record["safe_stop"]["errors"] == []
+    device = json.loads(stderr.split("DEVICE ", 1)[1])
+    counts = device["counts"]
+    # on the wire, once each: load setpoint 0 and load disabled (Modbus), quick stop and disable voltage (RPDO)
+    assert counts["load mode=None value=0.0 enabled=None"] == 1
+    assert counts["load mode=None value=None enabled=False"] == 1
+    assert counts["controlword 0x0002"] == 1
+    assert counts["controlword 0x0000"] == 1
+    assert device["safe"]["power_stage_on"] is False and device["safe"]["load_enabled"] is False
