@@ -18,7 +18,7 @@ DRIVE_KINDS = ("pmsm", "spim")
 
 _BENCH_KEYS = {"name", "description", "timing", "plant_injections", "fault_reset"}
 _SERVICES_KEYS = {"start"}
-_DRIVE_COMMON = {"transport", "kind", "sync_period_s", "heartbeat_timeout_s", "trace_decimation"}
+_DRIVE_COMMON = {"transport", "kind", "sync_period_s", "heartbeat_timeout_s", "trace_decimation", "trace_signals"}
 _DRIVE_KEYS = {
     "canopen": _DRIVE_COMMON | {"interface", "channel", "bitrate", "node_id", "eds", "sdo_timeout_s"},
     "serial": _DRIVE_COMMON | {"port", "baudrate", "timeout_s"},
@@ -143,6 +143,7 @@ def _drive(problems: Problems, drive: dict | None, root: Path) -> dict[str, Any]
         "heartbeat_timeout_s": problems.number(drive, "heartbeat_timeout_s", w, required=False, default=0.5,
                                                positive=True),
         "trace_decimation": problems.integer(drive, "trace_decimation", w, required=False, default=1, min_value=1),
+        "trace_signals": _signal_list(problems, drive, "trace_signals", w),
     }
     if transport == "canopen":
         out["interface"] = problems.string(drive, "interface", w)
@@ -157,6 +158,23 @@ def _drive(problems: Problems, drive: dict | None, root: Path) -> dict[str, Any]
         out["baudrate"] = problems.integer(drive, "baudrate", w, required=False, default=115200, min_value=1)
         out["timeout_s"] = problems.number(drive, "timeout_s", w, required=False, default=0.5, positive=True)
     return out
+
+
+def _signal_list(problems: Problems, table: dict, key: str, where: str) -> tuple[str, ...] | None:
+    """An optional list of signal names from drivers.signals; None when absent."""
+    from drivers.signals import SIGNAL_NAMES
+
+    if key not in table:
+        return None
+    value = table[key]
+    if not isinstance(value, list) or not value or not all(isinstance(v, str) for v in value):
+        problems.add(f"{where}.{key}", "must be a non-empty list of signal names")
+        return None
+    unknown = [v for v in value if v not in SIGNAL_NAMES]
+    if unknown:
+        problems.add(f"{where}.{key}", f"unknown signal(s) {', '.join(unknown)}; known: {', '.join(SIGNAL_NAMES)}")
+        return None
+    return tuple(value)
 
 
 def _load(problems: Problems, load: dict | None) -> dict[str, Any]:

@@ -21,7 +21,8 @@ def test_pmsm_drive_over_serial_and_modbus_services(tmp_path):
     text = (ROOT / "config/benches/sim-pmsm-serial.toml").read_text()
     text = text.replace("[drive]", '[services]\nstart = "sim_backend.serial_server:start_inprocess"\n\n[drive]', 1)
     path = tmp_path / "bench.toml"
-    path.write_text(text.replace('motor = "config/motors/', f'motor = "{ROOT}/config/motors/'))
+    text = text.replace('motor = "config/motors/', f'motor = "{ROOT}/config/motors/')
+    path.write_text(text.replace("sync_period_s = 0.01 ", "sync_period_s = 0.001"))  # 1 ms SYNC: 300 -> 0.3 s
     cfg = load_bench_config(path)
     with started_services(cfg, seed=3) as live:
         drive, load = make_links(live, ROOT)
@@ -40,7 +41,7 @@ def test_pmsm_drive_over_serial_and_modbus_services(tmp_path):
         drive.disable()
         drive.close()
         load.close()
-    assert samples[-1].t_s == pytest.approx(0.3)
+    assert samples[-1].t_s == pytest.approx(300 * cfg["drive"]["sync_period_s"])
     assert fb.torque_nm == pytest.approx(0.5) and fb.enabled
     assert fb.speed_mech_rad_s == pytest.approx(samples[-1].values["speed_true_mech_rad_s"], abs=1e-4)
     assert len(trace["t_s"]) == 3000
