@@ -181,24 +181,27 @@ class Outcome:
     self_stops: list
 
 
-def lost_before(t: np.ndarray, t_fault: float, control_period_s: float, sync_period_s: float) -> int:
-    """Samples missing from the drive clock between the first row and t_fault.
+def lost_before(t: np.ndarray, t_fault: float, control_period_s: float, sync_period_s: float,
+                tail_from_s: float | None = None) -> int:
+    """Samples missing from the drive clock between the start and t_fault.
 
-    Trace rows come every control period; a live tail (when the final trace upload failed) every SYNC period.
-    Every gap larger than the expected spacing counts the samples that would have filled it."""
+    Trace rows come every control period; rows from tail_from_s on (the live tail recorded when the final trace
+    upload failed) every SYNC period. Every larger gap counts the samples that would have filled it."""
     t = np.asarray(t, dtype=float)
     t = t[t <= t_fault + 1e-9]
     if len(t) == 0:
         return int(round(t_fault / control_period_s))
+    tail_from = np.inf if tail_from_s is None else tail_from_s - 1e-9
     lost = max(0, int(round(t[0] / control_period_s)) - 1)       # rows missing before the first one
     gaps = np.diff(t)
-    for gap in gaps[gaps > 1.5 * control_period_s]:
-        # a live tail row after the trace: spacing is the SYNC period; anything more is lost
-        if gap <= sync_period_s * 1.5:
-            continue
-        lost += int(round(gap / sync_period_s)) - 1
+    in_tail = t[1:] >= tail_from
+    spacing = np.where(in_tail, sync_period_s, control_period_s)
+    for gap, step in zip(gaps, spacing):
+        if gap > 1.5 * step:
+            lost += int(round(gap / step)) - 1
     end_gap = t_fault - t[-1]                                        # nothing recorded up to the fault
-    if end_gap > 1.5 * sync_period_s:
+    last_step = sync_period_s if (t[-1] >= tail_from or tail_from_s is None) else control_period_s
+    if end_gap > 1.5 * max(last_step, sync_period_s):
         lost += int(round(end_gap / sync_period_s))
     return lost
 
@@ -222,7 +225,8 @@ def run_one(directory: Path, kind: str, transport: str, value: float, t_fault: f
     injected = device.faults.injected
     t_fault_drive = injected[0]["t_s"] if injected else duration_s
     control = device.model.control_period_s
-    lost = lost_before(t, t_fault_drive, control, 0.001)
+    tail = (result.record.get("live_tail") or {}).get("t_first_s")
+    lost = lost_before(t, t_fault_drive, control, 0.001, tail)
     return Outcome(kind, transport, value, t_fault_drive, result.verdict, result.record.get("abort_reason") or "",
                    faults.is_safe(device), state, lost, len(t), device.faults.detection_s, wall,
                    result.record.get("trips", []), list(device.faults.self_stops))

@@ -1,0 +1,110 @@
+"""Faults injected in the simulator from scenarios, through the real bench path (in-process CANopen + Modbus, and
+the serial protocol): each is detected within its stated time, the run ends with the simulated drive's power
+stage off and the load machine disabled at zero torque, no sample before the fault is lost, and the record
+names the cause."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench.errors import InputError
+from bench.scenario import load_scenario
+from sim_backend.faults import FaultState
+from sim_backend.hooks import FAULT_INJECTIONS, injectable_names
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+from benchmarks.fault_campaign import lost_before, run_one, write_bench, write_scenario  # noqa: E402
+
+# kind, transport, value, trip reason in the record, words of the abort reason, detection bound (wall s; the
+# docs/safety.md figures with a margin for a loaded 2-core machine)
+CASES = [
+    ("overcurrent", "canopen", 1.0, "fault", "EMCY 0x2310", 1.0),
+    ("stop_heartbeat", "canopen", 1.0, "drive_link", "no heartbeat", 4.0),
+    ("bus_error", "canopen", 1.0, "drive_link", "error passive", 1.0),
+    ("kill_load", "canopen", 2.0, "load_link", "load machine", 3.0),
+    ("load_machine", "canopen", 1.0, "load_fault", "load machine reports a fault", 1.0),
+    ("freeze_estimator", "canopen", 1.0, "position_error", "position error", 2.0),
+    ("kill_drive", "serial", 1.0, "drive_link", "serial drive", 3.0),
+    ("corrupt_frames", "serial", 0.9, "drive_link", "CRC error", 3.0),
+    ("overcurrent", "serial", 1.0, "fault", "overcurrent", 1.0),
+]
+
+
+@pytest.mark.parametrize("kind, transport, value, reason, words, bound", CASES,
+                         ids=[f"{c[0]}-{c[1]}" for c in CASES])
+def test_injected_fault_detected_stopped_safely_and_recorded(tmp_path, kind, transport, value, reason, words, bound):
+    # a lost heartbeat is judged on the wall clock; lockstep drive time may run faster: give it a long scenario
+    duration = 10.0 if kind == "stop_heartbeat" else 1.2
+    o = run_one(tmp_path, kind, transport, value, t_fault=0.6, seed=11, out_root=tmp_path / "runs",
+                duration_s=duration)
+    assert o.verdict in ("aborted", "error"), o.reason
+    assert o.safe, o.safe_state                                  # power stage off, load disabled
+    assert o.safe_state["load_setpoint"] == 0.0 or not o.safe_state["load_enabled"]
+    assert o.lost_samples == 0
+    assert o.trips and o.trips[0]["reason"] == reason, o.trips
+    assert words in o.reason
+    assert o.detection_s is not None and o.detection_s < bound, o.detection_s
+    assert o.rows > 0
+
+
+def test_lost_sample_count_sees_gaps_and_a_missing_tail():
+    period = 1e-4
+    t = np.arange(1, 5001) * period                              # 0.5 s of trace
+    assert lost_before(t, 0.5, period, 1e-3) == 0
+    assert lost_before(np.delete(t, np.s_[100:110]), 0.5, period, 1e-3) > 0
+    tail = 0.5 + np.arange(1, 201) * 1e-3                        # live rows after the last upload
+    assert lost_before(np.concatenate([t, tail]), 0.7, period, 1e-3, tail_from_s=tail[0]) == 0
+    assert lost_before(np.concatenate([t, np.delete(tail, [50])]), 0.7, period, 1e-3, tail_from_s=tail[0]) == 1
+    assert lost_before(t, 0.7, period, 1e-3) == 200              # the tail is missing
+
+
+def test_frame_fates_come_from_the_seed():
+    def fates(seed):
+        f = FaultState(seed=seed, drop_rate=0.3, corrupt_rate=0.2)
+        return [f.frame_fate() for _ in range(200)]
+
+    assert fates(5) == fates(5)
+    assert fates(5) != fates(6)
+    counts = {k: fates(5).count(k) for k in ("drop", "corrupt", "send")}
+    assert 30 < counts["drop"] < 90 and 10 < counts["corrupt"] < 60
+
+
+def test_fault_names_are_one_list_for_eds_serial_and_scenarios():
+    import canopen
+
+    od = canopen.import_od(str(REPO / "config/od/drivebench-pmsm.eds"), 1)
+    for name in FAULT_INJECTIONS:
+        assert name in injectable_names("pmsm") and name in injectable_names("spim")
+        assert od[name].writable and 0x2480 <= od[name].index < 0x2500
+
+
+def _scenario(tmp_path, plant: bool, name: str, value: float) -> Path:
+    bench = write_bench(tmp_path, "canopen")
+    if not plant:
+        bench.write_text(bench.read_text().replace("plant_injections = true", "plant_injections = false"))
+    return write_scenario(tmp_path, bench, "s", [(0.5, name, value)])
+
+
+@pytest.mark.parametrize("name", FAULT_INJECTIONS)
+def test_fault_injections_are_simulator_only(tmp_path, name):
+    value = 2.0 if name == "fault_kill_endpoint" else 1.0
+    load_scenario(_scenario(tmp_path, True, name, value))
+    with pytest.raises(InputError) as err:
+        load_scenario(_scenario(tmp_path, False, name, value))
+    (line,) = err.value.problems
+    assert "simulator-only" in line and "plant_injections = false" in line
+
+
+@pytest.mark.parametrize("name, value", [("fault_drop_frames_rate", 1.5), ("fault_corrupt_frames_rate", -0.1),
+                                         ("fault_delay_frames_s", -1.0), ("fault_kill_endpoint", 4.0),
+                                         ("fault_stop_heartbeat", 0.5)])
+def test_fault_values_are_checked(tmp_path, name, value):
+    with pytest.raises(InputError) as err:
+        load_scenario(_scenario(tmp_path, True, name, value))
+    (line,) = err.value.problems
+    assert name in line and "injection" in line
