@@ -112,12 +112,15 @@ def resolve_path(value: str, root: Path, also: Path | None = None) -> Path | Non
     """An existing file for `value`: absolute, else under the repo root, else under `also`."""
     if not value.strip():
         return None
-    p = Path(value).expanduser()
-    if p.is_absolute():
-        return p if p.is_file() else None
-    for base in (root, also):
-        if base is not None and (base / p).is_file():
-            return (base / p).resolve()
+    try:
+        p = Path(value).expanduser()
+        if p.is_absolute():
+            return p if p.is_file() else None
+        for base in (root, also):
+            if base is not None and (base / p).is_file():
+                return (base / p).resolve()
+    except (OSError, ValueError, RuntimeError):   # a name too long for the file system, no such user (~x)
+        return None
     return None
 
 
