@@ -27,7 +27,7 @@ from bench.records import RunRecorder
 from bench.rerun_view import RerunStream
 from bench.scenario import load_scenario
 from bench.summary_plot import write_summary_png
-from bench.supervisor import SafeStop, Supervisor
+from bench.supervisor import SafeStop, Supervisor, check_status
 from drivers.api import LinkError, LiveSample
 from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
 
@@ -397,8 +397,23 @@ class _Run:
         if self.progress is not None:
             self.progress(min(t_drive, duration), duration)
         if self.supervisor.trip is not None:
-            return self.supervisor.trip.message
+            return self.supervisor.trip.message + self._drive_fault_behind(self.supervisor.trip)
         return None
+
+    def _drive_fault_behind(self, trip) -> str:
+        """A limit trip is often the symptom (a drive that faulted loses its angle): ask the drive once, now."""
+        if trip.reason in ("fault", "emcy", "heartbeat", "max_duration"):
+            return ""
+        try:
+            status = self.drive.status()
+        except LinkError as exc:
+            self.recorder.note("status_after_trip_error", str(exc))
+            return ""
+        cause = check_status(self._t_drive, status)
+        if cause is None or cause.reason == "heartbeat":
+            return ""
+        self._add_trip(cause.reason, cause.message, cause.values)
+        return f"; the drive reports: {cause.message}"
 
     def _run_time(self, samples: list[LiveSample]) -> list[LiveSample]:
         """Shift drive-clock stamps to time since this run's first SYNC (the drive may have run before)."""
