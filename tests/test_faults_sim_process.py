@@ -14,6 +14,8 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
+import pytest
+
 from tests.test_sim_serve import _endpoints, _serve
 
 REPO = Path(__file__).resolve().parents[1]
@@ -69,7 +71,9 @@ overcurrent_a = 100.0
 """
 
 
-def test_simulator_process_killed_mid_run(tmp_path):
+@pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGSTOP], ids=["killed", "frozen"])
+def test_simulator_process_killed_mid_run(tmp_path, how):
+    """SIGKILL: the sockets close, the bench sees it at once. SIGSTOP: a hung simulator, only timeouts tell."""
     serve_cfg = tmp_path / "serve.toml"
     serve_cfg.write_text(SERVE.format(eds=REPO / "config/od/drivebench-pmsm.eds"))
     sim = _serve(serve_cfg)
@@ -91,11 +95,11 @@ def test_simulator_process_killed_mid_run(tmp_path):
             assert time.monotonic() < deadline
             time.sleep(0.05)
         killed_at = datetime.now(timezone.utc)
-        sim.send_signal(signal.SIGKILL)
+        sim.send_signal(how)
         stdout, stderr = run.communicate(timeout=120)
     finally:
         if sim.poll() is None:
-            sim.kill()
+            sim.kill()                       # SIGKILL also ends a stopped process
         sim.wait(timeout=30)
     assert "Traceback" not in stderr
     assert run.returncode == 2, stderr                          # a dead rig is an error, not a verdict
@@ -104,6 +108,7 @@ def test_simulator_process_killed_mid_run(tmp_path):
     trip = record["trips"][0]
     assert trip["reason"] in ("drive_link", "load_link"), trip
     detection_s = (datetime.fromisoformat(trip["utc"]) - killed_at).total_seconds()
+    print(f"sim process {how.name} -> trip after {detection_s:.3f} s")
     assert 0 <= detection_s < 5.0, detection_s                  # serial: 4 attempts x 0.5 s at most
     stop = record["safe_stop"]
     labels = ("load zero torque and disabled", "drive quick stop", "drive disabled")
