@@ -9,7 +9,7 @@ injection time. Detection time = wall time from the injection to the first safe-
 
     python benchmarks/fault_campaign.py [--runs 24] [--seed 1] [--out DIR]
 
-Last line: RESULT runs=... safe=... lost_samples=... detected=... max_detection_s=...
+Last line: RESULT runs=... safe=... lost_samples=... detected=... max_detection_s=... self_stopped=...
 """
 
 from __future__ import annotations
@@ -278,8 +278,11 @@ def main(argv: list[str] | None = None) -> int:
     safe = sum(o.safe for o in outcomes)
     lost = sum(o.lost_samples for o in outcomes)
     worst = max((o.detection_s for o in detected), default=float("nan"))
+    self_stopped = sum(bool(o.self_stops) for o in outcomes)
+    print(f"{self_stopped} runs reached the safe state (in part) through the simulated device's own comm-loss "
+          f"reaction ({faults.COMM_LOSS_S:g} s): the bench cannot reach a dead endpoint")
     print(f"RESULT runs={len(outcomes)} safe={safe} lost_samples={lost} detected={len(detected)} "
-          f"max_detection_s={worst:.3f}")
+          f"max_detection_s={worst:.3f} self_stopped={self_stopped}")
     return 0 if safe == len(outcomes) and lost == 0 else 1
 
 
