@@ -109,3 +109,25 @@ def test_fault_values_are_checked(tmp_path, name, value):
         load_scenario(_scenario(tmp_path, True, name, value))
     (line,) = err.value.problems
     assert name in line and "injection" in line
+
+
+def test_modbus_exception_mid_run_aborts_safely_with_the_exception_in_the_record(tmp_path):
+    """The load machine refuses a setpoint beyond its rating (exception 3, illegal data value) at t = 0.6 s."""
+    from bench.orchestrator import run_scenario
+    from bench.records import load_run
+    from sim_backend import faults
+
+    bench = write_bench(tmp_path, "canopen")
+    scenario = write_scenario(tmp_path, bench, "modbus-exception", [], duration_s=1.2)
+    scenario.write_text(scenario.read_text().replace('start_s = 0.2\ntorque_nm = 1.0',
+                                                     'start_s = 0.2\nend_s = 0.6\ntorque_nm = 1.0\n\n'
+                                                     '[[load]]\nkind = "torque"\nstart_s = 0.6\ntorque_nm = 500.0'))
+    result = run_scenario(scenario, out_root=tmp_path / "runs", rerun_mode="off")
+    device = faults.RIGS[-1]
+    assert faults.wait_safe(device), faults.safe_state(device)
+    rec = result.record
+    assert result.verdict == "error" and "Modbus exception 3 (illegal data value)" in rec["abort_reason"]
+    assert rec["trips"][0]["reason"] == "load_link" and abs(rec["trips"][0]["t_s"] - 0.6) < 0.01
+    assert rec["safe_stop"]["errors"] == []          # the load link itself still works: zero torque, disabled
+    _, columns, _ = load_run(result.run_dir)
+    assert lost_before(columns["t_s"], 0.6, 1e-4, 1e-3) == 0
