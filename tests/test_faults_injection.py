@@ -131,3 +131,30 @@ def test_modbus_exception_mid_run_aborts_safely_with_the_exception_in_the_record
     assert rec["safe_stop"]["errors"] == []          # the load link itself still works: zero torque, disabled
     _, columns, _ = load_run(result.run_dir)
     assert lost_before(columns["t_s"], 0.6, 1e-4, 1e-3) == 0
+
+
+def test_can_bus_state_and_error_frames_are_judged():
+    import can
+
+    from drivers.canopen_link import _BusErrorCounter
+
+    class Bus:
+        state = can.BusState.ACTIVE
+
+    counter, bus = _BusErrorCounter(), Bus()
+    assert counter.problem(bus) is None
+    bus.state = can.BusState.PASSIVE
+    assert "error passive" in counter.problem(bus)
+    bus.state = can.BusState.ERROR
+    assert "bus off" in counter.problem(bus)
+    bus.state = can.BusState.ACTIVE
+    good = can.Message(arbitration_id=0x181, data=bytes(8))
+    error = can.Message(is_error_frame=True)
+    for _ in range(15):                     # a few errors among good frames: a healthy bus recovers
+        counter.on_message_received(error)
+        for _ in range(8):
+            counter.on_message_received(good)
+    assert counter.problem(bus) is None
+    for _ in range(16):                     # a burst: receive error count reaches 128 -> error passive
+        counter.on_message_received(error)
+    assert "error passive" in counter.problem(bus)
