@@ -17,7 +17,8 @@ from sim_backend.device import SimulatedDevice
 
 
 def private_channel() -> str:
-    return f"drivebench-{uuid.uuid4().hex[:12]}"
+    # ends in letters: log writers (python-can's BLF) read trailing digits of a channel name as its number
+    return f"drivebench-{uuid.uuid4().hex[:12]}-vbus"
 
 
 def make_model(bench_cfg: dict, seed: int):
