@@ -8,13 +8,25 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
-from typing import Protocol, Sequence
+from typing import Callable, Protocol, Sequence
 
 import numpy as np
 
 
 class LinkError(RuntimeError):
     """A protocol-level failure: timeout, abort, CRC error, lost heartbeat. The message says which."""
+
+
+def attempt_all(*actions: Callable[[], object]) -> None:
+    """Run every action even when an earlier one fails (a stop sequence); then raise one LinkError for all."""
+    errors = []
+    for action in actions:
+        try:
+            action()
+        except LinkError as exc:
+            errors.append(str(exc))
+    if errors:
+        raise LinkError("; ".join(errors))
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 from pymodbus.pdu import ExceptionResponse
 
-from drivers.api import LinkError, LoadFeedback, LoadMode
+from drivers.api import LinkError, LoadFeedback, LoadMode, attempt_all
 
 
 @dataclass(frozen=True)
@@ -157,16 +157,8 @@ class ModbusLoadLink:
 
     def zero_and_disable(self) -> None:
         """Setpoint to zero, then disable; tries both whatever the first one did."""
-        errors = []
-        for action in (lambda: self._call("write_registers", REG_SETPOINT.address,
-                                          values=float_to_regs(0.0)),
-                       lambda: self.enable(False)):
-            try:
-                action()
-            except LinkError as exc:
-                errors.append(str(exc))
-        if errors:
-            raise LinkError("; ".join(errors))
+        attempt_all(lambda: self._call("write_registers", REG_SETPOINT.address, values=float_to_regs(0.0)),
+                    lambda: self.enable(False))
 
     def close(self) -> None:
         if self._client is not None:

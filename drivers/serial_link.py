@@ -15,7 +15,7 @@ from typing import Sequence
 import numpy as np
 import serial
 
-from drivers.api import DriveIdentity, DriveStatus, LinkError, LiveSample
+from drivers.api import DriveIdentity, DriveStatus, LinkError, LiveSample, attempt_all
 from drivers.serial_frames import (
     PROTOCOL_MAJOR, PROTOCOL_MINOR, RESPONSE_FLAG, SAMPLE_HEADER, Cmd, ErrorCode, Frame, FrameDecoder,
     encode_frame, fault_text, unpack_str8,
@@ -313,15 +313,8 @@ class SerialDriveLink:
         self._controlword(0x0002)
 
     def disable(self) -> None:
-        errors = []
         # disable voltage: power stage off from every state (shutdown 0x06 is refused in QUICK STOP ACTIVE)
-        for action in (lambda: self.set_speed_ref(0.0), lambda: self._controlword(0x0000)):
-            try:
-                action()
-            except LinkError as exc:
-                errors.append(str(exc))
-        if errors:
-            raise LinkError("; ".join(errors))
+        attempt_all(lambda: self.set_speed_ref(0.0), lambda: self._controlword(0x0000))
 
     def close(self) -> None:
         if self._port is not None:
