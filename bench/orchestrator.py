@@ -260,6 +260,7 @@ class _Run:
         try:
             self.rerun = RerunStream(rerun_mode, recorder.run_dir / "run.rrd", url=rerun_url,
                                      recording_name=recorder.run_dir.name,
+                                     recorded=self.trace_signals if self.data_source == "trace" else LIVE_SIGNALS,
                                      **({"warn": warn} if warn is not None else {}))
         except Exception as exc:  # no view is better than no run
             (warn or print)(f"rerun: cannot open the stream ({type(exc).__name__}: {exc}); no run.rrd")

@@ -2,7 +2,8 @@
 
 Entity paths are the signal names (`/speed_est_mech_rad_s`); the timeline `t_s` is the drive clock.
 `/flux_vector/true` and `/flux_vector/estimated` are 2D arrows derived from the flux magnitudes and
-field angles, for a phasor view of how far the estimate is off.
+field angles, in per unit of the true flux magnitude (the true arrow has length 1 for either motor), for a
+phasor view of how far the estimate is off in magnitude and angle.
 """
 
 from __future__ import annotations
@@ -64,14 +65,24 @@ def display_available() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
-def default_blueprint():
+FLUX_VECTOR_STYLE = {  # entity -> (colour, label)
+    "flux_vector/true": ((170, 170, 170), "true"),
+    "flux_vector/estimated": ((255, 140, 0), "estimated"),
+}
+
+
+def default_blueprint(recorded: Sequence[str] | None = None):
+    """Time series of the recorded signals (all of PLOTS when not given) and the flux phasor view."""
     import rerun.blueprint as rrb
 
-    plots = [
-        rrb.TimeSeriesView(name=title, origin="/", contents=[f"/{name}" for name in names])
-        for title, names in PLOTS
-    ]
-    phasor = rrb.Spatial2DView(name="flux vector (true vs estimated)", origin="/flux_vector")
+    plots = []
+    for title, names in PLOTS:
+        shown = [name for name in names if recorded is None or name in recorded]
+        if shown:
+            plots.append(rrb.TimeSeriesView(name=title, origin="/", contents=[f"/{name}" for name in shown]))
+    phasor = rrb.Spatial2DView(name="flux vector, p.u. of true flux (grey true, orange estimated)",
+                               origin="/flux_vector",
+                               visual_bounds=rrb.VisualBounds2D(x_range=[-1.3, 1.3], y_range=[-1.3, 1.3]))
     return rrb.Blueprint(rrb.Grid(*plots, phasor), collapse_panels=True)
 
 
@@ -90,6 +101,7 @@ class RerunStream:
         *,
         url: str | None = None,
         recording_name: str = "run",
+        recorded: Sequence[str] | None = None,
         batch_s: float = 0.1,
         min_wall_interval_s: float = 0.1,
         warn: Callable[[str], None] = _warn,
@@ -142,7 +154,7 @@ class RerunStream:
         if not sinks:
             self._rec = None
             return
-        self._rec.set_sinks(*sinks, default_blueprint=default_blueprint())
+        self._rec.set_sinks(*sinks, default_blueprint=default_blueprint(recorded))
         self._rec.send_recording_name(recording_name)
         self._style()
 
@@ -155,6 +167,9 @@ class RerunStream:
         for _, names in PLOTS:
             for name in names:
                 self._rec.log(name, rr.SeriesLines(names=name), static=True)
+        for entity, (colour, label) in FLUX_VECTOR_STYLE.items():
+            self._rec.log(entity, rr.Arrows2D.from_fields(colors=[colour], labels=[label], show_labels=True),
+                          static=True)
 
     def log_rows(self, t_s: Sequence[float], values: Sequence[Mapping[str, float]]) -> None:
         """Append samples (one mapping of signal -> value per time) and send once a batch is full."""
@@ -214,11 +229,13 @@ class RerunStream:
         self._last_arrow_bin = bins[idx[-1]]
         angle_est = columns["pos_est_elec_rad"][idx]
         angle_true = angle_est + columns["pos_err_elec_rad"][idx]
+        base = np.abs(columns["flux_true_wb"][idx])
+        base[~(base > 0)] = np.nan
         rr = self._rr
         index = [rr.TimeColumn("t_s", duration=t[idx])]
         for entity, magnitude, angle in (
-            ("flux_vector/estimated", columns["flux_est_wb"][idx], angle_est),
-            ("flux_vector/true", columns["flux_true_wb"][idx], angle_true),
+            ("flux_vector/estimated", columns["flux_est_wb"][idx] / base, angle_est),
+            ("flux_vector/true", columns["flux_true_wb"][idx] / base, angle_true),
         ):
             vectors = np.stack([magnitude * np.cos(angle), magnitude * np.sin(angle)], axis=1)
             vectors = np.nan_to_num(vectors)

@@ -57,8 +57,8 @@ def test_flux_vector_geometry(tmp_path, monkeypatch):
     stream._send_flux_vectors(t, cols)
     est = np.asarray(sent["flux_vector/estimated"][0].as_arrow_array().to_pylist()[0][0])
     true = np.asarray(sent["flux_vector/true"][0].as_arrow_array().to_pylist()[0][0])
-    assert math.isclose(np.hypot(*est), 0.25, rel_tol=1e-6)
-    assert math.isclose(np.hypot(*true), 0.26, rel_tol=1e-6)
+    assert math.isclose(np.hypot(*est), 0.25 / 0.26, rel_tol=1e-6)   # per unit of the true flux
+    assert math.isclose(np.hypot(*true), 1.0, rel_tol=1e-6)
     angle = math.atan2(true[1], true[0]) - math.atan2(est[1], est[0])
     assert math.isclose((angle + math.pi) % (2 * math.pi) - math.pi, 0.1, abs_tol=1e-6)  # = pos_err
     stream._rec = None
