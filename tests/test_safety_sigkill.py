@@ -55,5 +55,6 @@ def test_sigkilled_simulator_run_is_recovered_up_to_the_last_flush(tmp_path):
     assert len(t) >= before                                        # nothing flushed before the kill is lost
     assert np.allclose(np.diff(t), 1e-4)                           # drive clock continuous, 10 kHz trace
     assert abs(t[0] - 1e-4) < 1e-9
-    # the journal is written at least every flush interval (0.5 s); generous for a loaded 2-core machine
-    assert last_flush_age < 2.0, last_flush_age
+    # the journal gets a batch per trace upload (0.5 s of drive time) and is flushed within 0.5 s of wall time;
+    # lockstep runs near real time here, so the last write is recent (generous for a loaded 2-core machine)
+    assert last_flush_age < 3.0, last_flush_age
