@@ -54,6 +54,7 @@ class FaultState:
     load_dead: bool = False
     bus_error: bool = False
     kill_load: object = None                 # callable set by the starter: stops the Modbus server
+    wrapped: bool = False                    # a faults starter put the frame / stream wrappers in place
     injected: list[dict] = field(default_factory=list)       # {name, value, t_s, wall}
     commands: collections.deque = field(default_factory=lambda: collections.deque(maxlen=512))
     counts: collections.Counter = field(default_factory=collections.Counter)
@@ -111,10 +112,17 @@ class FaultState:
         return "send"
 
 
+NEEDS_WRAPPERS = ("fault_drop_frames_rate", "fault_corrupt_frames_rate", "fault_delay_frames_s",
+                  "fault_stop_heartbeat", "fault_kill_endpoint", "fault_bus_error")
+
+
 def apply_fault(device: "SimulatedDevice", name: str, value: float) -> None:
     """A fault injection written to the device (caller holds device.lock)."""
     f = device.faults
     on = bool(value)
+    if name in NEEDS_WRAPPERS and not f.wrapped:
+        raise ValueError(f"{name}: this simulator has no frame-level fault wrappers; use [services] start = "
+                         "'sim_backend.faults:start_canopen' or 'sim_backend.faults:start_serial'")
     f.injected.append({"name": name, "value": float(value), "t_s": device.time_s, "wall": time.monotonic()})
     if name == "fault_drop_frames_rate":
         f.drop_rate = float(value)
@@ -347,6 +355,7 @@ def _new_device(bench_cfg: dict, seed: int) -> "SimulatedDevice":
     else:
         device = SimulatedDevice(make_model(bench_cfg, seed))
     device.faults.reseed(seed)
+    device.faults.wrapped = True
     RIGS.append(device)
     del RIGS[:-8]
     return device

@@ -158,3 +158,17 @@ def test_can_bus_state_and_error_frames_are_judged():
     for _ in range(16):                     # a burst: receive error count reaches 128 -> error passive
         counter.on_message_received(error)
     assert "error passive" in counter.problem(bus)
+
+
+def test_frame_faults_are_refused_by_a_simulator_without_the_wrappers(tmp_path):
+    """The plain in-process simulator has no frame wrappers: the drive refuses (SDO abort), nothing is silent."""
+    from bench.orchestrator import run_scenario
+
+    bench = write_bench(tmp_path, "canopen")
+    bench.write_text(bench.read_text().replace("sim_backend.faults:start_canopen", "sim_backend.inprocess:start"))
+    scenario = write_scenario(tmp_path, bench, "unwrapped", [(0.3, "fault_drop_frames_rate", 0.5)], duration_s=1.0)
+    result = run_scenario(scenario, out_root=tmp_path / "runs", rerun_mode="off")
+    assert result.verdict == "error"
+    assert "fault_drop_frames_rate" in result.record["abort_reason"] and "aborted with 0x06090030" in \
+        result.record["abort_reason"]
+    assert result.record["safe_stop"]["errors"] == []
