@@ -384,19 +384,30 @@ def start_serial_pty(device: SimulatedDevice) -> SerialPtyServer:
 
 
 @contextlib.contextmanager
-def start_inprocess(bench_cfg: dict, seed: int) -> Iterator[dict]:
-    """[services] starter: the simulated drive on the serial protocol over TCP (127.0.0.1) and its load machine
-    on Modbus TCP, in this process. Yields the endpoint overrides {"drive": {"port": url}, "load": {"port": n}}."""
+def _serve_inprocess(bench_cfg: dict, seed: int, open_drive_server) -> Iterator[dict]:
     from sim_backend.inprocess import make_model
     from sim_backend.modbus_server import start_modbus_tcp
 
     device = SimulatedDevice(make_model(bench_cfg, seed))
-    drive_server = start_serial_tcp(device)
+    drive_server = open_drive_server(device)
     try:
         load_server = start_modbus_tcp(device)
         try:
-            yield {"drive": {"port": drive_server.url}, "load": {"host": "127.0.0.1", "port": load_server.port}}
+            port = drive_server.path if isinstance(drive_server, SerialPtyServer) else drive_server.url
+            yield {"drive": {"port": port}, "load": {"host": "127.0.0.1", "port": load_server.port}}
         finally:
             load_server.stop()
     finally:
         drive_server.stop()
+
+
+def start_inprocess(bench_cfg: dict, seed: int):
+    """[services] starter: the simulated drive on the serial protocol over TCP (127.0.0.1) and its load machine
+    on Modbus TCP, in this process. Yields the endpoint overrides {"drive": {"port": url}, "load": {"port": n}}."""
+    return _serve_inprocess(bench_cfg, seed, start_serial_tcp)
+
+
+def start_inprocess_pty(bench_cfg: dict, seed: int):
+    """[services] starter: as start_inprocess, with the serial line on a pseudo-terminal (the drive's port is
+    the pty's path, opened like a real serial port)."""
+    return _serve_inprocess(bench_cfg, seed, start_serial_pty)
