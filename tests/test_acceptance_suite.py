@@ -10,13 +10,11 @@ into docs/validation.md. Parametrised per scenario so `pytest -n 2` spreads it o
 from __future__ import annotations
 
 import tomllib
-import warnings
 from pathlib import Path
 
 import pytest
 
 from bench.scenario import load_scenario
-from drivers.api import LinkError
 
 ROOT = Path(__file__).resolve().parents[1]
 KNOWN_GAPS_FILE = ROOT / "tests" / "known_gaps.toml"
@@ -60,30 +58,9 @@ def test_known_gap_list_matches_the_scenario_files():
             f"{rel(path)}: known_gap markings {sorted(marked_gaps(path))} != known_gaps.toml {sorted(expected)}")
 
 
-def _run(drivebench, path: Path):
-    """Run once; on a link failure (not a verdict on the drive) once more, with a warning.
-
-    The in-process CAN/Modbus links run on wall-clock timeouts: on an overloaded machine a heartbeat or an
-    SDO block can miss one, at connect (LinkError) or during the run (verdict "error", "link error: ...").
-    """
-    for attempt in (1, 2):
-        try:
-            result = drivebench.run(path, rerun_mode="off")
-        except LinkError as exc:
-            if attempt == 2:
-                raise
-            warnings.warn(f"{rel(path)}: cannot connect: {exc}; trying again")
-            continue
-        if attempt == 1 and result.verdict == "error" and (result.error or "").startswith("link error"):
-            warnings.warn(f"{rel(path)}: {result.error}; running it again")
-            continue
-        return result
-    raise AssertionError("unreachable")
-
-
 @pytest.mark.parametrize("path", SCENARIOS, ids=lambda p: f"{p.parent.name}/{p.stem}")
 def test_scenario_meets_the_paper_except_known_gaps(drivebench, path: Path):
-    result = _run(drivebench, path)
+    result = drivebench.run(path, rerun_mode="off")
     assert result.verdict in ("pass", "fail"), (
         f"{rel(path)}: verdict {result.verdict}: {result.record.get('abort_reason') or result.error}")
     expected = known_gaps().get(rel(path), set())
