@@ -630,19 +630,11 @@ class CanopenDriveLink:
                 frames = collector.wait(timeout)
                 if frames is None:
                     raise fail(f"block segments stopped arriving (timeout {timeout} s)")
-                ackseq, last = 0, False
-                for frame in frames:
-                    if frame[0] == 0x80 and len(chunks) == 0 and ackseq == 0 and len(frames) == 1:
-                        code = struct.unpack_from("<L", frame, 4)[0]
-                        raise fail(f"aborted with 0x{code:08X} ({_abort_text(SdoAbortedError(code))})", None)
-                    seq = frame[0] & 0x7F
-                    if seq != ackseq + 1:
-                        break                    # lost or out of order: ack what we have, server repeats
-                    ackseq = seq
-                    chunks.append(bytes(frame[1:8]))
-                    if frame[0] & 0x80:
-                        last = True
-                        break
+                if not chunks and len(frames) == 1 and frames[0][0] == 0x80:
+                    code = struct.unpack_from("<L", frames[0], 4)[0]
+                    raise fail(f"aborted with 0x{code:08X} ({_abort_text(SdoAbortedError(code))})", None)
+                ackseq, last, data = _accept_segments(frames)
+                chunks.append(data)
                 if last:
                     collector.expect(1)
                 else:
@@ -699,46 +691,71 @@ class _BusErrorCounter(can.Listener):
         return None
 
 
+def _accept_segments(frames: list[bytearray]) -> tuple[int, bool, bytes]:
+    """(ackseq, last, data) of one sub-block: segments in sequence from 1, up to the first gap or the last
+    segment of the transfer (what follows a gap is dropped; the server repeats it after our ack)."""
+    if not all(len(f) == 8 for f in frames):
+        ackseq, last, pieces = 0, False, []
+        for frame in frames:
+            if not frame or frame[0] & 0x7F != ackseq + 1:
+                break
+            ackseq += 1
+            pieces.append(bytes(frame[1:8]))
+            if frame[0] & 0x80:
+                last = True
+                break
+        return ackseq, last, b"".join(pieces)
+    segments = np.frombuffer(b"".join(frames), dtype=np.uint8).reshape(-1, 8)
+    gaps = np.flatnonzero(segments[:, 0] & 0x7F != np.arange(1, len(segments) + 1))
+    n = int(gaps[0]) if gaps.size else len(segments)
+    ends = np.flatnonzero(segments[:n, 0] & 0x80)
+    last = bool(ends.size)
+    if last:
+        n = int(ends[0]) + 1
+    return n, last, segments[:n, 1:].tobytes()
+
+
 class _BlockCollector:
-    """Receives SDO server frames on the CAN thread; wakes the uploader per block, not per frame."""
+    """Receives SDO server frames on the CAN thread; wakes the uploader per block, not per frame.
+
+    Frames are appended without a lock (only the receive thread appends; list.append is atomic); the lock is
+    taken once, to wake the uploader, which then takes the list. A frame outside the expected window (after
+    the block's last segment, before the next request) may be dropped, as the protocol allows."""
 
     def __init__(self):
         self._cond = threading.Condition()
-        self._frames: list[bytes] = []
+        self._frames: list[bytearray] = []
         self._want = 1
         self._block = 0
+        self._ready = False
 
     def expect(self, n_frames: int) -> None:
         with self._cond:
-            self._frames, self._want, self._block = [], n_frames, 0
+            self._frames, self._want, self._block, self._ready = [], n_frames, 0, False
 
     def expect_block(self, blksize: int) -> None:
         with self._cond:
-            self._frames, self._want, self._block = [], 0, blksize
+            self._frames, self._want, self._block, self._ready = [], 0, blksize, False
 
     def on_frame(self, can_id, data, timestamp):
-        with self._cond:
-            self._frames.append(data)
-            if self._block:
-                if data[0] & 0x80 or (data[0] & 0x7F) >= self._block or data[0] == 0x80:
+        frames = self._frames
+        frames.append(data)
+        block = self._block
+        if (data[0] & 0x80 or (data[0] & 0x7F) >= block) if block else len(frames) >= self._want:
+            with self._cond:
+                if frames is self._frames:
+                    self._ready = True
                     self._cond.notify()
-            elif len(self._frames) >= self._want:
-                self._cond.notify()
 
-    def wait(self, timeout: float) -> list[bytes] | None:
+    def wait(self, timeout: float) -> list[bytearray] | None:
         deadline = time.monotonic() + timeout
         with self._cond:
-            while True:
-                if self._block:
-                    if self._frames and any(f[0] & 0x80 or (f[0] & 0x7F) >= self._block for f in self._frames[-1:]):
-                        break
-                elif len(self._frames) >= self._want:
-                    break
+            while not self._ready:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     return None
                 self._cond.wait(remaining)
-            frames, self._frames = self._frames, []
+            frames, self._frames, self._ready = self._frames, [], False
             return frames
 
 
