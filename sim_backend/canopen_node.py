@@ -132,7 +132,8 @@ class _BlockSdoServer(SdoServer):
         if pos + 7 * n >= len(data):
             segments[-1, 0] |= 0x80                   # last segment of the transfer
         raw = segments.tobytes()
-        send_frames(self.network, self.tx_cobid, [raw[k:k + 8] for k in range(0, 8 * n, 8)])
+        cob = self.tx_cobid
+        send_frames(self.network, [(cob, raw[k:k + 8]) for k in range(0, 8 * n, 8)])
 
     def segmented_upload(self, command):
         super().segmented_upload(command)
@@ -422,17 +423,19 @@ class SimCanopenNode:
         self._sync_count += 1
         if self.node.nmt._state != NMT_OPERATIONAL:
             return
-        send = self.network.send_message
+        frames = []
         for pdo in self._tpdos:
             t = pdo.trans_type
             if 1 <= t <= 240:
                 if self._sync_count % t == 0:
-                    send(pdo.cob_id, self._pack(pdo))
+                    frames.append((pdo.cob_id, self._pack(pdo)))
             else:                       # 0 (acyclic synchronous), 254/255 (event): on change
                 payload = self._pack(pdo)
                 if payload != pdo.last:
                     pdo.last = payload
-                    send(pdo.cob_id, payload)
+                    frames.append((pdo.cob_id, payload))
+        if frames:
+            send_frames(self.network, frames)     # one burst: the bench's receive thread wakes once per SYNC
 
     # -- EMCY / heartbeat ----------------------------------------------------------------------------
     def _send_emcy(self, code: int, register: int) -> None:
@@ -530,13 +533,13 @@ class FastVirtualBus(VirtualBus):
         if not all_sent:
             raise can.CanOperationError("Could not send message to one or more recipients")
 
-    def send_frames(self, arbitration_id: int, payloads: list[bytes]) -> None:
-        """Standard-ID data frames, in order: what len(payloads) send() calls deliver, with one queue hand-off
-        per receiver (the receiving thread wakes once per burst, not per frame). A subclass that overrides
-        send() (fault injection) gets one send() per frame."""
+    def send_frames(self, frames: list[tuple[int, bytes]]) -> None:
+        """Standard-ID data frames (cob, payload), in order: what len(frames) send() calls deliver, with one queue
+        hand-off per receiver (the receiving thread wakes once per burst, not per frame). A subclass that
+        overrides send() (fault injection) gets one send() per frame."""
         if type(self).send is not FastVirtualBus.send:
-            for payload in payloads:
-                self.send(can.Message(arbitration_id=arbitration_id, is_extended_id=False, data=payload))
+            for cob, payload in frames:
+                self.send(can.Message(arbitration_id=cob, is_extended_id=False, data=payload))
             return
         self._check_if_open()
         now = time.time
@@ -544,9 +547,9 @@ class FastVirtualBus(VirtualBus):
             if bus_queue is self.queue and not self.receive_own_messages:
                 continue
             is_rx = bus_queue is not self.queue
-            copies = [can.Message(timestamp=now(), arbitration_id=arbitration_id, is_extended_id=False,
+            copies = [can.Message(timestamp=now(), arbitration_id=cob, is_extended_id=False,
                                   channel=self.channel_id, dlc=len(p), data=bytearray(p), is_rx=is_rx)
-                      for p in payloads]
+                      for cob, p in frames]
             if bus_queue.maxsize:
                 for copy in copies:
                     bus_queue.put(copy)
@@ -557,16 +560,16 @@ class FastVirtualBus(VirtualBus):
                 bus_queue.not_empty.notify()
 
 
-def send_frames(network: canopen.Network, cob: int, payloads: list[bytes]) -> None:
-    """A burst of frames with one COB-ID (block-upload segments), in order, under the network's send lock.
-    On a FastVirtualBus one Message per frame and receiver and one queue hand-off per burst; on any other bus
-    one bus.send per frame."""
+def send_frames(network: canopen.Network, frames: list[tuple[int, bytes]]) -> None:
+    """A burst of standard-ID frames (cob, payload) — block-upload segments, a SYNC's TPDOs — in order, under
+    the network's send lock. On a FastVirtualBus one Message per frame and receiver and one queue hand-off per
+    burst; on any other bus one bus.send per frame."""
     bus = network.bus
     with network.send_lock:
         if isinstance(bus, FastVirtualBus):
-            bus.send_frames(cob, payloads)
+            bus.send_frames(frames)
         else:
-            for payload in payloads:
+            for cob, payload in frames:
                 bus.send(can.Message(arbitration_id=cob, is_extended_id=False, data=payload))
     network.check()
 

@@ -37,7 +37,7 @@ def test_send_frames_puts_the_same_frames_on_the_wire_as_send():
     bus = FastVirtualBus(channel=channel, receive_own_messages=False)
     try:
         payloads = [bytes([k]) * 8 for k in range(1, 6)]
-        bus.send_frames(0x581, payloads)
+        bus.send_frames([(0x581, p) for p in payloads])
         for p in payloads:
             bus.send(can.Message(arbitration_id=0x581, is_extended_id=False, data=p))
         got = sniffer.frames()
@@ -59,7 +59,7 @@ def test_send_frames_goes_through_an_overridden_send():
 
     bus = Counting(channel=private_channel(), receive_own_messages=False)
     try:
-        bus.send_frames(0x581, [b"\x01" * 8, b"\x02" * 8])
+        bus.send_frames([(0x581, b"\x01" * 8), (0x582, b"\x02" * 8)])
         assert sent == [b"\x01" * 8, b"\x02" * 8]
     finally:
         bus.shutdown()
@@ -69,11 +69,11 @@ def test_a_lost_segment_is_acked_short_and_served_again(monkeypatch):
     real = canopen_node.send_frames
     dropped = []
 
-    def lose_the_40th_segment_once(network, cob, payloads):
-        if not dropped and len(payloads) > 40:
-            dropped.append(payloads[39])
-            payloads = payloads[:39] + payloads[40:]
-        real(network, cob, payloads)
+    def lose_the_40th_segment_once(network, frames):
+        if not dropped and len(frames) > 40:
+            dropped.append(frames[39])
+            frames = frames[:39] + frames[40:]
+        real(network, frames)
 
     monkeypatch.setattr(canopen_node, "send_frames", lose_the_40th_segment_once)
     with rig() as r:
