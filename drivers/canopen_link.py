@@ -630,7 +630,7 @@ class CanopenDriveLink:
                 frames = collector.wait(timeout)
                 if frames is None:
                     raise fail(f"block segments stopped arriving (timeout {timeout} s)")
-                if not chunks and len(frames) == 1 and frames[0][0] == 0x80:
+                if not any(chunks) and len(frames) == 1 and frames[0][0] == 0x80:   # abort before any segment
                     code = struct.unpack_from("<L", frames[0], 4)[0]
                     raise fail(f"aborted with 0x{code:08X} ({_abort_text(SdoAbortedError(code))})", None)
                 ackseq, last, data = _accept_segments(frames)

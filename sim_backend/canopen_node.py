@@ -542,7 +542,7 @@ class FastVirtualBus(VirtualBus):
                 self.send(can.Message(arbitration_id=cob, is_extended_id=False, data=payload))
             return
         self._check_if_open()
-        now = time.time
+        now = (lambda: 0.0) if self.preserve_timestamps else time.time   # as send() would stamp a new Message
         for bus_queue in self.channel:
             if bus_queue is self.queue and not self.receive_own_messages:
                 continue
