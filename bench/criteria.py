@@ -172,6 +172,15 @@ def _settle_time(t: np.ndarray, inside: np.ndarray, t0: float) -> tuple[float, s
     return float(t_in - t0), f"inside the band from {t_in:.6g} s"
 
 
+def _max_abs_error(w: _Window, e: np.ndarray, unit: str) -> tuple[float, str]:
+    i = int(np.argmax(np.abs(e)))
+    return float(abs(e[i])), f"max |error| {e[i]:+.4g}{unit} at {w.t[i]:.6g} s"
+
+
+def _rms_error(e: np.ndarray, unit: str) -> tuple[float, str]:
+    return float(np.sqrt(np.mean(e * e))), f"rms over {e.size} samples, mean {np.mean(e):+.4g}{unit}"
+
+
 def _pct_band(spec: CriterionSpec, level: float, default_pct: float) -> float:
     if "band_abs" in spec.params:
         return float(spec.params["band_abs"])
@@ -195,14 +204,11 @@ def _speed_error_pct(w: _Window, spec: CriterionSpec) -> np.ndarray:
 
 
 def speed_error_max_pct(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
-    e = _speed_error_pct(w, spec)
-    i = int(np.argmax(np.abs(e)))
-    return float(abs(e[i])), f"max |error| {e[i]:+.4g} % at {w.t[i]:.6g} s"
+    return _max_abs_error(w, _speed_error_pct(w, spec), " %")
 
 
 def speed_error_rms_pct(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
-    e = _speed_error_pct(w, spec)
-    return float(np.sqrt(np.mean(e * e))), f"rms over {e.size} samples, mean {np.mean(e):+.4g} %"
+    return _rms_error(_speed_error_pct(w, spec), " %")
 
 
 def _pos_error(w: _Window, spec: CriterionSpec) -> np.ndarray:
@@ -213,14 +219,11 @@ def _pos_error(w: _Window, spec: CriterionSpec) -> np.ndarray:
 
 
 def pos_error_max(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
-    e = _pos_error(w, spec)
-    i = int(np.argmax(np.abs(e)))
-    return float(abs(e[i])), f"max |error| {e[i]:+.4g} rad at {w.t[i]:.6g} s"
+    return _max_abs_error(w, _pos_error(w, spec), " rad")
 
 
 def pos_error_rms(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
-    e = _pos_error(w, spec)
-    return float(np.sqrt(np.mean(e * e))), f"rms over {e.size} samples, mean {np.mean(e):+.4g} rad"
+    return _rms_error(_pos_error(w, spec), " rad")
 
 
 def _flux_error_pct(w: _Window, spec: CriterionSpec) -> np.ndarray:
@@ -231,14 +234,11 @@ def _flux_error_pct(w: _Window, spec: CriterionSpec) -> np.ndarray:
 
 
 def flux_error_max_pct(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
-    e = _flux_error_pct(w, spec)
-    i = int(np.argmax(np.abs(e)))
-    return float(abs(e[i])), f"max |error| {e[i]:+.4g} % at {w.t[i]:.6g} s"
+    return _max_abs_error(w, _flux_error_pct(w, spec), " %")
 
 
 def flux_error_rms_pct(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
-    e = _flux_error_pct(w, spec)
-    return float(np.sqrt(np.mean(e * e))), f"rms over {e.size} samples, mean {np.mean(e):+.4g} %"
+    return _rms_error(_flux_error_pct(w, spec), " %")
 
 
 def flux_recovery_time(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
@@ -249,10 +249,9 @@ def flux_recovery_time(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
 
 
 def settling_time(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
-    x = w.signal(spec.signal)
     ref = _reference(w, spec)
     band = _pct_band(spec, ref[-1], 2.0)
-    err = wrap_angle(x - ref) if is_angle(spec.signal) else x - ref
+    err = _difference(w, spec)
     value, detail = _settle_time(w.t, np.abs(err) <= band, w.after(spec))
     return value, f"band ±{band:.4g}: {detail}"
 
@@ -271,9 +270,8 @@ def overshoot_pct(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
 
 
 def steady_state_error(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
-    x = w.signal(spec.signal)
     ref = _reference(w, spec)
-    err = float(np.mean(wrap_angle(x - ref) if is_angle(spec.signal) else x - ref))
+    err = float(np.mean(_difference(w, spec)))
     if spec.params.get("percent", False):
         level = abs(float(np.mean(ref)))
         if level == 0:
