@@ -5,11 +5,8 @@ exact in each protocol's encoding (INTEGER32 mrad/s and REAL32 on CANopen, float
 
 from __future__ import annotations
 
-import os
 import re
 import subprocess
-import sys
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +14,7 @@ import pytest
 
 from bench.orchestrator import run_scenario
 from bench.records import load_run
+from tests.test_sim_serve import _endpoints as read_endpoints, _serve as start_sim_serve
 
 REPO = Path(__file__).resolve().parents[1]
 SEED = 7
@@ -91,7 +89,7 @@ motor = "{MOTOR}"
     return path
 
 
-def _serve(tmp: Path) -> tuple[subprocess.Popen, dict[str, str]]:
+def _serve_pmsm(tmp: Path) -> tuple[subprocess.Popen, dict[str, str]]:
     config = tmp / "serve.toml"
     config.write_text(f"""[simulator]
 motor = "{MOTOR}"
@@ -103,23 +101,12 @@ modbus_tcp = "127.0.0.1:0"
 node_id = 1
 eds = "{EDS}"
 """)
-    proc = subprocess.Popen([sys.executable, "-m", "sim_backend.serve", "--config", str(config)], cwd=REPO,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    lines: list[str] = []
-
-    def read():
-        for line in proc.stdout:
-            lines.append(line.strip())
-            if line.startswith("ready"):
-                return
-
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
-    reader.join(120)
-    if not lines or not lines[-1].startswith("ready"):
+    proc = start_sim_serve(config)
+    try:
+        lines = read_endpoints(proc, timeout=120.0)
+    except BaseException:
         proc.kill()
-        pytest.fail(f"sim serve did not get ready: {lines} {proc.stderr.read() if proc.poll() is not None else ''}")
+        raise
     endpoints = {}
     for line in lines:
         if m := re.fullmatch(r"canopen socketcand://127\.0\.0\.1:(\d+)/can0 node=1", line):
@@ -138,7 +125,7 @@ def test_virtual_can_socketcand_and_serial_pty_agree(tmp_path):
                              '[services]\nstart = "sim_backend.serial_server:start_inprocess_pty"\n',
                              'transport = "serial"\nport = "/dev/null"\ntimeout_s = 5.0\n', "port = 0"),
     }
-    proc, endpoints = _serve(tmp_path)
+    proc, endpoints = _serve_pmsm(tmp_path)
     try:
         benches["socketcand"] = _bench(
             tmp_path, "socketcand", "",
