@@ -89,6 +89,14 @@ def _u32(value: int) -> str:
     return f"0x{value:08X}"
 
 
+def _mapping_parameter(index: int, pdo: str, entries: list[int]) -> Obj:
+    """A PDO mapping parameter record: the mapped entries, the remaining of 8 slots zero."""
+    subs = {0: Var("Number of mapped objects", UNSIGNED8, "rw", str(len(entries)))}
+    for k in range(8):
+        subs[k + 1] = Var(f"Mapped object {k + 1}", UNSIGNED32, "rw", _u32(entries[k] if k < len(entries) else 0))
+    return Obj(index, f"{pdo} mapping parameter", subs=subs)
+
+
 def _pdo_objects() -> list[Obj]:
     objs = []
     rpdo_maps = {0: [0x60400010, 0x60FF0020, 0x60600008]}
@@ -100,13 +108,7 @@ def _pdo_objects() -> list[Obj]:
             0: Var("Highest sub-index supported", UNSIGNED8, "const", "0x02"),
             1: Var(f"COB-ID used by RPDO {n + 1}", UNSIGNED32, "rw", cob),
             2: Var("Transmission type", UNSIGNED8, "rw", "0xFF")}))
-    for n in range(N_RPDO):
-        entries = rpdo_maps.get(n, [])
-        subs = {0: Var("Number of mapped objects", UNSIGNED8, "rw", str(len(entries)))}
-        for k in range(8):
-            subs[k + 1] = Var(f"Mapped object {k + 1}", UNSIGNED32, "rw",
-                              _u32(entries[k] if k < len(entries) else 0))
-        objs.append(Obj(0x1600 + n, f"RPDO {n + 1} mapping parameter", subs=subs))
+    objs += [_mapping_parameter(0x1600 + n, f"RPDO {n + 1}", rpdo_maps.get(n, [])) for n in range(N_RPDO)]
     for n in range(N_TPDO):
         enabled = n in tpdo_maps
         cob = f"$NODEID+0x{TPDO_COB[n]:X}" if enabled and n < 4 else (
@@ -118,13 +120,7 @@ def _pdo_objects() -> list[Obj]:
             3: Var("Inhibit time", UNSIGNED16, "rw", "0"),
             5: Var("Event timer", UNSIGNED16, "rw", "0"),
             6: Var("SYNC start value", UNSIGNED8, "rw", "0")}))
-    for n in range(N_TPDO):
-        entries = tpdo_maps.get(n, [])
-        subs = {0: Var("Number of mapped objects", UNSIGNED8, "rw", str(len(entries)))}
-        for k in range(8):
-            subs[k + 1] = Var(f"Mapped object {k + 1}", UNSIGNED32, "rw",
-                              _u32(entries[k] if k < len(entries) else 0))
-        objs.append(Obj(0x1A00 + n, f"TPDO {n + 1} mapping parameter", subs=subs))
+    objs += [_mapping_parameter(0x1A00 + n, f"TPDO {n + 1}", tpdo_maps.get(n, [])) for n in range(N_TPDO)]
     return objs
 
 
