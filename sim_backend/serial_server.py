@@ -282,6 +282,7 @@ class SerialTcpServer(_ServerBase):
         self.host = host
         self.port = self._listener.getsockname()[1]
         self.url = f"socket://{host}:{self.port}"
+        self.serial_port = self.url          # what a serial link opens: [drive] port
         self._thread.start()
 
     def _run(self) -> None:
@@ -339,6 +340,7 @@ class SerialPtyServer(_ServerBase):
         tty.setraw(self._slave)          # no echo, no line discipline: a clean 8-bit line
         os.set_blocking(self._master, False)
         self.path = os.ttyname(self._slave)
+        self.serial_port = self.path         # what a serial link opens: [drive] port
         self._thread.start()
 
     def _run(self) -> None:
@@ -393,8 +395,8 @@ def _serve_inprocess(bench_cfg: dict, seed: int, open_drive_server) -> Iterator[
     try:
         load_server = start_modbus_tcp(device)
         try:
-            port = drive_server.path if isinstance(drive_server, SerialPtyServer) else drive_server.url
-            yield {"drive": {"port": port}, "load": {"host": "127.0.0.1", "port": load_server.port}}
+            yield {"drive": {"port": drive_server.serial_port},
+                   "load": {"host": "127.0.0.1", "port": load_server.port}}
         finally:
             load_server.stop()
     finally:
