@@ -8,19 +8,20 @@ config's own path is kept in cfg["_path"]. Defaults are filled in, so readers ca
 
 from __future__ import annotations
 
+import functools
 import tomllib
 from pathlib import Path
 from typing import Any
 
 from bench.errors import InputError, Problems, find_repo_root
+from drivers.api import FAULT_RESET_POLICIES, TIMINGS, LinkSettings
+from drivers.eds import DeviceDescription, EdsError, read_eds
 
-DRIVE_KINDS = ("pmsm", "spim")
-
-_BENCH_KEYS = {"name", "description", "timing", "plant_injections", "fault_reset"}
+_BENCH_KEYS = {"name", "description", "timing", "plant_injections", "wire_faults", "fault_reset"}
 _SERVICES_KEYS = {"start"}
-_DRIVE_COMMON = {"transport", "kind", "sync_period_s", "heartbeat_timeout_s", "trace_decimation", "trace_signals"}
+_DRIVE_COMMON = {"transport", "sync_period_s", "heartbeat_timeout_s", "trace_decimation", "trace_signals", "eds"}
 _DRIVE_KEYS = {
-    "canopen": _DRIVE_COMMON | {"interface", "channel", "bitrate", "node_id", "eds", "sdo_timeout_s"},
+    "canopen": _DRIVE_COMMON | {"interface", "channel", "bitrate", "node_id", "sdo_timeout_s"},
     "serial": _DRIVE_COMMON | {"port", "baudrate", "timeout_s"},
 }
 _LOAD_KEYS = {
@@ -44,11 +45,11 @@ def load_bench_config(path: str | Path) -> dict[str, Any]:
     cfg["bench"] = {
         "name": problems.string(bench, "name", "bench"),
         "description": problems.string(bench, "description", "bench", required=False, default=""),
-        "timing": problems.string(bench, "timing", "bench", required=False, default="lockstep",
-                                  choices=("lockstep", "realtime")),
+        "timing": problems.string(bench, "timing", "bench", required=False, default="lockstep", choices=TIMINGS),
         "plant_injections": problems.boolean(bench, "plant_injections", "bench", required=False, default=False),
+        "wire_faults": problems.boolean(bench, "wire_faults", "bench", required=False, default=False),
         "fault_reset": problems.string(bench, "fault_reset", "bench", required=False, default="once",
-                                       choices=("never", "once")),
+                                       choices=FAULT_RESET_POLICIES),
     }
 
     services = problems.table(raw, "services", "", required=False) or {}
@@ -72,24 +73,25 @@ def load_bench_config(path: str | Path) -> dict[str, Any]:
     return cfg
 
 
-def drive_kind(cfg: dict[str, Any]) -> str | None:
-    """'pmsm' or 'spim' when the config says so ([drive].kind, or `kind` in the simulator's motor file)."""
-    kind = cfg.get("drive", {}).get("kind")
-    if kind:
-        return kind
-    motor = cfg.get("simulator", {}).get("motor")
-    if motor:
-        try:
-            with open(motor, "rb") as f:
-                data = tomllib.load(f)
-        except (OSError, tomllib.TOMLDecodeError):
-            return None
-        for table in (data, data.get("motor", {})):
-            if isinstance(table, dict):
-                for key in ("kind", "type"):
-                    if table.get(key) in DRIVE_KINDS:
-                        return table[key]
-    return None
+def link_settings(cfg: dict[str, Any]) -> LinkSettings:
+    """The bench's own settings every drive link obeys, whatever the transport."""
+    return LinkSettings(timing=cfg["bench"]["timing"], fault_reset=cfg["bench"]["fault_reset"])
+
+
+def drive_description(cfg: dict[str, Any]) -> DeviceDescription | None:
+    """The drive's EDS as the bench reads it before connecting (None when the config names none)."""
+    eds = cfg.get("drive", {}).get("eds")
+    return _read_eds_cached(eds, *_stamp(eds)) if eds else None
+
+
+def _stamp(path: str) -> tuple[int, int]:
+    st = Path(path).stat()
+    return st.st_size, st.st_mtime_ns
+
+
+@functools.lru_cache(maxsize=16)
+def _read_eds_cached(path: str, size: int, mtime_ns: int) -> DeviceDescription:
+    return read_eds(path)
 
 
 def read_toml(path: Path) -> dict[str, Any]:
@@ -141,7 +143,6 @@ def _drive(problems: Problems, drive: dict | None, root: Path) -> dict[str, Any]
         problems.unknown_keys(drive, _DRIVE_KEYS[transport], w)
     out: dict[str, Any] = {
         "transport": transport,
-        "kind": problems.string(drive, "kind", w, required=False, choices=DRIVE_KINDS),
         "sync_period_s": problems.number(drive, "sync_period_s", w, required=False, default=0.001, positive=True),
         "heartbeat_timeout_s": problems.number(drive, "heartbeat_timeout_s", w, required=False, default=0.5,
                                                positive=True),
@@ -154,9 +155,18 @@ def _drive(problems: Problems, drive: dict | None, root: Path) -> dict[str, Any]
         out["bitrate"] = problems.integer(drive, "bitrate", w, required=False, default=1_000_000, min_value=1)
         out["node_id"] = problems.integer(drive, "node_id", w, min_value=1, max_value=127)
         out["sdo_timeout_s"] = problems.number(drive, "sdo_timeout_s", w, required=False, default=0.5, positive=True)
-        eds = problems.string(drive, "eds", w)
+    if transport in _DRIVE_KEYS:
+        # CANopen: the object dictionary the link loads. Serial: optional, the drive's description (which
+        # parameters it offers), since the serial protocol has no file of its own.
+        eds = problems.string(drive, "eds", w, required=transport == "canopen")
         out["eds"] = _existing_path(problems, "drive.eds", eds, root) if eds else None
-    elif transport == "serial":
+        if out["eds"]:
+            try:
+                _read_eds_cached(out["eds"], *_stamp(out["eds"]))
+            except (EdsError, OSError) as exc:
+                problems.add("drive.eds", f"{eds}: {exc}")
+                out["eds"] = None
+    if transport == "serial":
         out["port"] = problems.string(drive, "port", w)
         out["baudrate"] = problems.integer(drive, "baudrate", w, required=False, default=115200, min_value=1)
         out["timeout_s"] = problems.number(drive, "timeout_s", w, required=False, default=0.5, positive=True)

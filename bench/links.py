@@ -1,6 +1,7 @@
 """From a bench config to link objects: transport name -> class, and the optional [services] starter.
 
-Link classes are constructed as `Class(section, base_dir)` with the config's [drive] or [load] table.
+Drive links are constructed as `Class(section, base_dir, settings)` with the config's [drive] table and the bench's
+own LinkSettings ([bench] timing and fault_reset); load links as `Class(section, base_dir)` with [load].
 A service is `module:function`, called as `function(bench_cfg, seed)`; it is a context manager that
 yields endpoint overrides {"drive": {...}, "load": {...}} merged into the config before connecting.
 """
@@ -13,10 +14,11 @@ import importlib
 from pathlib import Path
 from typing import Any, Callable, ContextManager, Iterator
 
+from bench.benchconfig import link_settings
 from bench.errors import InputError
 
 DRIVE_TRANSPORTS: dict[str, str] = {
-    "canopen": "drivers.canopen_link:CanopenDriveLink",
+    "canopen": "drivers.canopen.link:CanopenDriveLink",
     "serial": "drivers.serial_link:SerialDriveLink",
 }
 LOAD_TRANSPORTS: dict[str, str] = {
@@ -52,7 +54,7 @@ def make_links(cfg: dict, base_dir: Path) -> tuple[Any, Any]:
     path = cfg.get("_path", "bench config")
     drive_cls = _link_class(cfg["drive"], DRIVE_TRANSPORTS, "drive", path)
     load_cls = _link_class(cfg["load"], LOAD_TRANSPORTS, "load", path)
-    return drive_cls(dict(cfg["drive"]), base_dir), load_cls(dict(cfg["load"]), base_dir)
+    return drive_cls(dict(cfg["drive"]), base_dir, link_settings(cfg)), load_cls(dict(cfg["load"]), base_dir)
 
 
 @contextlib.contextmanager

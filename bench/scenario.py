@@ -14,13 +14,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from bench.benchconfig import drive_kind, load_bench_config, read_toml, resolve_path
+from bench.benchconfig import drive_description, load_bench_config, read_toml, resolve_path
 from bench.criteria import KINDS, CriterionSpec
 from bench.errors import InputError, Problems, find_repo_root
+from drivers import parameters
 from drivers.api import LoadMode
+from drivers.parameters import Capability, Parameter
 from drivers.signals import SIGNAL_NAMES
-from sim_backend.hooks import (FAULT_INJECTIONS, FIRMWARE_PARAMS, PLANT_PARAMS, TEST_HOOKS, injectable_names,
-                               is_simulator_only)
 
 SCHEMA_VERSION = 1
 GRAVITY_M_S2 = 9.80665
@@ -105,9 +105,9 @@ class Scenario:
                 return seg.mode, seg.value
         return LoadMode.TORQUE, 0.0
 
-    def plant_injections(self) -> tuple[Injection, ...]:
-        """Simulator-only injections: plant_* factors and fault_* injections."""
-        return tuple(inj for inj in self.injections if is_simulator_only(inj.name))
+    def simulator_injections(self) -> tuple[Injection, ...]:
+        """Injections only a simulator can honour (plant factors, device and wire faults)."""
+        return tuple(inj for inj in self.injections if (p := parameters.lookup(inj.name)) and p.simulator_only)
 
 
 _TOP_KEYS = ("schema_version", "name", "description", "bench", "duration_s", "seed",
@@ -154,12 +154,14 @@ def load_scenario(path: str | Path, bench: str | Path | None = None) -> Scenario
     seed = p.integer(raw, "seed", "", required=False, min_value=0, max_value=2**63 - 1)
 
     bench_path, bench_cfg = _bench(p, raw, path, bench)
-    kind = drive_kind(bench_cfg) if bench_cfg else None
+    drive_desc = drive_description(bench_cfg) if bench_cfg else None
+    kind = drive_desc.drivebench_kind if drive_desc else None
     dur = duration if duration is not None else math.inf   # keep checking the rest when duration is bad
 
     speed = _speed_segments(p, _array_of_tables(p, raw, "speed"), dur)
     load = _load_segments(p, _array_of_tables(p, raw, "load"), dur)
-    injections = _injections(p, _array_of_tables(p, raw, "injection"), dur, kind, bench_cfg, bench_path)
+    offered = drive_desc.offered_parameters() if drive_desc else None
+    injections = _injections(p, _array_of_tables(p, raw, "injection"), dur, kind, offered, bench_cfg, bench_path)
     limits = _limits(p, raw, duration, speed)
     criteria = _criteria(p, _array_of_tables(p, raw, "criteria"), dur)
     p.raise_if_any()
@@ -323,71 +325,55 @@ def _load_segments(p: Problems, items: list[tuple[str, dict]], duration: float) 
     return tuple(segments)
 
 
-def _all_names() -> set[str]:
-    names = set(TEST_HOOKS) | set(FAULT_INJECTIONS)
-    for group in (FIRMWARE_PARAMS, PLANT_PARAMS):
-        for names_of_kind in group.values():
-            names.update(names_of_kind)
-    return names
-
-
-def _check_injection_name(p: Problems, field_: str, name: str, kind: str | None, allowed: set[str],
-                          bench_cfg: dict | None, bench_path: Path | None) -> bool:
-    if name not in allowed:
-        if kind and name in _all_names():
-            p.add(field_, f"{name!r} is not a parameter of a {kind} drive")
+def _check_injection_name(p: Problems, field_: str, name: str, kind: str | None,
+                          offered: tuple[Parameter, ...] | None, bench_cfg: dict | None,
+                          bench_path: Path | None) -> Parameter | None:
+    """The parameter record when the bench's drive offers `name` and the bench can honour its kind; else a problem.
+    `offered` is None when the bench config could not be read (then any catalogue name is accepted here)."""
+    param = next((q for q in offered if q.name == name), None) if offered is not None else parameters.lookup(name)
+    if param is None:
+        if offered is not None and name in parameters.ALL_NAMES:
+            eds = Path(bench_cfg["drive"]["eds"]).name if bench_cfg and bench_cfg["drive"].get("eds") else "none"
+            what = f"a {kind} drive" if kind else f"the drive of bench config {bench_path} (EDS {eds})"
+            p.add(field_, f"{name!r} is not a parameter of {what}")
         else:
-            p.add(field_, f"unknown hook {name!r} (known: {', '.join(sorted(allowed))})")
-        return False
-    if is_simulator_only(name) and bench_cfg is not None and not bench_cfg["bench"]["plant_injections"]:
-        p.add(field_, f"simulator-only injection {name!r} needs a simulator, but bench config {bench_path} has "
-                      f"plant_injections = false")
-        return False
-    return True
+            known = sorted(q.name for q in offered) if offered is not None else sorted(parameters.ALL_NAMES)
+            p.add(field_, f"unknown hook {name!r} (known: {', '.join(known) or 'none: the drive offers no parameters'})")
+        return None
+    if bench_cfg is not None and param.capability is not Capability.NONE \
+            and not bench_cfg["bench"][param.capability.value]:
+        if param.capability is Capability.PLANT:
+            p.add(field_, f"simulator-only injection {name!r} needs a simulator, but bench config {bench_path} has "
+                          f"plant_injections = false")
+        else:
+            p.add(field_, f"wire fault {name!r} needs a simulated rig with frame-level fault wrappers, but bench "
+                          f"config {bench_path} has wire_faults = false")
+        return None
+    return param
 
 
 def _injections(p: Problems, items: list[tuple[str, dict]], duration: float, kind: str | None,
-                bench_cfg: dict | None, bench_path: Path | None) -> tuple[Injection, ...]:
-    allowed = set(injectable_names(kind)) if kind else _all_names()
+                offered: tuple[Parameter, ...] | None, bench_cfg: dict | None,
+                bench_path: Path | None) -> tuple[Injection, ...]:
     out = []
     for where, item in items:
         p.unknown_keys(item, ("at_s", "name", "value"), where)
         at = _time(p, item, "at_s", where, duration, allow_end=False)
         name = p.string(item, "name", where)
         value = p.number(item, "value", where)
-        if name is not None and not _check_injection_name(p, f"{where}.name", name, kind, allowed, bench_cfg,
-                                                          bench_path):
-            continue
-        if name is not None and value is not None:
-            reason = _injection_value_problem(name, value)
+        param = None
+        if name is not None:
+            param = _check_injection_name(p, f"{where}.name", name, kind, offered, bench_cfg, bench_path)
+            if param is None:
+                continue
+        if param is not None and value is not None:
+            reason = param.problem(value)
             if reason:
                 p.add(f"{where}.value", reason)
                 continue
         if None not in (at, name, value):
             out.append(Injection(at, name, value))
     return tuple(sorted(out, key=lambda inj: inj.at_s))
-
-
-def _injection_value_problem(name: str, value: float) -> str | None:
-    if name.startswith("freeze_") and value not in (0.0, 1.0):
-        return f"{name} takes 1 (hold) or 0 (release), got {value:g}"
-    if name.startswith("plant_") and value <= 0:
-        return f"{name} is a factor on the nominal plant value and must be > 0, got {value:g} (0.8 means -20 %)"
-    if name.startswith("fw_") and value <= 0:
-        return f"{name} is an absolute parameter value in SI units and must be > 0, got {value:g}"
-    if name in ("fault_drop_frames_rate", "fault_corrupt_frames_rate") and not 0.0 <= value <= 1.0:
-        return f"{name} is a probability per frame and must be within 0..1, got {value:g}"
-    if name == "fault_delay_frames_s" and not 0.0 <= value <= 10.0:
-        return f"{name} is a delay in seconds and must be within 0..10, got {value:g}"
-    if name == "fault_kill_endpoint" and value not in (1.0, 2.0, 3.0):
-        return f"{name} takes 1 (drive), 2 (load machine) or 3 (both), got {value:g}"
-    if name in ("fault_stop_heartbeat", "fault_overcurrent", "fault_freeze_estimator", "fault_bus_error",
-                "fault_load_machine") \
-            and value not in (0.0, 1.0):
-        return f"{name} takes 1 (on) or 0 (off), got {value:g}"
-    if name == "flux_est_scale" and value <= 0:
-        return f"flux_est_scale is a factor on the estimated flux and must be > 0, got {value:g}"
-    return None
 
 
 def _limits(p: Problems, raw: dict, duration: float | None, speed: tuple[SpeedSegment, ...]) -> Limits | None:

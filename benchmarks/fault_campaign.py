@@ -1,7 +1,8 @@
 """Fault campaign: short runs with a random (seeded) injected fault each, through the real bench path.
 
 Every run: `bench.orchestrator.run_scenario` against the in-process simulator (CANopen on a virtual bus + Modbus
-TCP; some runs over the serial protocol) started by `sim_backend.faults`, one fault injected at a random drive
+TCP; some runs over the serial protocol) built by `sim_backend.rig` with the wire-fault wrappers, one fault
+injected at a random drive
 time. Afterwards the simulated device itself is asked whether it is safe (power stage off, load machine
 disabled) and the recorded telemetry is checked for lost samples before the fault: the drive clock must be
 continuous (trace rows one control period apart, live rows one SYNC period apart) from the first row to the
@@ -29,7 +30,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from bench.records import load_run  # noqa: E402
-from sim_backend import faults  # noqa: E402
+from sim_backend import comm_loss, faults  # noqa: E402
 
 # kind -> (injection name, value drawn from the generator, transports it applies to)
 FAULTS: dict[str, tuple[str, object, tuple[str, ...]]] = {
@@ -52,10 +53,11 @@ CANOPEN_BENCH = """
 name = "fault-canopen"
 timing = "lockstep"
 plant_injections = true
+wire_faults = true
 fault_reset = "once"
 
 [services]
-start = "sim_backend.faults:start_canopen"
+start = "sim_backend.rig:start"
 
 [drive]
 transport = "canopen"
@@ -85,10 +87,11 @@ SERIAL_BENCH = """
 name = "fault-serial"
 timing = "lockstep"
 plant_injections = true
+wire_faults = true
 fault_reset = "once"
 
 [services]
-start = "sim_backend.faults:start_serial"
+start = "sim_backend.rig:start"
 
 [drive]
 transport = "serial"
@@ -206,19 +209,36 @@ def lost_before(t: np.ndarray, t_fault: float, control_period_s: float, sync_per
     return lost
 
 
+def run_on_rig(scenario: Path, out_root: Path, bench: Path | None = None):
+    """run_scenario through the bench path, on a rig built here (its [services] replaced by the same rig
+    builder), so the simulated device can be asked afterwards. Returns (RunResult, Rig); the device is asked
+    after its own comm-loss reaction had the time to act."""
+    from bench.benchconfig import load_bench_config
+    from bench.links import make_links, merge_overrides
+    from bench.orchestrator import DEFAULT_SEED, run_scenario
+    from bench.scenario import load_scenario
+    from sim_backend.rig import build, spec_for_bench
+
+    loaded = load_scenario(scenario, bench=bench)
+    cfg = load_bench_config(loaded.bench)
+    seed = loaded.seed if loaded.seed is not None else DEFAULT_SEED
+    with build(spec_for_bench(cfg, seed)) as rig:
+        links = make_links(merge_overrides(cfg, rig.overrides), REPO)
+        result = run_scenario(scenario, bench, out_root=out_root, rerun_mode="off", links=links)
+        faults.wait_safe(rig.device, comm_loss.COMM_LOSS_S + 2.0)   # a dead endpoint: its own reaction may be due
+    return result, rig
+
+
 def run_one(directory: Path, kind: str, transport: str, value: float, t_fault: float, seed: int,
             out_root: Path, duration_s: float = 1.6) -> Outcome:
-    from bench.orchestrator import run_scenario
-
     name, _, _ = FAULTS[kind]
     bench = write_bench(directory, transport)
     scenario = write_scenario(directory, bench, f"fault-{kind}-{transport}-{seed}", [(t_fault, name, value)],
                               duration_s=duration_s, seed=seed)
     started = time.monotonic()
-    result = run_scenario(scenario, out_root=out_root, rerun_mode="off")
+    result, rig = run_on_rig(scenario, out_root)
     wall = time.monotonic() - started
-    device = faults.RIGS[-1]
-    faults.wait_safe(device)           # a dead endpoint: the device's own comm-loss reaction may still be due
+    device = rig.device
     state = faults.safe_state(device)
     _, columns, _ = load_run(result.run_dir)
     t = columns.get("t_s", np.zeros(0))
@@ -280,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
     worst = max((o.detection_s for o in detected), default=float("nan"))
     self_stopped = sum(bool(o.self_stops) for o in outcomes)
     print(f"{self_stopped} runs reached the safe state (in part) through the simulated device's own comm-loss "
-          f"reaction ({faults.COMM_LOSS_S:g} s): the bench cannot reach a dead endpoint")
+          f"reaction ({comm_loss.COMM_LOSS_S:g} s): the bench cannot reach a dead endpoint")
     print(f"RESULT runs={len(outcomes)} safe={safe} lost_samples={lost} detected={len(detected)} "
           f"max_detection_s={worst:.3f} self_stopped={self_stopped}")
     return 0 if safe == len(outcomes) and lost == 0 else 1

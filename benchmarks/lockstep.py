@@ -32,11 +32,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from drivers.api import LinkError  # noqa: E402
-from drivers.canopen_link import CanopenDriveLink, frame_bits  # noqa: E402
-from sim_backend.device import SimulatedDevice  # noqa: E402
+from drivers.api import LinkError, LinkSettings  # noqa: E402
+from drivers.canopen.bus import frame_bits  # noqa: E402
+from drivers.canopen.link import CanopenDriveLink  # noqa: E402
+from drivers.canopen.sdo import block_upload  # noqa: E402
 from sim_backend.drive import make_drive  # noqa: E402
-from sim_backend.inprocess import start_device  # noqa: E402
+from sim_backend.rig import RigSpec, build  # noqa: E402
 from tests.canopen_helpers import Sniffer  # noqa: E402
 
 BENCH = REPO / "config/benches/sim-pmsm.toml"
@@ -74,14 +75,12 @@ def section(channel: str, **kw) -> dict:
 
 
 @contextlib.contextmanager
-def pmsm_link(seed: int = 1, **kw):
-    make_drive(MOTOR, seed).step(1)                       # JIT compile outside the timed part
-    device = SimulatedDevice(make_drive(MOTOR, seed))
-    with start_device(device, EDS, load=False) as (overrides, node):
-        link = CanopenDriveLink(section(overrides["drive"]["channel"], **kw), REPO)
+def pmsm_link(seed: int = 1, timing: str = "lockstep", **kw):
+    with build(RigSpec(motor=MOTOR, seed=seed, eds=EDS)) as rig:     # kernels compiled outside the timed part
+        link = CanopenDriveLink(section(rig.channel, **kw), REPO, LinkSettings(timing=timing))
         link.open()
         try:
-            yield link, device, overrides["drive"]["channel"]
+            yield link, rig.device, rig.channel
         finally:
             link.close()
 
@@ -129,7 +128,7 @@ def block_upload_rate() -> float:
         for _ in range(30):                               # 3 s of drive time, 30,000 rows of 16 bytes
             link.sync()
         t0 = time.perf_counter()
-        data = link._block_upload(0x2101)
+        data = block_upload(link.network, link.node_id, 0x2101, 0, link.stall_timeout_s, link._send)
         dt = time.perf_counter() - t0
         return len(data) / 7 / dt
 

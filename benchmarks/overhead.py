@@ -9,8 +9,8 @@ Cross-checks against the baseline runs of the same invocation: wall_diff_pct (fa
 shared machine) and cpu_diff_pct (median paired process-CPU difference, all threads: Rerun's encoder and
 the journal flusher count; plot included). Target <= 10 %.
 
-Drive path: the in-process CANopen simulator of config/benches/sim-pmsm.toml when drivers.canopen_link and
-sim_backend.inprocess exist; otherwise the PMSM model stepped directly through the in-memory fake links of
+Drive path: the in-process CANopen simulator of config/benches/sim-pmsm.toml when drivers.canopen.link and
+sim_backend.rig exist; otherwise the PMSM model stepped directly through the in-memory fake links of
 tests/fakes.py (no protocol cost, so the base is cheaper and the percentage pessimistic).
 
     python benchmarks/overhead.py [--rounds N] [--scenario FILE]
@@ -37,7 +37,7 @@ DEFAULT_SCENARIO = REPO / "scenarios/examples/pmsm-rs-step.toml"
 
 
 def inprocess_available() -> bool:
-    return all(importlib.util.find_spec(m) is not None for m in ("drivers.canopen_link", "sim_backend.inprocess"))
+    return all(importlib.util.find_spec(m) is not None for m in ("drivers.canopen.link", "sim_backend.rig"))
 
 
 @contextlib.contextmanager

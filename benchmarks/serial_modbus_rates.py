@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 from drivers.modbus_load import ModbusLoadLink
+from drivers.api import LinkSettings
 from drivers.serial_link import SerialDriveLink
 from drivers.signals import SIGNAL_NAMES
 from sim_backend.device import SimulatedDevice
@@ -31,7 +32,7 @@ def sync_rate(device: SimulatedDevice, start, n: int) -> tuple[float, float, flo
     """(syncs per second, drive s per wall s, trace upload MB/s)"""
     server = start(device)
     url = getattr(server, "url", None) or server.path
-    link = SerialDriveLink({"port": url, "timeout_s": 5.0, "sync_period_s": 0.001}, ROOT)
+    link = SerialDriveLink({"port": url, "timeout_s": 5.0, "sync_period_s": 0.001}, ROOT, LinkSettings())
     link.open()
     link.configure(list(SIGNAL_NAMES), list(SIGNAL_NAMES), 1)
     link.enable_velocity_mode()
@@ -72,7 +73,7 @@ def out_of_process_rtf(motor: Path, n: int) -> float:
                             stdout=subprocess.PIPE, text=True, cwd=ROOT)
     try:
         port = int(proc.stdout.readline())
-        link = SerialDriveLink({"port": f"socket://127.0.0.1:{port}", "timeout_s": 5.0}, ROOT)
+        link = SerialDriveLink({"port": f"socket://127.0.0.1:{port}", "timeout_s": 5.0}, ROOT, LinkSettings())
         link.open()
         link.configure(list(SIGNAL_NAMES), list(SIGNAL_NAMES), 1)
         link.enable_velocity_mode()

@@ -13,6 +13,27 @@ from typing import Callable, Protocol, Sequence
 import numpy as np
 
 
+TIMINGS = ("lockstep", "realtime")
+FAULT_RESET_POLICIES = ("never", "once")
+
+
+@dataclass(frozen=True)
+class LinkSettings:
+    """The bench's own settings a drive link obeys ([bench] timing and fault_reset), for every bench config.
+
+    timing: "lockstep" (one SYNC per sync() call, the drive advances only then: a simulator) or "realtime" (SYNC on
+    the wall clock). fault_reset: "once" (a drive found in FAULT is reset once at enable) or "never"."""
+
+    timing: str = "lockstep"
+    fault_reset: str = "once"
+
+    def __post_init__(self) -> None:
+        if self.timing not in TIMINGS:
+            raise ValueError(f"timing: {self.timing!r} is not one of {', '.join(TIMINGS)}")
+        if self.fault_reset not in FAULT_RESET_POLICIES:
+            raise ValueError(f"fault_reset: {self.fault_reset!r} is not one of {', '.join(FAULT_RESET_POLICIES)}")
+
+
 class LinkError(RuntimeError):
     """A protocol-level failure: timeout, abort, CRC error, lost heartbeat. The message says which."""
 

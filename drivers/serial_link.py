@@ -1,8 +1,8 @@
 """DriveLink over the drivebench serial protocol (docs/serial-protocol.md), via pyserial.
 
 The [drive] section: transport = "serial", port (or url: a device path, a pty path or any pyserial URL such
-as socket://127.0.0.1:29537), baudrate, timeout_s, retries, sync_period_s, timing ("lockstep" | "realtime"),
-fault_reset ("once" | "never").
+as socket://127.0.0.1:29537), baudrate, timeout_s, retries, sync_period_s. The bench's own timing ("lockstep" |
+"realtime") and fault-reset policy ("once" | "never") come from [bench] as LinkSettings.
 """
 
 from __future__ import annotations
@@ -15,7 +15,8 @@ from typing import Sequence
 import numpy as np
 import serial
 
-from drivers.api import DriveIdentity, DriveStatus, LinkError, LiveSample, attempt_all
+from drivers import cia402
+from drivers.api import DriveIdentity, DriveStatus, LinkError, LinkSettings, LiveSample, attempt_all
 from drivers.serial_frames import (
     PROTOCOL_MAJOR, PROTOCOL_MINOR, RESPONSE_FLAG, SAMPLE_HEADER, Cmd, ErrorCode, Frame, FrameDecoder,
     encode_frame, fault_text, unpack_str8,
@@ -23,27 +24,12 @@ from drivers.serial_frames import (
 from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
 from drivers.trace_format import decode_rows, mask_for, selected_names
 
-MODE_PROFILE_VELOCITY = 3
 TRIGGER_IMMEDIATE = 0
 MAX_CATCH_UP_SYNCS = 100          # real time: more SYNCs than this behind and the link re-anchors its clock
 
 
-def state_from_statusword(word: int) -> str:
-    """CiA 402 state name from the statusword bits (DS402 table)."""
-    if word & 0x4F == 0x00:
-        return "NOT READY TO SWITCH ON"
-    if word & 0x4F == 0x40:
-        return "SWITCH ON DISABLED"
-    if word & 0x4F == 0x0F:
-        return "FAULT REACTION ACTIVE"
-    if word & 0x4F == 0x08:
-        return "FAULT"
-    return {0x21: "READY TO SWITCH ON", 0x23: "SWITCHED ON", 0x27: "OPERATION ENABLED",
-            0x07: "QUICK STOP ACTIVE"}.get(word & 0x6F, f"UNKNOWN (statusword 0x{word:04X})")
-
-
 class SerialDriveLink:
-    def __init__(self, section: dict, base_dir: Path):
+    def __init__(self, section: dict, base_dir: Path, settings: LinkSettings):
         url = section.get("url") or section.get("port")      # bench configs call it `port`
         if not isinstance(url, str) or not url:
             raise ValueError("[drive] port: required for transport 'serial' (a device path or pyserial URL)")
@@ -52,12 +38,8 @@ class SerialDriveLink:
         self.timeout_s = float(section.get("timeout_s", 0.5))
         self.retries = int(section.get("retries", 3))
         self.sync_period_s = float(section.get("sync_period_s", 0.001))
-        self.timing = section.get("timing", "lockstep")
-        self.fault_reset = section.get("fault_reset", "once")
-        if self.timing not in ("lockstep", "realtime"):
-            raise ValueError(f"[drive] timing: '{self.timing}' is not 'lockstep' or 'realtime'")
-        if self.fault_reset not in ("once", "never"):
-            raise ValueError(f"[drive] fault_reset: '{self.fault_reset}' is not 'once' or 'never'")
+        self.timing = settings.timing
+        self.fault_reset = settings.fault_reset
         if self.timeout_s <= 0 or self.retries < 0 or self.sync_period_s <= 0:
             raise ValueError("[drive] timeout_s and sync_period_s must be > 0 and retries >= 0")
         self.base_dir = base_dir
@@ -75,6 +57,8 @@ class SerialDriveLink:
         self._rt_anchor: float | None = None
         self._rt_sent = 0
         self._names_cache: dict[int, list[str]] = {}
+        self._emcy_codes: list[int] = []      # read with any STATUS, handed over by status()
+        self.where = f"serial drive {self.url}"
 
     # --- transport -------------------------------------------------------------------------------------------
 
@@ -201,43 +185,29 @@ class SerialDriveLink:
             self._transact(Cmd.TRACE_CONFIGURE, struct.pack("<IHB", trace_mask, trace_decimation, TRIGGER_IMMEDIATE))
             self._transact(Cmd.TRACE_START)
 
-    def _controlword(self, word: int) -> int:
+    def write_controlword(self, word: int) -> int:
+        """cia402 port: the drive answers a controlword with its statusword."""
         (status,) = struct.unpack("<H", self._transact(Cmd.CONTROLWORD, struct.pack("<H", word)))
         return status
 
-    def _read_status(self) -> tuple[int, int, list[int]]:
+    def _read_status(self) -> tuple[int, int]:
         p = self._transact(Cmd.STATUS)
         statusword, error_code, _mode, _step, n = struct.unpack_from("<HHbQB", p)
-        codes = list(struct.unpack_from(f"<{n}H", p, 14))
-        return statusword, error_code, codes
+        self._emcy_codes.extend(struct.unpack_from(f"<{n}H", p, 14))
+        return statusword, error_code
 
-    def _step_to(self, word: int, wanted: str) -> None:
-        status = self._controlword(word)
-        deadline = time.monotonic() + max(1.0, 4 * self.timeout_s)
-        while state_from_statusword(status) != wanted:      # a real drive may take a few ms to switch
-            if time.monotonic() > deadline:
-                raise LinkError(f"serial drive {self.url}: controlword 0x{word:04X} left the drive in "
-                                f"{state_from_statusword(status)}, expected {wanted}")
-            time.sleep(0.002)
-            status, _, _ = self._read_status()
+    def read_statusword(self) -> int:
+        return self._read_status()[0]
+
+    @property
+    def _step_timeout_s(self) -> float:
+        return max(1.0, 4 * self.timeout_s)
 
     def enable_velocity_mode(self) -> None:
-        status, error_code, _ = self._read_status()
-        if state_from_statusword(status) in ("FAULT", "FAULT REACTION ACTIVE"):
-            if self.fault_reset == "never":
-                raise LinkError(f"serial drive {self.url}: drive in FAULT ({fault_text(error_code)}), "
-                                "fault_reset = 'never'")
-            self._controlword(0x0000)
-            status = self._controlword(0x0080)        # rising edge of bit 7
-            if state_from_statusword(status) != "SWITCH ON DISABLED":
-                raise LinkError(f"serial drive {self.url}: fault reset failed, drive in "
-                                f"{state_from_statusword(status)} ({fault_text(error_code)})")
-        elif state_from_statusword(status) not in ("SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON"):
-            self._step_to(0x0000, "SWITCH ON DISABLED")   # left running or in quick stop: start from scratch
-        self._transact(Cmd.MODE, struct.pack("<b", MODE_PROFILE_VELOCITY))
-        self._step_to(0x0006, "READY TO SWITCH ON")
-        self._step_to(0x0007, "SWITCHED ON")
-        self._step_to(0x000F, "OPERATION ENABLED")
+        cia402.enable_operation(self, fault_reset_policy=self.fault_reset, timeout_s=self._step_timeout_s,
+                                where=self.where, select_mode=lambda: self._transact(
+                                    Cmd.MODE, struct.pack("<b", cia402.Mode.PROFILE_VELOCITY)),
+                                fault_detail=lambda: fault_text(self._read_status()[1]))
 
     def set_speed_ref(self, speed_mech_rad_s: float) -> None:
         self._transact(Cmd.TARGET_VELOCITY, struct.pack("<d", speed_mech_rad_s))
@@ -304,17 +274,18 @@ class SerialDriveLink:
         return {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
 
     def status(self) -> DriveStatus:
-        statusword, error_code, codes = self._read_status()
-        state = state_from_statusword(statusword)
-        return DriveStatus(state=state, fault=state in ("FAULT", "FAULT REACTION ACTIVE"), heartbeat_ok=True,
-                           emcy=[(c, fault_text(c)) for c in codes])
+        statusword, _error_code = self._read_status()
+        codes, self._emcy_codes = self._emcy_codes, []
+        return DriveStatus(state=cia402.state_name(statusword), fault=cia402.decode(statusword) in cia402.FAULT_STATES,
+                           heartbeat_ok=True, emcy=[(c, fault_text(c)) for c in codes])
 
     def quick_stop(self) -> None:
-        self._controlword(0x0002)
+        cia402.quick_stop(self, self._step_timeout_s, self.where)
 
     def disable(self) -> None:
         # disable voltage: power stage off from every state (shutdown 0x06 is refused in QUICK STOP ACTIVE)
-        attempt_all(lambda: self.set_speed_ref(0.0), lambda: self._controlword(0x0000))
+        attempt_all(lambda: self.set_speed_ref(0.0),
+                    lambda: cia402.disable_voltage(self, self._step_timeout_s, self.where))
 
     def close(self) -> None:
         if self._port is not None:

@@ -28,24 +28,13 @@ from canopen.node import LocalNode
 from canopen.sdo import SdoAbortedError, SdoServer
 from can.interfaces.virtual import VirtualBus
 
+from drivers.canopen import objects as o
+from drivers.cia402 import FAULT_RESET_BIT, State
 from drivers.signals import SIGNAL_NAMES
-from sim_backend import od_gen
-from sim_backend.cia402 import CONTROL_FAULT_RESET, State
 from sim_backend.device import SimulatedDevice
 
 log = logging.getLogger(__name__)
 
-ABORT_NOT_IN_OD = 0x06020000
-ABORT_CANNOT_MAP = 0x06040041
-ABORT_PDO_TOO_LONG = 0x06040042
-ABORT_INVALID_VALUE = 0x06090030
-ABORT_CMD = 0x05040001
-ABORT_NO_DATA = 0x08000024
-ABORT_GENERAL = 0x08000000
-
-EMCY_PDO_LENGTH = 0x8210      # PDO not processed due to length error
-NMT_OPERATIONAL = 5
-NMT_PRE_OPERATIONAL = 127
 
 
 def error_register_for(code: int) -> int:
@@ -81,25 +70,25 @@ class _BlockSdoServer(SdoServer):
         self.on_upload_complete = lambda index, subindex: None
 
     def block_upload(self, data):
-        cs = data[0] & 0x03
-        if cs == 0:                                   # initiate
+        cs = data[0] & o.BLOCK_SUBCOMMAND_MASK
+        if cs == o.BLOCK_UPLOAD_INITIATE & o.BLOCK_SUBCOMMAND_MASK:
             _, index, subindex, blksize = struct.unpack_from("<BHBB", data)
             self._index, self._subindex = index, subindex
             if not 0 < blksize < 128:
-                raise SdoAbortedError(0x05040002)
+                raise SdoAbortedError(o.ABORT_BLOCK_SIZE)
             payload = bytes(self._node.get_data(index, subindex, check_readable=True))
             if not payload:
-                raise SdoAbortedError(ABORT_NO_DATA)
-            crc = bool(data[0] & 0x04)
+                raise SdoAbortedError(o.ABORT_NO_DATA)
+            crc = bool(data[0] & o.BLOCK_CRC_SUPPORTED)
             self._blk = {"data": payload, "pos": 0, "sent_from": 0, "blksize": blksize, "crc": crc,
                          "ended": False}
-            response = struct.pack("<BHBL", 0xC0 | (0x04 if crc else 0) | 0x02, index, subindex, len(payload))
+            response = struct.pack("<BHBL", o.BLOCK_RESPONSE_INITIATE | (o.BLOCK_CRC_SUPPORTED if crc else 0) | o.BLOCK_SIZE_INDICATED, index, subindex, len(payload))
             self.send_response(response)
         elif self._blk is None:
-            raise SdoAbortedError(ABORT_CMD)
-        elif cs == 3:                                 # start upload
+            raise SdoAbortedError(o.ABORT_COMMAND)
+        elif cs == o.BLOCK_UPLOAD_START & o.BLOCK_SUBCOMMAND_MASK:
             self._send_block()
-        elif cs == 2:                                 # block acknowledge
+        elif cs == o.BLOCK_UPLOAD_ACK & o.BLOCK_SUBCOMMAND_MASK:
             ackseq, blksize = data[1], data[2]
             blk = self._blk
             blk["pos"] = min(blk["sent_from"] + 7 * ackseq, len(blk["data"]))
@@ -109,10 +98,10 @@ class _BlockSdoServer(SdoServer):
                 n_unused = (7 - len(blk["data"]) % 7) % 7
                 crc = binascii.crc_hqx(blk["data"], 0) if blk["crc"] else 0
                 blk["ended"] = True
-                self.send_response(struct.pack("<BH5x", 0xC1 | (n_unused << 2), crc))
+                self.send_response(struct.pack("<BH5x", o.BLOCK_RESPONSE_END | (n_unused << 2), crc))
             else:
                 self._send_block()
-        elif cs == 1:                                 # end confirmed by the client
+        elif cs == o.BLOCK_UPLOAD_END & o.BLOCK_SUBCOMMAND_MASK:
             done = self._blk["ended"]
             self._blk = None
             if done:
@@ -130,7 +119,7 @@ class _BlockSdoServer(SdoServer):
         segments[:, 1:] = body.reshape(n, 7)
         segments[:, 0] = np.arange(1, n + 1)
         if pos + 7 * n >= len(data):
-            segments[-1, 0] |= 0x80                   # last segment of the transfer
+            segments[-1, 0] |= o.BLOCK_LAST_SEGMENT                   # last segment of the transfer
         raw = segments.tobytes()
         cob = self.tx_cobid
         send_frames(self.network, [(cob, raw[k:k + 8]) for k in range(0, 8 * n, 8)])
@@ -148,7 +137,7 @@ class _BlockSdoServer(SdoServer):
 class _DriveLocalNode(LocalNode):
     def __init__(self, node_id, od):
         super().__init__(node_id, od)
-        self.sdo = _BlockSdoServer(0x600 + node_id, 0x580 + node_id, self)
+        self.sdo = _BlockSdoServer(o.SDO_RX + node_id, o.SDO_TX + node_id, self)
         self.after_write = lambda index, subindex: None
 
     def set_data(self, index, subindex, data, check_writable=False):
@@ -173,7 +162,7 @@ class SimCanopenNode:
         self.node.sdo.on_upload_complete = self._on_upload_complete
         self.node.after_write = self._after_write
         self._trace_pending = b""
-        self._trace_max_rows = int(od[od_gen.IDX_TRACE][9].default) if od_gen.IDX_TRACE in od else 0
+        self._trace_max_rows = int(od[o.EXT_TRACE][9].default) if o.EXT_TRACE in od else 0
         self._trace_cfg = [device.trace.mask, device.trace.decimation, device.trace.trigger]
         self._pdo_dirty = True
         self._tpdos: list[_Pdo] = []
@@ -182,7 +171,7 @@ class SimCanopenNode:
         self._sync_count = 0
         self._was_fault = False
         self.rpdo_length_errors = 0
-        self.network.subscribe(0x80, self._on_sync)
+        self.network.subscribe(o.SYNC, self._on_sync)
         self.steps_per_sync = self._read_steps_per_sync()
         self._rebuild_pdos()
         self.network.connect()
@@ -197,7 +186,7 @@ class SimCanopenNode:
 
     # -- drive clock ---------------------------------------------------------------------------------
     def _read_steps_per_sync(self) -> int:
-        period_us = self._raw(0x1006, 0)
+        period_us = self._raw(o.COMM_CYCLE_PERIOD, 0)
         return max(1, round(period_us * 1e-6 / self.device.model.control_period_s))
 
     def _raw(self, index: int, subindex: int) -> int:
@@ -209,32 +198,32 @@ class SimCanopenNode:
     # -- object access -------------------------------------------------------------------------------
     def _on_read(self, index, subindex, od):
         dev = self.device
-        if index == 0x6041:
+        if index == o.STATUSWORD:
             return dev.device.statusword
-        if index == 0x6061:
+        if index == o.MODES_DISPLAY:
             return dev.mode_of_operation
-        if index == 0x603F:
+        if index == o.ERROR_CODE:
             return dev.device.error_code
-        if index == 0x1001:
+        if index == o.ERROR_REGISTER:
             return error_register_for(dev.device.error_code) if dev.device.state is State.FAULT else 0
-        if index == 0x606C:
+        if index == o.VELOCITY_ACTUAL:
             return int(round(float(dev.latest[SIGNAL_NAMES.index("speed_est_mech_rad_s")]) * 1000.0))
-        if index == od_gen.IDX_STEP_COUNT:
+        if index == o.EXT_STEP_COUNT:
             return dev.step_count & 0xFFFFFFFF
-        if index == od_gen.IDX_CONTROL_PERIOD_NS:
+        if index == o.EXT_CONTROL_PERIOD_NS:
             return round(dev.model.control_period_s * 1e9)
-        if od_gen.IDX_SIGNAL_BASE <= index < od_gen.IDX_SIGNAL_BASE + len(SIGNAL_NAMES):
-            return float(dev.latest[index - od_gen.IDX_SIGNAL_BASE])
-        if od_gen.IDX_SCALED_BASE <= index < od_gen.IDX_SCALED_BASE + len(SIGNAL_NAMES):
-            value = float(dev.latest[index - od_gen.IDX_SCALED_BASE]) / od.factor
+        if o.EXT_SIGNAL_BASE <= index < o.EXT_SIGNAL_BASE + len(SIGNAL_NAMES):
+            return float(dev.latest[index - o.EXT_SIGNAL_BASE])
+        if o.EXT_SCALED_BASE <= index < o.EXT_SCALED_BASE + len(SIGNAL_NAMES):
+            value = float(dev.latest[index - o.EXT_SCALED_BASE]) / od.factor
             return 0 if value != value else max(-32768, min(32767, round(value)))
-        if index == od_gen.IDX_TRACE:
+        if index == o.EXT_TRACE:
             trace = dev.trace
             return {1: trace.mask, 2: trace.decimation, 3: trace.trigger, 4: int(trace.running),
                     5: trace.rows_available + len(self._trace_pending) // trace.row_size,
                     6: trace.row_size, 7: trace.lost_rows, 8: trace.capacity_rows,
                     9: self._trace_max_rows}.get(subindex)
-        if index == od_gen.IDX_TRACE_DATA:
+        if index == o.EXT_TRACE_DATA:
             if not self._trace_pending:
                 with dev.lock:
                     self._trace_pending = dev.trace.read(self._trace_max_rows)
@@ -244,38 +233,38 @@ class SimCanopenNode:
     def _on_write(self, index, subindex, od, data):
         dev = self.device
         value = od.decode_raw(data) if od.data_type != objectdictionary.DOMAIN else bytes(data)
-        if index == 0x6040:
+        if index == o.CONTROLWORD:
             with dev.lock:
-                if value & CONTROL_FAULT_RESET and dev.device.state is State.FAULT:
+                if value & FAULT_RESET_BIT and dev.device.state is State.FAULT:
                     dev.reset_fault()
                 dev.write_controlword(value)
             self._emcy_reset_if_cleared()
-        elif index == 0x6060:
+        elif index == o.MODES_OF_OPERATION:
             with dev.lock:
                 dev.mode_of_operation = value
-        elif index == 0x60FF:
+        elif index == o.TARGET_VELOCITY:
             with dev.lock:
                 dev.target_speed_mech_rad_s = value / 1000.0
-        elif od_gen.IDX_HOOK_BASE <= index < od_gen.IDX_PLANT_PARAM_BASE + 0x100:
+        elif o.EXT_HOOK_BASE <= index < o.EXT_PARAMETER_RANGE.stop:
             try:
                 dev.write_named(od.name, float(value))
             except (KeyError, ValueError) as exc:
                 log.warning("drive rejected %s = %r: %s", od.name, value, exc)
-                raise SdoAbortedError(ABORT_INVALID_VALUE) from None
-        elif index == od_gen.IDX_TRACE:
+                raise SdoAbortedError(o.ABORT_INVALID_VALUE) from None
+        elif index == o.EXT_TRACE:
             self._write_trace(subindex, value)
-        elif index == 0x1006:
+        elif index == o.COMM_CYCLE_PERIOD:
             steps = value * 1e-6 / dev.model.control_period_s
             if value == 0 or abs(steps - round(steps)) > 1e-6:
-                raise SdoAbortedError(ABORT_INVALID_VALUE)
-        elif 0x1400 <= index < 0x1C00:
+                raise SdoAbortedError(o.ABORT_INVALID_VALUE)
+        elif o.RPDO_COMM <= index < o.TPDO_MAP + 0x200:
             self._check_pdo_write(index, subindex, value)
             self._pdo_dirty = True
 
     def _after_write(self, index: int, subindex: int) -> None:
-        if index == 0x1006:
+        if index == o.COMM_CYCLE_PERIOD:
             self.steps_per_sync = self._read_steps_per_sync()
-        if self._pdo_dirty and 0x1400 <= index < 0x1C00:
+        if self._pdo_dirty and o.RPDO_COMM <= index < o.TPDO_MAP + 0x200:
             self._rebuild_pdos()
 
     def _write_trace(self, subindex: int, value: int) -> None:
@@ -287,40 +276,40 @@ class SimCanopenNode:
                 try:
                     trace.configure(*cfg)
                 except ValueError:
-                    raise SdoAbortedError(ABORT_INVALID_VALUE) from None
+                    raise SdoAbortedError(o.ABORT_INVALID_VALUE) from None
                 self._trace_cfg = cfg
                 self._trace_pending = b""
             elif subindex == 4:
-                if value == od_gen.TRACE_START:
+                if value == o.TRACE_START:
                     trace.start()
-                elif value == od_gen.TRACE_STOP:
+                elif value == o.TRACE_STOP:
                     trace.stop()
-                elif value == od_gen.TRACE_CLEAR:
+                elif value == o.TRACE_CLEAR:
                     trace.clear()
                     self._trace_pending = b""
                 else:
-                    raise SdoAbortedError(ABORT_INVALID_VALUE)
+                    raise SdoAbortedError(o.ABORT_INVALID_VALUE)
             elif subindex == 9:
                 if value < 1:
-                    raise SdoAbortedError(ABORT_INVALID_VALUE)
+                    raise SdoAbortedError(o.ABORT_INVALID_VALUE)
                 self._trace_max_rows = value
 
     def _on_upload_complete(self, index: int, subindex: int) -> None:
-        if index == od_gen.IDX_TRACE_DATA:
+        if index == o.EXT_TRACE_DATA:
             self._trace_pending = b""
 
     # -- PDOs ----------------------------------------------------------------------------------------
     def _check_pdo_write(self, index: int, subindex: int, value: int) -> None:
-        is_map = 0x1600 <= index < 0x1800 or 0x1A00 <= index < 0x1C00
+        is_map = o.RPDO_MAP <= index < o.TPDO_COMM or o.TPDO_MAP <= index < o.TPDO_MAP + 0x200
         if not is_map:
             return
-        tx = index >= 0x1A00
+        tx = index >= o.TPDO_MAP
         if subindex == 0:
             if value > 8:
-                raise SdoAbortedError(ABORT_PDO_TOO_LONG)
+                raise SdoAbortedError(o.ABORT_PDO_TOO_LONG)
             bits = sum(self._raw(index, k) & 0xFF for k in range(1, value + 1))
             if bits > 64:
-                raise SdoAbortedError(ABORT_PDO_TOO_LONG)
+                raise SdoAbortedError(o.ABORT_PDO_TOO_LONG)
             return
         if value == 0:
             return
@@ -330,9 +319,9 @@ class SimCanopenNode:
             if not isinstance(obj, objectdictionary.ODVariable):
                 obj = obj[m_sub]
         except KeyError:
-            raise SdoAbortedError(ABORT_CANNOT_MAP) from None
+            raise SdoAbortedError(o.ABORT_CANNOT_MAP) from None
         if not obj.pdo_mappable or bits != len(obj) or (tx and not obj.readable) or (not tx and not obj.writable):
-            raise SdoAbortedError(ABORT_CANNOT_MAP)
+            raise SdoAbortedError(o.ABORT_CANNOT_MAP)
 
     def _read_pdo(self, comm: int, mapping: int) -> _Pdo:
         cob = self._raw(comm, 1)
@@ -346,29 +335,29 @@ class SimCanopenNode:
         for cob in list(self._rpdos):
             self.network.unsubscribe(cob, self._on_rpdo)
         self._tpdos, self._rpdos = [], {}
-        for n in range(od_gen.N_TPDO):
-            pdo = self._read_pdo(0x1800 + n, 0x1A00 + n)
-            if not pdo.cob_id & 0x80000000 and pdo.entries:
+        for n in range(o.N_TPDO_MAX):
+            pdo = self._read_pdo(o.TPDO_COMM + n, o.TPDO_MAP + n)
+            if not pdo.cob_id & o.COB_ID_INVALID and pdo.entries:
                 pdo.cob_id &= 0x7FF
                 pdo.packer = self._fast_packer(pdo)
                 self._tpdos.append(pdo)
-        for n in range(od_gen.N_RPDO):
-            pdo = self._read_pdo(0x1400 + n, 0x1600 + n)
-            if not pdo.cob_id & 0x80000000 and pdo.entries:
+        for n in range(o.N_RPDO_MAX):
+            pdo = self._read_pdo(o.RPDO_COMM + n, o.RPDO_MAP + n)
+            if not pdo.cob_id & o.COB_ID_INVALID and pdo.entries:
                 pdo.cob_id &= 0x7FF
                 self._rpdos[pdo.cob_id] = pdo
                 self.network.subscribe(pdo.cob_id, self._on_rpdo)
         self._pdo_dirty = False
 
     def _on_rpdo(self, can_id, data, timestamp):
-        if self.node.nmt._state != NMT_OPERATIONAL:
+        if self.node.nmt._state != o.NMT_OPERATIONAL:
             return
         pdo = self._rpdos.get(can_id)
         if pdo is None:
             return
         if len(data) < pdo.length:
             self.rpdo_length_errors += 1
-            self._send_emcy(EMCY_PDO_LENGTH, error_register_for(EMCY_PDO_LENGTH))
+            self._send_emcy(o.EMCY_PDO_LENGTH, error_register_for(o.EMCY_PDO_LENGTH))
             return
         if pdo.trans_type <= 240:
             self._rpdo_pending.append((pdo, bytes(data)))
@@ -394,14 +383,14 @@ class SimCanopenNode:
     def _fast_packer(self, pdo: _Pdo) -> tuple | None:
         """Per-SYNC packing without the generic object lookup, for the objects TPDOs usually carry."""
         dev = self.device
-        fast = {0x6041: ("H", lambda: dev.device.statusword), 0x6061: ("b", lambda: dev.mode_of_operation),
-                od_gen.IDX_STEP_COUNT: ("L", lambda: dev.step_count & 0xFFFFFFFF)}
+        fast = {o.STATUSWORD: ("H", lambda: dev.device.statusword), o.MODES_DISPLAY: ("b", lambda: dev.mode_of_operation),
+                o.EXT_STEP_COUNT: ("L", lambda: dev.step_count & 0xFFFFFFFF)}
         fmt, getters = "<", []
         for index, subindex, _ in pdo.entries:
             if index in fast and subindex == 0:
                 code, get = fast[index]
-            elif od_gen.IDX_SIGNAL_BASE <= index < od_gen.IDX_SIGNAL_BASE + len(SIGNAL_NAMES):
-                code, column = "f", index - od_gen.IDX_SIGNAL_BASE
+            elif o.EXT_SIGNAL_BASE <= index < o.EXT_SIGNAL_BASE + len(SIGNAL_NAMES):
+                code, column = "f", index - o.EXT_SIGNAL_BASE
                 get = (lambda c: lambda: float(dev.latest[c]))(column)
             else:
                 return None
@@ -421,7 +410,7 @@ class SimCanopenNode:
             self._send_emcy(code, error_register_for(code))
             self._was_fault = True
         self._sync_count += 1
-        if self.node.nmt._state != NMT_OPERATIONAL:
+        if self.node.nmt._state != o.NMT_OPERATIONAL:
             return
         frames = []
         for pdo in self._tpdos:
@@ -488,7 +477,7 @@ class _HeartbeatProducer:
             self._last = now
         nmt = self._node.node.nmt
         try:
-            self._node.network.send_message(0x700 + self._node.node_id, [nmt._state])
+            self._node.network.send_message(o.HEARTBEAT + self._node.node_id, [nmt._state])
         except Exception as exc:     # bus closed while stopping
             log.debug("heartbeat: %s", exc)
 

@@ -13,14 +13,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from drivers import parameters
+from drivers.canopen.objects import EMCY_OVERCURRENT
+from drivers.cia402 import Mode, State
+from drivers.parameters import ParamKind
 from drivers.signals import SIGNAL_NAMES
-from sim_backend.cia402 import MODE_PROFILE_VELOCITY, Cia402Device, State
-from sim_backend.faults import EMCY_OVERCURRENT, FaultState, apply_fault
-from sim_backend.hooks import FAULT_INJECTIONS
+from sim_backend.cia402 import Cia402Device
+from sim_backend.faults import ControlwordWritten, FaultState, LoadWritten, apply_fault
 from sim_backend.model import DriveModel
 from sim_backend.trace import TraceRecorder
-
-FIRMWARE_VERSION = "drivebench-sim 0.1.0"
 
 
 @dataclass
@@ -36,7 +37,7 @@ class SimulatedDevice:
     model: DriveModel
     trace: TraceRecorder = field(default_factory=TraceRecorder)
     device: Cia402Device = field(default_factory=Cia402Device)
-    mode_of_operation: int = MODE_PROFILE_VELOCITY
+    mode_of_operation: int = Mode.PROFILE_VELOCITY
     target_speed_mech_rad_s: float = 0.0
     load: LoadMachineRegisters = field(default_factory=LoadMachineRegisters)
     step_count: int = 0
@@ -51,7 +52,7 @@ class SimulatedDevice:
 
     def write_controlword(self, word: int) -> None:
         with self.lock:
-            self.faults.log_command(f"controlword 0x{word:04X}")
+            self.faults.log(ControlwordWritten(word))
             self.device.write_controlword(word, fault_active=self._fault_code() != 0)
             self._apply_outputs()
 
@@ -62,7 +63,7 @@ class SimulatedDevice:
 
     def set_load(self, mode: int | None = None, value: float | None = None, enabled: bool | None = None) -> None:
         with self.lock:
-            self.faults.log_command(f"load mode={mode} value={value} enabled={enabled}")
+            self.faults.log(LoadWritten(mode, value, enabled))
             if mode is not None:
                 self.load.mode = mode
             if value is not None:
@@ -72,18 +73,22 @@ class SimulatedDevice:
             self.model.set_load(self.load.mode, self.load.value, self.load.enabled)
 
     def write_named(self, name: str, value: float) -> None:
-        """A manufacturer object: test hook / firmware parameter / simulator plant injection."""
+        """A parameter of drivers.parameters: test hook, firmware parameter, plant injection or fault."""
+        kind = getattr(self.model, "kind", None)
+        param = parameters.lookup(name, kind)
+        if param is None:
+            raise KeyError(f"unknown parameter {name!r} for a {kind} drive")
         with self.lock:
-            if name in FAULT_INJECTIONS:
-                apply_fault(self, name, value)
-            elif name in self.model.plant_param_names():
+            if param.kind in (ParamKind.DEVICE_FAULT, ParamKind.WIRE_FAULT):
+                apply_fault(self, param, value)
+            elif param.kind is ParamKind.PLANT:
                 self.model.set_plant_param(name, value)
             else:
                 self.model.set_hook(name, value)
 
     def _apply_outputs(self) -> None:
         self.model.set_enabled(self.device.power_enabled)
-        running = self.device.state is State.OPERATION_ENABLED and self.mode_of_operation == MODE_PROFILE_VELOCITY
+        running = self.device.state is State.OPERATION_ENABLED and self.mode_of_operation == Mode.PROFILE_VELOCITY
         self.model.set_speed_ref(self.target_speed_mech_rad_s if running else 0.0)
 
     def advance(self, n_steps: int) -> np.ndarray:

@@ -18,51 +18,20 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from drivers import extension, parameters
+from drivers.canopen import objects as o
+from drivers.canopen.objects import (
+    DOMAIN, INTEGER8, INTEGER16, INTEGER32, REAL32, UNSIGNED8, UNSIGNED16, UNSIGNED32, VISIBLE_STRING, signal_index,
+)
+from drivers.parameters import ParamKind
 from drivers.signals import SIGNALS
-from sim_backend.hooks import FAULT_INJECTIONS, FIRMWARE_PARAMS, PLANT_PARAMS, TEST_HOOKS
 
-VENDOR_ID = 0x00DB0001
-PRODUCT_CODES = {"pmsm": 0x0402_0001, "spim": 0x0402_0002}
-REVISION = 0x0001_0000
-FIRMWARE_VERSION = "drivebench-sim 0.1.0"   # must equal sim_backend.device.FIRMWARE_VERSION
-
-# Data types (CiA 301)
-BOOLEAN, INTEGER8, INTEGER16, INTEGER32 = 0x1, 0x2, 0x3, 0x4
-UNSIGNED8, UNSIGNED16, UNSIGNED32, REAL32, VISIBLE_STRING, DOMAIN = 0x5, 0x6, 0x7, 0x8, 0x9, 0xF
-
-# Indices the client and the node both rely on
-IDX_STEP_COUNT = 0x2000
-IDX_CONTROL_PERIOD_NS = 0x2001
-IDX_DRIVE_KIND = 0x2002
-IDX_SIGNAL_BASE = 0x2010
-IDX_SCALED_BASE = 0x2030          # the same signals as scaled INTEGER16 (value = raw * Factor) for tight buses
-SCALED_PREFIX = "scaled_"
 SCALE_BY_UNIT = {"rad/s": 0.05, "rad": 1e-4, "Wb": 1e-4, "A": 0.01, "V": 0.1, "N*m": 0.01}
-IDX_TRACE = 0x2100
-IDX_TRACE_DATA = 0x2101
-IDX_HOOK_BASE = 0x2200
-IDX_FW_PARAM_BASE = 0x2300
-IDX_PLANT_PARAM_BASE = 0x2400
-IDX_FAULT_BASE = 0x2480            # simulator fault injections (inside the plant block the node routes to write_named)
-TRACE_SUBS = {  # subindex: (name, type, access)
-    1: ("trace_signal_mask", UNSIGNED32, "rw"),
-    2: ("trace_decimation", UNSIGNED16, "rw"),
-    3: ("trace_trigger", UNSIGNED8, "rw"),
-    4: ("trace_control", UNSIGNED8, "rw"),          # write 0 stop, 1 start, 2 clear
-    5: ("trace_rows_available", UNSIGNED32, "ro"),
-    6: ("trace_row_size", UNSIGNED16, "ro"),
-    7: ("trace_lost_rows", UNSIGNED32, "ro"),
-    8: ("trace_capacity_rows", UNSIGNED32, "ro"),
-    9: ("trace_max_rows_per_upload", UNSIGNED32, "rw"),
-}
-TRACE_STOP, TRACE_START, TRACE_CLEAR = 0, 1, 2
-N_RPDO, N_TPDO = 4, 8
-RPDO_COB = (0x200, 0x300, 0x400, 0x500)
-TPDO_COB = (0x180, 0x280, 0x380, 0x480, 0x1C0, 0x2C0, 0x3C0, 0x4C0)   # 5-8: CANopenNode convention, +0x40
-
-
-def signal_index(i: int) -> int:
-    return IDX_SIGNAL_BASE + i
+N_RPDO, N_TPDO = o.N_RPDO_MAX, o.N_TPDO_MAX
+# one object block per parameter kind (drivers.parameters), in catalogue order
+PARAMETER_BLOCKS = ((o.EXT_HOOK_BASE, (ParamKind.TEST_HOOK,)), (o.EXT_FIRMWARE_BASE, (ParamKind.FIRMWARE,)),
+                    (o.EXT_PLANT_BASE, (ParamKind.PLANT,)),
+                    (o.EXT_FAULT_BASE, (ParamKind.WIRE_FAULT, ParamKind.DEVICE_FAULT)))
 
 
 @dataclass
@@ -100,10 +69,10 @@ def _mapping_parameter(index: int, pdo: str, entries: list[int]) -> Obj:
 def _pdo_objects() -> list[Obj]:
     objs = []
     rpdo_maps = {0: [0x60400010, 0x60FF0020, 0x60600008]}
-    tpdo_maps = {0: [0x60410010, 0x60610008, (IDX_STEP_COUNT << 16) | 0x20],
+    tpdo_maps = {0: [0x60410010, 0x60610008, (o.EXT_STEP_COUNT << 16) | 0x20],
                  1: [(signal_index(0) << 16) | 0x20, (signal_index(1) << 16) | 0x20]}
     for n in range(N_RPDO):
-        cob = f"$NODEID+0x{RPDO_COB[n]:X}" if n in rpdo_maps else _u32(0x80000000 | RPDO_COB[n])
+        cob = f"$NODEID+0x{o.RPDO_COB[n]:X}" if n in rpdo_maps else _u32(o.COB_ID_INVALID | o.RPDO_COB[n])
         objs.append(Obj(0x1400 + n, f"RPDO {n + 1} communication parameter", subs={
             0: Var("Highest sub-index supported", UNSIGNED8, "const", "0x02"),
             1: Var(f"COB-ID used by RPDO {n + 1}", UNSIGNED32, "rw", cob),
@@ -111,8 +80,9 @@ def _pdo_objects() -> list[Obj]:
     objs += [_mapping_parameter(0x1600 + n, f"RPDO {n + 1}", rpdo_maps.get(n, [])) for n in range(N_RPDO)]
     for n in range(N_TPDO):
         enabled = n in tpdo_maps
-        cob = f"$NODEID+0x{TPDO_COB[n]:X}" if enabled and n < 4 else (
-            _u32(0x80000000 | TPDO_COB[n]) if n < 4 else _u32(0xC0000000 | (TPDO_COB[n] + 1)))
+        cob = f"$NODEID+0x{o.TPDO_COB[n]:X}" if enabled and n < 4 else (
+            _u32(o.COB_ID_INVALID | o.TPDO_COB[n]) if n < 4
+            else _u32(o.COB_ID_INVALID | o.COB_ID_NO_RTR | (o.TPDO_COB[n] + 1)))
         objs.append(Obj(0x1800 + n, f"TPDO {n + 1} communication parameter", subs={
             0: Var("Highest sub-index supported", UNSIGNED8, "const", "0x06"),
             1: Var(f"COB-ID used by TPDO {n + 1}", UNSIGNED32, "rw", cob),
@@ -134,19 +104,19 @@ def objects(kind: str) -> list[Obj]:
             "Communication cycle period", UNSIGNED32, "rw", "1000",
             description="SYNC period in us; the simulator advances this much drive time per SYNC")),
         Obj(0x1008, "Manufacturer device name", Var("Manufacturer device name", VISIBLE_STRING, "const",
-                                                     f"drivebench simulated {kind.upper()} drive")),
+                                                     extension.device_name(kind))),
         Obj(0x1009, "Manufacturer hardware version", Var("Manufacturer hardware version", VISIBLE_STRING,
                                                          "const", "sim")),
         Obj(0x100A, "Manufacturer software version", Var("Manufacturer software version", VISIBLE_STRING,
-                                                         "const", FIRMWARE_VERSION)),
+                                                         "const", extension.FIRMWARE_VERSION)),
         Obj(0x1014, "COB-ID EMCY", Var("COB-ID EMCY", UNSIGNED32, "ro", "$NODEID+0x80")),
         Obj(0x1017, "Producer heartbeat time", Var("Producer heartbeat time", UNSIGNED16, "rw", "100",
                                                    description="ms")),
         Obj(0x1018, "Identity object", subs={
             0: Var("Highest sub-index supported", UNSIGNED8, "const", "0x04"),
-            1: Var("Vendor-ID", UNSIGNED32, "ro", _u32(VENDOR_ID)),
-            2: Var("Product code", UNSIGNED32, "ro", _u32(PRODUCT_CODES[kind])),
-            3: Var("Revision number", UNSIGNED32, "ro", _u32(REVISION)),
+            1: Var("Vendor-ID", UNSIGNED32, "ro", _u32(extension.VENDOR_ID)),
+            2: Var("Product code", UNSIGNED32, "ro", _u32(extension.PRODUCT_CODES[kind])),
+            3: Var("Revision number", UNSIGNED32, "ro", _u32(extension.REVISION)),
             4: Var("Serial number", UNSIGNED32, "ro", "0x00000001")}),
         Obj(0x1200, "SDO server parameter", subs={
             0: Var("Highest sub-index supported", UNSIGNED8, "const", "0x02"),
@@ -155,33 +125,32 @@ def objects(kind: str) -> list[Obj]:
     ]
     objs += _pdo_objects()
     objs += [
-        Obj(IDX_STEP_COUNT, "drive_step_count", Var(
+        Obj(o.EXT_STEP_COUNT, "drive_step_count", Var(
             "drive_step_count", UNSIGNED32, "ro", "0", pdo=True,
             description="drive clock: control periods since power-up")),
-        Obj(IDX_CONTROL_PERIOD_NS, "control_period_ns", Var("control_period_ns", UNSIGNED32, "ro", "100000")),
-        Obj(IDX_DRIVE_KIND, "drive_kind", Var("drive_kind", VISIBLE_STRING, "const", kind)),
+        Obj(o.EXT_CONTROL_PERIOD_NS, "control_period_ns", Var("control_period_ns", UNSIGNED32, "ro", "100000")),
+        Obj(o.EXT_DRIVE_KIND, "drive_kind", Var("drive_kind", VISIBLE_STRING, "const", kind)),
     ]
     for i, sig in enumerate(SIGNALS):
         objs.append(Obj(signal_index(i), sig.name, Var(sig.name, REAL32, "ro", "0", pdo=True,
                                                        description=f"{sig.description} [{sig.unit}]")))
     for i, sig in enumerate(SIGNALS):
         factor = SCALE_BY_UNIT[sig.unit]
-        objs.append(Obj(IDX_SCALED_BASE + i, SCALED_PREFIX + sig.name, Var(
-            SCALED_PREFIX + sig.name, INTEGER16, "ro", "0", pdo=True, factor=factor,
+        objs.append(Obj(o.EXT_SCALED_BASE + i, o.SCALED_PREFIX + sig.name, Var(
+            o.SCALED_PREFIX + sig.name, INTEGER16, "ro", "0", pdo=True, factor=factor,
             description=f"{sig.name} / {factor:g}, saturated to INTEGER16 [{sig.unit}]")))
-    trace_subs = {0: Var("Highest sub-index supported", UNSIGNED8, "const", f"0x{len(TRACE_SUBS):02X}")}
+    trace_subs = {0: Var("Highest sub-index supported", UNSIGNED8, "const", f"0x{len(o.TRACE_SUBS):02X}")}
     defaults = {1: _u32((1 << len(SIGNALS)) - 1), 2: "1", 3: "0", 4: "0", 5: "0", 6: "0", 7: "0",
                 8: "200000", 9: "100000"}
-    for sub, (name, dtype, access) in TRACE_SUBS.items():
+    for sub, (name, dtype, access) in o.TRACE_SUBS.items():
         trace_subs[sub] = Var(name, dtype, access, defaults[sub])
-    objs.append(Obj(IDX_TRACE, "trace_recorder", subs=trace_subs,
+    objs.append(Obj(o.EXT_TRACE, "trace_recorder", subs=trace_subs,
                     description="mask: bit i = drivers.signals.SIGNAL_NAMES[i]"))
-    objs.append(Obj(IDX_TRACE_DATA, "trace_data", Var(
+    objs.append(Obj(o.EXT_TRACE_DATA, "trace_data", Var(
         "trace_data", DOMAIN, "ro",
         description="oldest recorded rows (drivers.trace_format), removed once the upload completes")))
-    for base, names in ((IDX_HOOK_BASE, TEST_HOOKS), (IDX_FW_PARAM_BASE, FIRMWARE_PARAMS[kind]),
-                        (IDX_PLANT_PARAM_BASE, PLANT_PARAMS[kind]), (IDX_FAULT_BASE, FAULT_INJECTIONS)):
-        for i, name in enumerate(names):
+    for base, kinds in PARAMETER_BLOCKS:
+        for i, name in enumerate(parameters.names_for(kind, *kinds)):
             objs.append(Obj(base + i, name, Var(name, REAL32, "rw", "0")))
     objs += [
         Obj(0x603F, "Error code", Var("Error code", UNSIGNED16, "ro", "0", pdo=True)),
@@ -222,9 +191,9 @@ def render(kind: str) -> str:
         "[FileInfo]", f"FileName=drivebench-{kind}.eds", "FileVersion=1", "FileRevision=0", "EDSVersion=4.0",
         f"Description=drivebench simulated {kind.upper()} drive, CiA 402 profile velocity; generated by "
         "sim_backend/od_gen.py, do not edit", "CreatedBy=drivebench", "",
-        "[DeviceInfo]", "VendorName=drivebench", f"VendorNumber={_u32(VENDOR_ID)}",
-        f"ProductName=drivebench-{kind}", f"ProductNumber={_u32(PRODUCT_CODES[kind])}",
-        f"RevisionNumber={_u32(REVISION)}", "OrderCode=sim",
+        "[DeviceInfo]", "VendorName=drivebench", f"VendorNumber={_u32(extension.VENDOR_ID)}",
+        f"ProductName=drivebench-{kind}", f"ProductNumber={_u32(extension.PRODUCT_CODES[kind])}",
+        f"RevisionNumber={_u32(extension.REVISION)}", "OrderCode=sim",
         *[f"BaudRate_{r}={1 if r in (125, 250, 500, 1000) else 0}" for r in (10, 20, 50, 125, 250, 500, 800, 1000)],
         "SimpleBootUpMaster=0", "SimpleBootUpSlave=1", "Granularity=8", "DynamicChannelsSupported=0",
         "GroupMessaging=0", f"NrOfRXPDO={N_RPDO}", f"NrOfTXPDO={N_TPDO}", "LSS_Supported=0", "",

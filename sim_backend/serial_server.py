@@ -1,13 +1,12 @@
 """The simulated drive's serial protocol server (docs/serial-protocol.md), over TCP or a pty.
 
 One thread per server; it serves one client at a time, like a point-to-point serial line (over TCP a new
-client takes the line over from the previous one). The protocol
-handler (SerialProtocolHandler) is transport-free so tests can feed it frames directly.
+client takes the line over from the previous one). The protocol handler (SerialProtocolHandler) is
+transport-free so tests can feed it frames directly. sim_backend.rig puts these servers in front of a device.
 """
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import select
@@ -16,7 +15,6 @@ import struct
 import threading
 import tty
 from dataclasses import dataclass, field
-from typing import Iterator
 
 import numpy as np
 
@@ -25,14 +23,11 @@ from drivers.serial_frames import (
     FrameDecoder, encode_frame, error_payload, pack_str8,
 )
 from drivers.signals import SIGNAL_NAMES
-from sim_backend.cia402 import CONTROL_FAULT_RESET, State
-from sim_backend.device import FIRMWARE_VERSION, SimulatedDevice
-from sim_backend.hooks import FAULT_INJECTIONS
+from drivers import extension, parameters
+from drivers.cia402 import FAULT_RESET_BIT, State
+from sim_backend.device import SimulatedDevice
 from sim_backend.trace import TRIGGER_IMMEDIATE, TRIGGER_ON_ENABLE
 
-VENDOR_ID = 0x00000DB0
-PRODUCT_CODES = {"pmsm": 0x0001, "spim": 0x0002}
-REVISION = 0x00010000
 MAX_SYNC_STEPS = 1_000_000
 ALL_SIGNALS = (1 << len(SIGNAL_NAMES)) - 1
 WRITE_TIMEOUT_S = 5.0
@@ -69,8 +64,7 @@ class SerialProtocolHandler:
 
     def __post_init__(self) -> None:
         self._live_index = _mask_index(self.live_mask)
-        model = self.device.model
-        self._params = tuple(model.hook_names()) + tuple(model.plant_param_names()) + FAULT_INJECTIONS
+        self._params = parameters.names_for(getattr(self.device.model, "kind", "pmsm"))
 
     def handle(self, frame: Frame) -> bytes:
         key = (frame.seq, frame.cmd, frame.payload)
@@ -120,13 +114,14 @@ class SerialProtocolHandler:
         if cmd is Cmd.IDENTITY:
             _expect_len(p, 0, cmd)
             kind = getattr(dev.model, "kind", "pmsm")
-            return (struct.pack("<IIIIB", VENDOR_ID, PRODUCT_CODES.get(kind, 0), REVISION, self.serial_number, 1)
-                    + pack_str8(f"drivebench-sim {kind}") + pack_str8(FIRMWARE_VERSION))
+            return (struct.pack("<IIIIB", extension.VENDOR_ID, extension.PRODUCT_CODES.get(kind, 0),
+                                extension.REVISION, self.serial_number, 1)
+                    + pack_str8(extension.device_name(kind)) + pack_str8(extension.FIRMWARE_VERSION))
         if cmd is Cmd.CONTROLWORD:
             _expect_len(p, 2, cmd)
             (word,) = struct.unpack("<H", p)
             with dev.lock:
-                if word & CONTROL_FAULT_RESET and dev.device.state is State.FAULT:
+                if word & FAULT_RESET_BIT and dev.device.state is State.FAULT:
                     dev.reset_fault()
                 dev.write_controlword(word)
                 return struct.pack("<H", dev.device.statusword)
@@ -383,33 +378,3 @@ def start_serial_tcp(device: SimulatedDevice, host: str = "127.0.0.1", port: int
 
 def start_serial_pty(device: SimulatedDevice) -> SerialPtyServer:
     return SerialPtyServer(device)
-
-
-@contextlib.contextmanager
-def _serve_inprocess(bench_cfg: dict, seed: int, open_drive_server) -> Iterator[dict]:
-    from sim_backend.inprocess import make_model
-    from sim_backend.modbus_server import start_modbus_tcp
-
-    device = SimulatedDevice(make_model(bench_cfg, seed))
-    drive_server = open_drive_server(device)
-    try:
-        load_server = start_modbus_tcp(device)
-        try:
-            yield {"drive": {"port": drive_server.serial_port},
-                   "load": {"host": "127.0.0.1", "port": load_server.port}}
-        finally:
-            load_server.stop()
-    finally:
-        drive_server.stop()
-
-
-def start_inprocess(bench_cfg: dict, seed: int):
-    """[services] starter: the simulated drive on the serial protocol over TCP (127.0.0.1) and its load machine
-    on Modbus TCP, in this process. Yields the endpoint overrides {"drive": {"port": url}, "load": {"port": n}}."""
-    return _serve_inprocess(bench_cfg, seed, start_serial_tcp)
-
-
-def start_inprocess_pty(bench_cfg: dict, seed: int):
-    """[services] starter: as start_inprocess, with the serial line on a pseudo-terminal (the drive's port is
-    the pty's path, opened like a real serial port)."""
-    return _serve_inprocess(bench_cfg, seed, start_serial_pty)

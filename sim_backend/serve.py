@@ -66,6 +66,7 @@ def load_serve_config(config_path: str | Path) -> dict:
         "socketcand": _endpoint(path, serve, "canopen_socketcand"),
         "serial": _endpoint(path, serve, "serial_tcp"),
         "modbus": _endpoint(path, serve, "modbus_tcp"),
+        "wire_faults": bool((cfg.get("bench") or {}).get("wire_faults", False)),
     }
     if not toy and not out["motor"].exists():
         raise ServeError(f"{path}: simulator.motor: file not found: {sim['motor']!r}")
@@ -74,46 +75,24 @@ def load_serve_config(config_path: str | Path) -> dict:
     return out
 
 
-def serve(cfg: dict, stop: threading.Event, out=sys.stdout) -> None:
-    from sim_backend.canopen_node import start_node
-    from sim_backend.device import SimulatedDevice
-    from sim_backend.inprocess import private_channel
-    from sim_backend.socketcand_server import SocketcandServer
+def rig_spec(cfg: dict) -> "RigSpec":
+    from sim_backend.rig import RigSpec
+    return RigSpec(motor=cfg["motor"], seed=cfg["seed"], eds=cfg["eds"] if cfg["socketcand"] else None,
+                   node_id=cfg["node_id"], socketcand=cfg["socketcand"],
+                   serial="tcp" if cfg["serial"] else None, serial_tcp=cfg["serial"] or ("127.0.0.1", 0),
+                   modbus="tcp" if cfg["modbus"] else None, modbus_tcp=cfg["modbus"] or ("127.0.0.1", 0),
+                   wire_faults=cfg["wire_faults"])
 
-    if cfg["motor"] == "toy":
-        from sim_backend.toy import ToyDrive
-        device = SimulatedDevice(ToyDrive())
-    else:
-        from sim_backend.drive import make_drive
-        make_drive(cfg["motor"], cfg["seed"]).step(1)     # compile the kernels before the first SYNC
-        device = SimulatedDevice(make_drive(cfg["motor"], cfg["seed"]))
-    stoppers = []
-    try:
-        if cfg["socketcand"]:
-            channel = private_channel()
-            node = start_node(device, cfg["eds"], cfg["node_id"], interface="virtual", channel=channel)
-            stoppers.append(node.stop)
-            server = SocketcandServer(channel, *cfg["socketcand"])
-            stoppers.append(server.stop)
-            print(f"canopen {server.url} node={cfg['node_id']}", file=out, flush=True)
-        if cfg["serial"]:
-            from sim_backend.serial_server import start_serial_tcp
-            handle = start_serial_tcp(device, *cfg["serial"])
-            stoppers.append(handle.stop)
-            print(f"serial socket://{cfg['serial'][0]}:{handle.port}", file=out, flush=True)
-        if cfg["modbus"]:
-            from sim_backend.modbus_server import start_modbus_tcp
-            handle = start_modbus_tcp(device, *cfg["modbus"])
-            stoppers.append(handle.stop)
-            print(f"modbus tcp://{cfg['modbus'][0]}:{handle.port} unit=1", file=out, flush=True)
+
+def serve(cfg: dict, stop: threading.Event, out=sys.stdout) -> None:
+    from sim_backend.rig import build
+
+    with build(rig_spec(cfg)) as rig:
+        for name in ("canopen", "serial", "modbus"):
+            if name in rig.endpoints:
+                print(f"{name} {rig.endpoints[name]}", file=out, flush=True)
         print("ready (Ctrl-C to stop)", file=out, flush=True)
         stop.wait()
-    finally:
-        for stopper in reversed(stoppers):
-            try:
-                stopper()
-            except Exception as exc:      # keep stopping the others
-                print(f"warning: stopping: {exc}", file=sys.stderr)
 
 
 def main(config_path: str | Path) -> int:

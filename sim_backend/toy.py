@@ -10,7 +10,7 @@ import math
 import numpy as np
 
 from drivers.signals import SIGNAL_INDEX, SIGNAL_NAMES
-from sim_backend.hooks import FIRMWARE_PARAMS, PLANT_PARAMS, TEST_HOOKS
+from drivers.parameters import ParamKind, names_for
 from sim_backend.mechanics import LOAD_BRAKE, LOAD_TORQUE, LOAD_VISCOUS
 
 
@@ -87,15 +87,15 @@ class ToyDrive:
         self.hooks[name] = value
 
     def hook_names(self) -> tuple[str, ...]:
-        return TEST_HOOKS + FIRMWARE_PARAMS[self.kind]
+        return names_for(self.kind, ParamKind.TEST_HOOK, ParamKind.FIRMWARE)
 
     def set_plant_param(self, name: str, factor: float) -> None:
-        if name not in PLANT_PARAMS[self.kind]:
+        if name not in names_for(self.kind, ParamKind.PLANT):
             raise KeyError(name)
         self.plant_factors[name] = factor
 
     def plant_param_names(self) -> tuple[str, ...]:
-        return PLANT_PARAMS[self.kind]
+        return names_for(self.kind, ParamKind.PLANT)
 
     def fault_code(self) -> int:
         return self._fault

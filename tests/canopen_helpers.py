@@ -10,10 +10,11 @@ from typing import Iterator
 
 import can
 
-from drivers.canopen_link import CanopenDriveLink
+from drivers.api import LinkSettings
+from drivers.canopen.link import CanopenDriveLink
 from sim_backend.canopen_node import SimCanopenNode, start_node
 from sim_backend.device import SimulatedDevice
-from sim_backend.inprocess import private_channel
+from sim_backend.rig import private_channel
 from sim_backend.toy import ToyDrive
 
 REPO = Path(__file__).resolve().parent.parent
@@ -67,7 +68,8 @@ def rig(node_eds: Path = EDS, open_link: bool = True, **section) -> Iterator[Rig
     toy = ToyDrive()
     device = SimulatedDevice(toy)
     node = start_node(device, node_eds, 1, interface="virtual", channel=channel)
-    link = CanopenDriveLink(link_section(channel, **section), REPO)
+    settings = LinkSettings(**{k: section.pop(k) for k in ("timing", "fault_reset") if k in section})
+    link = CanopenDriveLink(link_section(channel, **section), REPO, settings)
     try:
         if open_link:
             link.open()

@@ -7,10 +7,15 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 
 
+THIRD_PARTY_EDS = REPO / "config" / "od" / "third-party" / "cia402_slave.eds"
+
+
 def write_bench(tmp: Path, *, plant_injections: bool = True, kind: str | None = "pmsm", name: str = "bench.toml") -> Path:
+    """kind: the drivebench drive whose EDS the bench names; None: a third-party CiA 402 drive (no drivebench
+    objects, so no parameters)."""
     eds = tmp / "drive.eds"
-    eds.write_text("[FileInfo]\n")
-    kind_line = f'kind = "{kind}"\n' if kind else ""
+    source = REPO / "config" / "od" / f"drivebench-{kind}.eds" if kind else THIRD_PARTY_EDS
+    eds.write_text(source.read_text())
     path = tmp / name
     path.write_text(f"""
 [bench]
@@ -19,7 +24,7 @@ plant_injections = {str(plant_injections).lower()}
 
 [drive]
 transport = "canopen"
-{kind_line}interface = "virtual"
+interface = "virtual"
 channel = "test"
 node_id = 1
 eds = "{eds}"

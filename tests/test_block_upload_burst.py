@@ -8,10 +8,10 @@ import can
 import numpy as np
 
 import sim_backend.canopen_node as canopen_node
-from drivers.canopen_link import _accept_segments
+from drivers.canopen.sdo import accept_segments as _accept_segments, block_upload
 from drivers.trace_format import decode_rows, mask_for
 from sim_backend.canopen_node import FastVirtualBus
-from sim_backend.inprocess import private_channel
+from sim_backend.rig import private_channel
 from tests.canopen_helpers import Sniffer, rig
 
 LIVE = ["speed_ref_mech_rad_s", "speed_est_mech_rad_s"]
@@ -81,7 +81,7 @@ def test_a_lost_segment_is_acked_short_and_served_again(monkeypatch):
         for _ in range(5):
             r.link.sync()
         r.sniffer.frames()
-        data = r.link._block_upload(0x2101)
+        data = block_upload(r.link.network, 1, 0x2101, 0, r.link.stall_timeout_s, r.link._send)
         acks = [bytes(m.data) for m in r.sniffer.frames() if m.arbitration_id == 0x601 and m.data[0] == 0xA2]
     assert dropped and acks[0][:2] == bytes([0xA2, 39])          # 39 in sequence, then the gap
     rows = decode_rows(data, mask_for(LIVE), 1e-4)

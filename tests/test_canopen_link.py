@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from drivers.api import LinkError
-from sim_backend.device import FIRMWARE_VERSION
-from sim_backend.od_gen import PRODUCT_CODES, VENDOR_ID
+from drivers.extension import FIRMWARE_VERSION
+from drivers.extension import PRODUCT_CODES, VENDOR_ID
 from tests.canopen_helpers import EDS, rig
 
 LIVE = ["speed_ref_mech_rad_s", "speed_est_mech_rad_s", "i_sy_a"]
@@ -230,17 +230,16 @@ def test_live_signals_fall_back_to_scaled_integers_when_real32_exceeds_the_bus()
 
 
 def test_inprocess_service_opens_private_endpoints():
-    from bench.benchconfig import load_bench_config
-    from drivers.canopen_link import CanopenDriveLink
-    from sim_backend.inprocess import start
+    from bench.benchconfig import load_bench_config, link_settings
+    from drivers.canopen.link import CanopenDriveLink
+    from sim_backend.rig import start
     from tests.canopen_helpers import REPO
     import socket
 
     cfg = load_bench_config(REPO / "config/benches/sim-pmsm.toml")
     with start(cfg, seed=3) as first, start(cfg, seed=3) as second:
         assert first["drive"]["channel"] != second["drive"]["channel"]      # parallel runs never cross-talk
-        assert (first["drive"]["timing"], first["drive"]["fault_reset"]) == ("lockstep", "once")
-        link = CanopenDriveLink(dict(cfg["drive"], **first["drive"], sync_period_s=0.01), REPO)
+        link = CanopenDriveLink(dict(cfg["drive"], **first["drive"], sync_period_s=0.01), REPO, link_settings(cfg))
         try:
             assert link.open().product_code == 0x04020001
             link.configure(LIVE, TRACE, 10)

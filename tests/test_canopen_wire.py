@@ -13,7 +13,7 @@ from drivers.api import LinkError
 from drivers.trace_format import decode_rows, mask_for
 from sim_backend.canopen_node import start_node
 from sim_backend.device import SimulatedDevice
-from sim_backend.inprocess import private_channel
+from sim_backend.rig import private_channel
 from sim_backend.toy import ToyDrive
 from tests.canopen_helpers import EDS, Sniffer, rig
 
@@ -135,7 +135,7 @@ def test_tpdo_of_wrong_length_is_a_link_error():
 def test_pdo_mapping_of_a_non_mappable_object_is_refused():
     with rig() as r:
         with pytest.raises(LinkError, match="0x06040041"):
-            r.link._sdo_write(0x1A01, 1, 0x10080020)          # device name into a TPDO
+            r.link.sdo.write(0x1A01, 1, 0x10080020)          # device name into a TPDO
 
 
 def test_block_upload_frames_and_canopen_client_interop():

@@ -13,12 +13,15 @@ import pytest
 
 from bench.errors import InputError
 from bench.scenario import load_scenario
+from drivers import parameters
+from drivers.parameters import ParamKind
 from sim_backend.faults import FaultState
-from sim_backend.hooks import FAULT_INJECTIONS, injectable_names
+
+FAULT_INJECTIONS = parameters.names_for("pmsm", ParamKind.DEVICE_FAULT, ParamKind.WIRE_FAULT)
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-from benchmarks.fault_campaign import lost_before, run_one, write_bench, write_scenario  # noqa: E402
+from benchmarks.fault_campaign import lost_before, run_on_rig, run_one, write_bench, write_scenario  # noqa: E402
 
 # kind, transport, value, trip reason in the record, words of the abort reason, detection bound (wall s; the
 # docs/safety.md figures with a margin for a loaded 2-core machine)
@@ -80,25 +83,33 @@ def test_fault_names_are_one_list_for_eds_serial_and_scenarios():
 
     od = canopen.import_od(str(REPO / "config/od/drivebench-pmsm.eds"), 1)
     for name in FAULT_INJECTIONS:
-        assert name in injectable_names("pmsm") and name in injectable_names("spim")
+        assert name in parameters.names_for("pmsm") and name in parameters.names_for("spim")
         assert od[name].writable and 0x2480 <= od[name].index < 0x2500
 
 
-def _scenario(tmp_path, plant: bool, name: str, value: float) -> Path:
+def _scenario(tmp_path, plant: bool, name: str, value: float, wire: bool = True) -> Path:
     bench = write_bench(tmp_path, "canopen")
     if not plant:
         bench.write_text(bench.read_text().replace("plant_injections = true", "plant_injections = false"))
+    if not wire:
+        bench.write_text(bench.read_text().replace("wire_faults = true", "wire_faults = false"))
     return write_scenario(tmp_path, bench, "s", [(0.5, name, value)])
 
 
 @pytest.mark.parametrize("name", FAULT_INJECTIONS)
-def test_fault_injections_are_simulator_only(tmp_path, name):
+def test_fault_injections_need_the_capability_their_kind_names(tmp_path, name):
+    """Device faults need a bench that may change its plant; wire faults a rig with the fault wrappers. The bench
+    declares both; validate refuses what the bench cannot honour, so validate and run agree."""
     value = 2.0 if name == "fault_kill_endpoint" else 1.0
     load_scenario(_scenario(tmp_path, True, name, value))
+    wire = parameters.lookup(name).kind is ParamKind.WIRE_FAULT
     with pytest.raises(InputError) as err:
-        load_scenario(_scenario(tmp_path, False, name, value))
+        load_scenario(_scenario(tmp_path, wire, name, value, wire=not wire))
     (line,) = err.value.problems
-    assert "simulator-only" in line and "plant_injections = false" in line
+    if wire:
+        assert "wire fault" in line and "wire_faults = false" in line
+    else:
+        assert "simulator-only" in line and "plant_injections = false" in line
 
 
 @pytest.mark.parametrize("name, value", [("fault_drop_frames_rate", 1.5), ("fault_corrupt_frames_rate", -0.1),
@@ -122,9 +133,8 @@ def test_modbus_exception_mid_run_aborts_safely_with_the_exception_in_the_record
     scenario.write_text(scenario.read_text().replace('start_s = 0.2\ntorque_nm = 1.0',
                                                      'start_s = 0.2\nend_s = 0.6\ntorque_nm = 1.0\n\n'
                                                      '[[load]]\nkind = "torque"\nstart_s = 0.6\ntorque_nm = 500.0'))
-    result = run_scenario(scenario, out_root=tmp_path / "runs", rerun_mode="off")
-    device = faults.RIGS[-1]
-    assert faults.wait_safe(device), faults.safe_state(device)
+    result, rig = run_on_rig(scenario, tmp_path / "runs")
+    assert faults.is_safe(rig.device), faults.safe_state(rig.device)
     rec = result.record
     assert result.verdict == "error" and "Modbus exception 3 (illegal data value)" in rec["abort_reason"]
     assert rec["trips"][0]["reason"] == "load_link" and abs(rec["trips"][0]["t_s"] - 0.6) < 0.01
@@ -136,7 +146,7 @@ def test_modbus_exception_mid_run_aborts_safely_with_the_exception_in_the_record
 def test_can_bus_state_and_error_frames_are_judged():
     import can
 
-    from drivers.canopen_link import _BusErrorCounter
+    from drivers.canopen.bus import BusErrorCounter as _BusErrorCounter
 
     class Bus:
         state = can.BusState.ACTIVE
@@ -160,15 +170,37 @@ def test_can_bus_state_and_error_frames_are_judged():
     assert "error passive" in counter.problem(bus)
 
 
-def test_frame_faults_are_refused_by_a_simulator_without_the_wrappers(tmp_path):
-    """The plain in-process simulator has no frame wrappers: the drive refuses (SDO abort), nothing is silent."""
+def test_wire_faults_are_refused_before_the_run_by_a_bench_without_the_wrappers(tmp_path):
+    """A bench whose rig has no frame wrappers (wire_faults = false) refuses a wire fault at validation, so
+    `validate` and `run` agree and no run directory is made."""
     from bench.orchestrator import run_scenario
 
     bench = write_bench(tmp_path, "canopen")
-    bench.write_text(bench.read_text().replace("sim_backend.faults:start_canopen", "sim_backend.inprocess:start"))
+    bench.write_text(bench.read_text().replace("wire_faults = true", "wire_faults = false"))
     scenario = write_scenario(tmp_path, bench, "unwrapped", [(0.3, "fault_drop_frames_rate", 0.5)], duration_s=1.0)
-    result = run_scenario(scenario, out_root=tmp_path / "runs", rerun_mode="off")
-    assert result.verdict == "error"
-    assert "fault_drop_frames_rate" in result.record["abort_reason"] and "aborted with 0x06090030" in \
-        result.record["abort_reason"]
-    assert result.record["safe_stop"]["errors"] == []
+    with pytest.raises(InputError) as err:
+        run_scenario(scenario, out_root=tmp_path / "runs", rerun_mode="off")
+    (line,) = err.value.problems
+    assert line.startswith(f"{scenario}: injection[0].name: ") and "wire_faults = false" in line
+    assert not (tmp_path / "runs").exists()
+
+
+def test_a_simulated_drive_without_wrappers_refuses_a_wire_fault_it_is_sent_anyway(tmp_path):
+    """The device side of the same rule: a wire fault written to a rig built without wrappers is refused (SDO
+    abort), never silently ignored."""
+    import canopen
+
+    from sim_backend.rig import RigSpec, build
+
+    with build(RigSpec(motor="toy", eds=REPO / "config/od/drivebench-pmsm.eds")) as rig:
+        network = canopen.Network()
+        network.connect(interface="virtual", channel=rig.channel, receive_own_messages=False)
+        try:
+            node = network.add_node(1, str(REPO / "config/od/drivebench-pmsm.eds"))
+            with pytest.raises(canopen.SdoAbortedError) as err:
+                node.sdo["fault_drop_frames_rate"].raw = 0.5
+            assert err.value.code == 0x06090030
+            node.sdo["fault_load_machine"].raw = 1.0          # a device fault needs no wrappers
+            assert rig.device.load.fault != 0
+        finally:
+            network.disconnect()

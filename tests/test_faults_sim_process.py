@@ -39,7 +39,6 @@ fault_reset = "once"
 
 [drive]
 transport = "serial"
-kind = "pmsm"
 port = "{serial}"
 timeout_s = 0.5
 sync_period_s = 0.001

@@ -241,18 +241,6 @@ limit = 50.0
 """
 
 
-def _inprocess_missing() -> str | None:
-    import importlib.util
-
-    for module in ("drivers.canopen_link", "drivers.modbus_load", "sim_backend.inprocess", "sim_backend.drive"):
-        if importlib.util.find_spec(module) is None:
-            return f"{module} does not exist yet"
-    return None
-
-
-needs_inprocess = pytest.mark.skipif(_inprocess_missing() is not None, reason=str(_inprocess_missing()))
-
-
 def sim_case(tmp_path: Path, overcurrent: float = 20.0) -> Path:
     # the repo's bench with SDO timeouts for a loaded 2-core CI machine (0.5 s block uploads time out there)
     bench = tmp_path / "sim-pmsm-patient.toml"
@@ -263,7 +251,6 @@ def sim_case(tmp_path: Path, overcurrent: float = 20.0) -> Path:
     return path
 
 
-@needs_inprocess
 def test_full_run_through_inprocess_canopen_is_deterministic(tmp_path):
     scenario = sim_case(tmp_path)
     first = run_scenario(scenario, out_root=tmp_path / "runs", rerun_mode="save")
@@ -297,7 +284,6 @@ def test_full_run_through_inprocess_canopen_is_deterministic(tmp_path):
     assert (first.run_dir / "summary.png").exists()
 
 
-@needs_inprocess
 def test_inprocess_overcurrent_trip_stops_the_drive(tmp_path):
     result = run_scenario(sim_case(tmp_path, overcurrent=0.2), out_root=tmp_path / "runs", rerun_mode="off")
     rec = result.record

@@ -11,7 +11,7 @@ import pytest
 from drivers.signals import SIGNAL_INDEX as COL
 from drivers.signals import SIGNAL_NAMES
 from sim_backend.drive import MotorConfigError, load_motor_config, make_drive
-from sim_backend.hooks import writable_names
+from drivers.parameters import ParamKind, names_for
 from sim_backend.mechanics import LOAD_BRAKE, LOAD_TORQUE, LOAD_VISCOUS
 from sim_backend.model import DriveModel
 from sim_backend.pmsm.model import PmsmDrive
@@ -29,7 +29,7 @@ def test_meets_drive_model_protocol():
     block = drive.step(25)
     assert block.shape == (25, len(SIGNAL_NAMES)) and block.dtype == np.float64
     assert drive.time_s == pytest.approx(25e-4)
-    assert set(drive.hook_names()) | set(drive.plant_param_names()) == set(writable_names("pmsm"))
+    assert set(drive.hook_names()) | set(drive.plant_param_names()) == set(names_for("pmsm", ParamKind.TEST_HOOK, ParamKind.FIRMWARE, ParamKind.PLANT))
 
 
 def test_disabled_drive_applies_no_voltage_and_keeps_flux_true():

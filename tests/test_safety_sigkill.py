@@ -21,7 +21,7 @@ from benchmarks.fault_campaign import write_bench, write_scenario  # noqa: E402
 
 def test_sigkilled_simulator_run_is_recovered_up_to_the_last_flush(tmp_path):
     bench = write_bench(tmp_path, "canopen")
-    bench.write_text(bench.read_text().replace("sim_backend.faults:start_canopen", "sim_backend.inprocess:start"))
+    bench.write_text(bench.read_text().replace("wire_faults = true", "wire_faults = false"))
     scenario = write_scenario(tmp_path, bench, "killed", [], duration_s=60.0)
     out = tmp_path / "runs"
     child = subprocess.Popen([sys.executable, "-m", "bench", "run", str(scenario), "--out", str(out), "--rerun", "off"],

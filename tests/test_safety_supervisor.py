@@ -1,6 +1,6 @@
 """Safety supervisor end to end: trips recorded (what, when, values), the reaction sequence, operator abort once.
 
-The subprocess tests run the real CLI against the in-process simulator (`sim_backend.faults:start_canopen`)
+The subprocess tests run the real CLI against the in-process simulator (`sim_backend.rig:start`)
 and count what arrived at the simulated drive (controlwords over the CAN bus) and load machine (Modbus writes).
 """
 
@@ -86,10 +86,22 @@ def test_a_hanging_safe_stop_step_is_abandoned_and_the_others_still_run():
 
 
 CHILD = """
-import json, sys
+import contextlib, json, sys
 import bench.orchestrator as orchestrator
+import sim_backend.rig as rig_module
 from bench.cli import main
 from sim_backend import faults
+
+built = []
+real_build = rig_module.build
+
+@contextlib.contextmanager
+def build(spec, device=None):          # keep the rig the CLI builds, to ask its device afterwards
+    with real_build(spec, device) as rig:
+        built.append(rig)
+        yield rig
+
+rig_module.build = build
 
 real_make_links = orchestrator.make_links
 
@@ -105,7 +117,7 @@ def make_links(cfg, base):
 
 orchestrator.make_links = make_links
 code = main(sys.argv[1:])
-device = faults.RIGS[-1]
+device = built[-1].device
 print("DEVICE " + json.dumps({"counts": dict(device.faults.counts), "safe": faults.safe_state(device)}),
       file=sys.stderr, flush=True)
 sys.exit(code)

@@ -180,12 +180,16 @@ def test_plant_injection_refused_on_a_bench_without_them(tmp_path):
     assert "needs a simulator" in line and str(bench.resolve()) in line and "plant_injections = false" in line
 
 
-def test_hook_names_checked_against_all_kinds_when_the_bench_does_not_say(tmp_path):
+def test_a_third_party_drive_offers_no_drivebench_parameters(tmp_path):
+    """A drive is judged by what its EDS offers: a third-party CiA 402 drive has none of drivebench's hooks,
+    whatever the scenario asks for; validation says so before anything connects."""
     write_bench(tmp_path, kind=None)
-    ok = write_scenario(tmp_path, '[[injection]]\nat_s = 1.0\nname = "fw_rr_ohm"\nvalue = 1\n', name="ok.toml")
+    ok = write_scenario(tmp_path, "", name="ok.toml")
     assert load_scenario(ok).drive_kind is None
+    one(write_scenario(tmp_path, '[[injection]]\nat_s = 1.0\nname = "fw_rr_ohm"\nvalue = 1\n'), "injection[0].name",
+        "'fw_rr_ohm' is not a parameter of the drive of bench config")
     one(write_scenario(tmp_path, '[[injection]]\nat_s = 1.0\nname = "fw_bogus"\nvalue = 1\n'), "injection[0].name",
-        "unknown hook")
+        "unknown hook 'fw_bogus' (known: none: the drive offers no parameters)")
 
 
 def test_bad_files(tmp_path):

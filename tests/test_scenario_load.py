@@ -113,7 +113,7 @@ name = "fw_rs_ohm"
 value = 3.0
 """))
     assert [i.at_s for i in s.injections] == [1.0, 2.0, 3.0]
-    assert [i.name for i in s.plant_injections()] == ["plant_rs"]
+    assert [i.name for i in s.simulator_injections()] == ["plant_rs"]
 
 
 def test_limits_defaults_and_units(bench_dir):

@@ -19,7 +19,7 @@ def test_serial_bench_config_is_valid():
 
 def test_pmsm_drive_over_serial_and_modbus_services(tmp_path):
     text = (ROOT / "config/benches/sim-pmsm-serial.toml").read_text()
-    text = text.replace("[drive]", '[services]\nstart = "sim_backend.serial_server:start_inprocess"\n\n[drive]', 1)
+    text = text.replace("[drive]", '[services]\nstart = "sim_backend.rig:start"\n\n[drive]', 1)
     path = tmp_path / "bench.toml"
     text = text.replace('motor = "config/motors/', f'motor = "{ROOT}/config/motors/')
     path.write_text(text.replace("sync_period_s = 0.01 ", "sync_period_s = 0.001"))  # 1 ms SYNC: 300 -> 0.3 s
@@ -27,7 +27,7 @@ def test_pmsm_drive_over_serial_and_modbus_services(tmp_path):
     with started_services(cfg, seed=3) as live:
         drive, load = make_links(live, ROOT)
         identity = drive.open()
-        assert identity.product_code == 1 and identity.has_trace_recorder
+        assert identity.product_code == 0x04020001 and identity.has_trace_recorder   # same identity as over CAN
         assert load.open() == "drivebench-sim load machine"
         drive.configure(["speed_est_mech_rad_s", "speed_true_mech_rad_s"], ["speed_true_mech_rad_s"], 1)
         load.set_load(LoadMode.TORQUE, 0.5)

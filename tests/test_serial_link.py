@@ -11,7 +11,9 @@ import pytest
 
 from drivers.api import LinkError
 from drivers.serial_frames import RESPONSE_FLAG, Cmd, ErrorCode, FrameDecoder, encode_frame
-from drivers.serial_link import SerialDriveLink, state_from_statusword
+from drivers.api import LinkSettings
+from drivers.cia402 import state_name as state_from_statusword
+from drivers.serial_link import SerialDriveLink
 from drivers.signals import SIGNAL_NAMES
 from sim_backend.device import SimulatedDevice
 from sim_backend.serial_server import SerialProtocolHandler, start_serial_pty, start_serial_tcp
@@ -22,8 +24,9 @@ TRACE = ["speed_est_mech_rad_s", "i_sy_a"]
 
 
 def make_link(url: str, **extra) -> SerialDriveLink:
+    settings = LinkSettings(**{k: extra.pop(k) for k in ("timing", "fault_reset") if k in extra})
     section = {"transport": "serial", "port": url, "timeout_s": 2.0, "sync_period_s": 0.001} | extra
-    return SerialDriveLink(section, Path("."))
+    return SerialDriveLink(section, Path("."), settings)
 
 
 @pytest.fixture(params=["tcp", "pty"])
@@ -40,7 +43,7 @@ def test_round_trip_enable_speed_sync_trace(served):
     device, server, url = served
     link = make_link(url)
     ident = link.open()
-    assert ident.device_name == "drivebench-sim pmsm" and ident.has_trace_recorder
+    assert ident.device_name == "drivebench simulated PMSM drive" and ident.has_trace_recorder   # as over CANopen
     assert link.control_period_s == pytest.approx(1e-4) and link.sync_steps == 10
     assert "flux_est_scale" in link.parameters and "plant_rs" in link.parameters
     link.configure(LIVE, TRACE, 2)
@@ -105,7 +108,7 @@ def test_fault_shows_in_status_and_is_reset_at_enable(served):
     assert link.status().emcy == []                    # EMCY codes are reported once
     strict = make_link(url, fault_reset="never")
     strict.open()
-    with pytest.raises(LinkError, match=r"drive in FAULT \(overcurrent\), fault_reset = 'never'"):
+    with pytest.raises(LinkError, match=r"drive is in FAULT \(overcurrent\) and the fault-reset policy is 'never'"):
         strict.enable_velocity_mode()
     strict.close()
     link.open()
@@ -414,7 +417,7 @@ def test_unopenable_port_is_a_link_error():
 
 def test_missing_port_is_a_config_error():
     with pytest.raises(ValueError, match=r"\[drive\] port: required"):
-        SerialDriveLink({"transport": "serial"}, Path("."))
+        SerialDriveLink({"transport": "serial"}, Path("."), LinkSettings())
 
 
 def bogus_header(length: int = 60000) -> bytes:

@@ -13,7 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from drivers.canopen_link import CanopenDriveLink
+from drivers.api import LinkSettings
+from drivers.canopen.link import CanopenDriveLink
 from tests.canopen_helpers import EDS, REPO
 
 CONFIG = """
@@ -67,7 +68,8 @@ def test_serve_prints_its_endpoints_answers_on_them_and_exits_cleanly(tmp_path, 
                                        next(l for l in lines if l.startswith("modbus "))).group(1))
         link = CanopenDriveLink(dict(transport="canopen", interface="socketcand",
                                      channel=f"can0@127.0.0.1:{m.group(1)}", node_id=3, eds=str(EDS),
-                                     sync_period_s=0.01, sdo_timeout_s=2.0, heartbeat_timeout_s=2.0), REPO)
+                                     sync_period_s=0.01, sdo_timeout_s=2.0, heartbeat_timeout_s=2.0), REPO,
+                                LinkSettings())
         try:
             identity = link.open()
             assert identity.device_name == "drivebench simulated PMSM drive"

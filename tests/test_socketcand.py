@@ -13,7 +13,7 @@ from canopen.profiles.p402 import BaseNode402
 
 from sim_backend.canopen_node import start_node
 from sim_backend.device import SimulatedDevice
-from sim_backend.inprocess import private_channel
+from sim_backend.rig import private_channel
 from sim_backend.socketcand_server import SocketcandServer, format_frame, parse_send
 from sim_backend.toy import ToyDrive
 from tests.canopen_helpers import EDS

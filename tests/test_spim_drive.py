@@ -12,7 +12,7 @@ import pytest
 from drivers.signals import SIGNAL_INDEX as SI
 from drivers.signals import SIGNAL_NAMES
 from sim_backend.drive import make_drive
-from sim_backend.hooks import writable_names
+from drivers.parameters import ParamKind, names_for
 from sim_backend.mechanics import LOAD_BRAKE, LOAD_TORQUE
 from sim_backend.spim import firmware as fw
 from sim_backend.spim.model import ConfigError, SpimDrive
@@ -206,7 +206,7 @@ def test_contract_columns_names_and_errors():
     out = d.step(10)
     assert out.shape == (10, len(SIGNAL_NAMES)) and out.dtype == np.float64
     assert d.time_s == pytest.approx(1e-3)
-    assert set(d.hook_names()) | set(d.plant_param_names()) == set(writable_names("spim"))
+    assert set(d.hook_names()) | set(d.plant_param_names()) == set(names_for("spim", ParamKind.TEST_HOOK, ParamKind.FIRMWARE, ParamKind.PLANT))
     with pytest.raises(KeyError):
         d.set_hook("fw_rs_ohm", 1.0)
     bad = config()

@@ -68,7 +68,7 @@ MOTOR = REPO / "config/motors/pmsm-paper.toml"
 EDS = REPO / "config/od/drivebench-pmsm.eds"
 
 
-def _bench(tmp: Path, name: str, services: str, drive: str, load: str) -> Path:
+def _bench(tmp: Path, name: str, services: str, drive: str, load: str, simulator: str = "") -> Path:
     path = tmp / f"{name}.toml"
     path.write_text(f"""[bench]
 name = "{name}"
@@ -85,7 +85,7 @@ timeout_s = 5.0
 {load}
 [simulator]
 motor = "{MOTOR}"
-""")
+{simulator}""")
     return path
 
 
@@ -118,12 +118,13 @@ eds = "{EDS}"
 
 def test_virtual_can_socketcand_and_serial_pty_agree(tmp_path):
     benches = {
-        "virtual-can": _bench(tmp_path, "virtual-can", '[services]\nstart = "sim_backend.inprocess:start"\n',
+        "virtual-can": _bench(tmp_path, "virtual-can", '[services]\nstart = "sim_backend.rig:start"\n',
                               f'transport = "canopen"\ninterface = "virtual"\nchannel = "x"\nnode_id = 1\n'
                               f'eds = "{EDS}"\nsdo_timeout_s = 5.0\n', "port = 0"),
         "serial-pty": _bench(tmp_path, "serial-pty",
-                             '[services]\nstart = "sim_backend.serial_server:start_inprocess_pty"\n',
-                             'transport = "serial"\nport = "/dev/null"\ntimeout_s = 5.0\n', "port = 0"),
+                             '[services]\nstart = "sim_backend.rig:start"\n',
+                             'transport = "serial"\nport = "/dev/null"\ntimeout_s = 5.0\n', "port = 0",
+                             'serial_line = "pty"\n'),
     }
     proc, endpoints = _serve_pmsm(tmp_path)
     try:

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from drivers.signals import SIGNAL_NAMES
-from sim_backend.hooks import FIRMWARE_PARAMS, PLANT_PARAMS, TEST_HOOKS
+from drivers.parameters import ParamKind, names_for
 from sim_backend.inverter import adc_lsb, draw_measurement_noise
 from sim_backend.mechanics import LOAD_BRAKE, LOAD_TORQUE, LOAD_VISCOUS
 from sim_backend.pmsm import firmware as fw
@@ -179,7 +179,7 @@ class PmsmDrive:
             raise KeyError(f"unknown hook {name!r} for a pmsm drive; known: {', '.join(self.hook_names())}")
 
     def hook_names(self) -> tuple[str, ...]:
-        return TEST_HOOKS + FIRMWARE_PARAMS[self.kind]
+        return names_for(self.kind, ParamKind.TEST_HOOK, ParamKind.FIRMWARE)
 
     def set_plant_param(self, name: str, factor: float) -> None:
         if name not in _PLANT_FACTORS:
@@ -196,7 +196,7 @@ class PmsmDrive:
             self._x[pl.X_PSI_Q] *= ratio
 
     def plant_param_names(self) -> tuple[str, ...]:
-        return PLANT_PARAMS[self.kind]
+        return names_for(self.kind, ParamKind.PLANT)
 
     def fault_code(self) -> int:
         return int(self._fw_s[fw.S_FAULT])

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from drivers.signals import SIGNAL_NAMES
-from sim_backend.hooks import FIRMWARE_PARAMS, PLANT_PARAMS, TEST_HOOKS
+from drivers.parameters import ParamKind, names_for
 from sim_backend.mechanics import LOAD_BRAKE, LOAD_TORQUE, LOAD_VISCOUS, wrap_angle
 from sim_backend.spim import firmware as fw
 from sim_backend.spim import inverter as inv
@@ -25,7 +25,7 @@ _FIRMWARE_NUMBERS = (
     "flux_kp_a_per_wb", "flux_ki_a_per_wbs", "slip_kp", "slip_ki", "speed_kp_nm_s_rad", "speed_ki_nm_rad",
     "torque_max_nm", "current_max_a", "overcurrent_trip_a", "speed_ramp_rad_s2", "speed_filter_rad_s",
     "emf_feedforward_filter_rad_s", "flux_min_wb", "modulation_max", "dead_time_comp_v",
-    "dead_time_comp_band_a", "magnetising_time_s", "flux_current_model_gain_rad_s", "demagnetising_time_s") + FIRMWARE_PARAMS["spim"]
+    "dead_time_comp_band_a", "magnetising_time_s", "flux_current_model_gain_rad_s", "demagnetising_time_s") + names_for("spim", ParamKind.FIRMWARE)
 _MAY_BE_ZERO = {"dead_time_s", "device_drop_v", "current_noise_a", "current_lsb_a", "vdc_noise_v", "vdc_lsb_v",
                 "dead_time_comp_v", "emf_feedforward_filter_rad_s", "flux_kp_a_per_wb", "flux_ki_a_per_wbs",
                 "slip_kp", "speed_kp_nm_s_rad", "magnetising_time_s", "viscous_nm_s_rad",
@@ -67,7 +67,7 @@ class SpimDrive:
         self._mech_cfg = mech
         self._substeps = int(substeps)
         self._fw_cfg = dict(fw_cfg)
-        self._fw_model = {name: fw_cfg[name] for name in FIRMWARE_PARAMS["spim"]}
+        self._fw_model = {name: fw_cfg[name] for name in names_for("spim", ParamKind.FIRMWARE)}
         self.control_period_s = float(fw_cfg["control_period_s"])
         self.time_s = 0.0
         self._steps = 0
@@ -170,10 +170,10 @@ class SpimDrive:
             raise KeyError(f"unknown hook {name!r} for a spim drive; known: {', '.join(self.hook_names())}")
 
     def hook_names(self) -> tuple[str, ...]:
-        return TEST_HOOKS + FIRMWARE_PARAMS[self.kind]
+        return names_for(self.kind, ParamKind.TEST_HOOK, ParamKind.FIRMWARE)
 
     def set_plant_param(self, name: str, factor: float) -> None:
-        if name not in PLANT_PARAMS[self.kind]:
+        if name not in names_for(self.kind, ParamKind.PLANT):
             raise KeyError(f"unknown plant parameter {name!r}; known: {', '.join(self.plant_param_names())}")
         factor = float(factor)
         if not (factor > 0 and math.isfinite(factor)):
@@ -182,7 +182,7 @@ class SpimDrive:
         self._update_plant()
 
     def plant_param_names(self) -> tuple[str, ...]:
-        return PLANT_PARAMS[self.kind]
+        return names_for(self.kind, ParamKind.PLANT)
 
     def fault_code(self) -> int:
         return int(self._fs[fw.S_FAULT])

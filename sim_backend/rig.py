@@ -1,0 +1,176 @@
+"""One builder of a simulated rig: a simulated drive (and its load machine) behind the front ends a bench talks to.
+
+    with build(RigSpec(motor=..., eds=..., modbus="tcp")) as rig:
+        rig.device, rig.overrides          # the SimulatedDevice; endpoint overrides for the bench config
+
+Front ends: CANopen on a private python-can `virtual` channel (optionally also served over socketcand), the serial
+protocol over TCP or a pty, the load machine over Modbus TCP or Modbus RTU on a pty. With `wire_faults` the front
+ends carry the fault wrappers (sim_backend.wire_faults) and the device its own comm-loss reaction.
+
+`start` is the `[services]` starter the simulated bench configs name (`start = "sim_backend.rig:start"`): it reads
+[simulator] (motor, serial line), the bench's [drive]/[load] transports and [bench] wire_faults. `sim serve` builds
+its rig with the same function.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+from sim_backend.device import SimulatedDevice
+from sim_backend.model import DriveModel
+
+LOOPBACK = "127.0.0.1"
+
+
+def private_channel() -> str:
+    # ends in letters: log writers (python-can's BLF) read trailing digits of a channel name as its number
+    return f"drivebench-{uuid.uuid4().hex[:12]}-vbus"
+
+
+def make_model(motor: str | Path, seed: int) -> DriveModel:
+    """The drive model of a motor config ('toy': sim_backend.toy.ToyDrive, protocol tests without physics)."""
+    if str(motor) == "toy":
+        from sim_backend.toy import ToyDrive
+        return ToyDrive()
+    from sim_backend.drive import make_drive
+    make_drive(motor, seed).step(1)      # compile the kernels now, not inside the first SYNC
+    return make_drive(motor, seed)
+
+
+@dataclass(frozen=True)
+class RigSpec:
+    motor: str | Path                              # motor config file, or "toy"
+    seed: int = 0
+    eds: str | Path | None = None                  # the CANopen node's object dictionary; None: no CANopen front end
+    node_id: int = 1
+    socketcand: tuple[str, int] | None = None      # also serve the CAN channel over socketcand at (host, port)
+    serial: str | None = None                      # "tcp" | "pty" | None
+    serial_tcp: tuple[str, int] = (LOOPBACK, 0)
+    modbus: str | None = None                      # "tcp" | "rtu-pty" | None
+    modbus_tcp: tuple[str, int] = (LOOPBACK, 0)
+    wire_faults: bool = False
+
+
+@dataclass
+class Rig:
+    spec: RigSpec
+    device: SimulatedDevice
+    channel: str | None = None
+    node: Any = None                               # SimCanopenNode
+    endpoints: dict[str, str] = field(default_factory=dict)    # front end -> URL / channel / path, for people
+    overrides: dict[str, dict] = field(default_factory=dict)   # bench config [drive]/[load] endpoint keys
+
+
+@contextlib.contextmanager
+def build(spec: RigSpec, device: SimulatedDevice | None = None) -> Iterator[Rig]:
+    """Start the rig's front ends (in this process); stop them all on exit, whatever happened."""
+    if device is None:
+        device = SimulatedDevice(make_model(spec.motor, spec.seed))
+    device.faults.reseed(spec.seed)
+    device.faults.wrapped = spec.wire_faults
+    rig = Rig(spec, device)
+    with contextlib.ExitStack() as stack:
+        if spec.eds is not None:
+            _canopen(stack, rig)
+        if spec.serial is not None:
+            _serial(stack, rig)
+        if spec.modbus is not None:
+            _modbus(stack, rig)
+        if spec.wire_faults:
+            from sim_backend import comm_loss
+            stack.enter_context(comm_loss.watching(device))
+        yield rig
+
+
+def _stopper(handle) -> Callable[[], None]:
+    def stop() -> None:
+        try:
+            handle.stop()
+        except Exception:
+            pass
+    return stop
+
+
+def _canopen(stack: contextlib.ExitStack, rig: Rig) -> None:
+    from sim_backend.canopen_node import FastVirtualBus, SimCanopenNode
+
+    spec = rig.spec
+    rig.channel = private_channel()
+    if spec.wire_faults:
+        from sim_backend.wire_faults import FaultyBus
+        bus = FaultyBus(rig.device.faults, spec.node_id, channel=rig.channel, receive_own_messages=False)
+    else:
+        bus = FastVirtualBus(channel=rig.channel, receive_own_messages=False)
+    rig.node = SimCanopenNode(rig.device, spec.eds, spec.node_id, bus)
+    stack.callback(rig.node.stop)
+    rig.overrides.setdefault("drive", {})["channel"] = rig.channel
+    rig.endpoints["canopen"] = f"virtual:{rig.channel} node={spec.node_id}"
+    if spec.socketcand is not None:
+        from sim_backend.socketcand_server import SocketcandServer
+        server = SocketcandServer(rig.channel, *spec.socketcand)
+        stack.callback(server.stop)
+        rig.endpoints["canopen"] = f"{server.url} node={spec.node_id}"
+
+
+def _serial(stack: contextlib.ExitStack, rig: Rig) -> None:
+    from sim_backend.serial_server import start_serial_pty, start_serial_tcp
+
+    spec = rig.spec
+    server = start_serial_pty(rig.device) if spec.serial == "pty" else start_serial_tcp(rig.device, *spec.serial_tcp)
+    stack.callback(server.stop)
+    port = server.serial_port
+    if spec.wire_faults and spec.serial == "tcp":
+        from sim_backend.wire_faults import FaultyStreamProxy
+        proxy = FaultyStreamProxy(rig.device.faults, (LOOPBACK, server.port))
+        stack.callback(proxy.stop)
+        port = proxy.url
+    rig.overrides.setdefault("drive", {})["port"] = port
+    rig.endpoints["serial"] = port
+
+
+def _modbus(stack: contextlib.ExitStack, rig: Rig) -> None:
+    from sim_backend.modbus_server import start_modbus_rtu_pty, start_modbus_tcp
+
+    spec = rig.spec
+    if spec.modbus == "rtu-pty":
+        server = start_modbus_rtu_pty(rig.device)
+        rig.overrides.setdefault("load", {})["port"] = server.path
+        rig.endpoints["modbus"] = f"rtu:{server.path} unit=1"
+    else:
+        server = start_modbus_tcp(rig.device, *spec.modbus_tcp)
+        rig.overrides.setdefault("load", {}).update(host=spec.modbus_tcp[0], port=server.port)
+        rig.endpoints["modbus"] = f"tcp://{spec.modbus_tcp[0]}:{server.port} unit=1"
+    stop = _stopper(server)
+    rig.device.faults.kill_load = stop
+    stack.callback(stop)
+
+
+def spec_for_bench(bench_cfg: dict, seed: int) -> RigSpec:
+    """The in-process rig a simulated bench config describes."""
+    where = bench_cfg.get("_path", "bench config")
+    simulator = bench_cfg.get("simulator") or {}
+    motor = simulator.get("motor")
+    if not motor:
+        raise RuntimeError(f"{where}: simulator.motor: missing (a simulated bench needs a motor model)")
+    drive, load = bench_cfg.get("drive") or {}, bench_cfg.get("load") or {}
+    transport = drive.get("transport")
+    load_transport = load.get("transport")
+    return RigSpec(
+        motor=motor, seed=seed,
+        eds=drive.get("eds") if transport == "canopen" else None,
+        node_id=int(drive.get("node_id") or 1),
+        serial=(simulator.get("serial_line") or "tcp") if transport == "serial" else None,
+        modbus={"modbus-tcp": "tcp", "modbus-rtu": "rtu-pty"}.get(load_transport),
+        wire_faults=bool((bench_cfg.get("bench") or {}).get("wire_faults", False)),
+    )
+
+
+@contextlib.contextmanager
+def start(bench_cfg: dict, seed: int) -> Iterator[dict]:
+    """[services] starter: yields the endpoint overrides for the bench config."""
+    with build(spec_for_bench(bench_cfg, seed)) as rig:
+        yield rig.overrides
