@@ -43,14 +43,7 @@ def _out_console(as_json: bool) -> Console:
 
 
 def _bad_input_types() -> tuple[type[BaseException], ...]:
-    types: tuple[type[BaseException], ...] = (InputError, FileNotFoundError, tomllib.TOMLDecodeError, LinkError)
-    try:
-        from sim_backend.drive import MotorConfigError  # its message is already "file: field: reason"
-
-        types += (MotorConfigError,)
-    except ImportError:
-        pass
-    return types
+    return (InputError, FileNotFoundError, tomllib.TOMLDecodeError, LinkError)
 
 
 def _problem_lines(exc: BaseException) -> list[str]:
@@ -401,28 +394,6 @@ def evaluate_cmd(run_dir, scenario_path, as_json) -> None:
     sys.exit(_guarded(body))
 
 
-@cli.command(name="design-check")
-@click.argument("motor_config", type=click.Path())
-@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
-def design_check(motor_config, as_json) -> None:
-    """Small-signal stability of the estimator design over the speed range (exit 1 if unstable)."""
-
-    def body() -> int:
-        try:
-            from sim_backend.design_check import format_table, run_design_check
-        except ImportError as exc:
-            click.echo(f"design-check is not available: {exc}", err=True)
-            return EXIT_ERROR
-        result = run_design_check(Path(motor_config))
-        if as_json:
-            click.echo(json.dumps(result, default=_json_default))
-        else:
-            click.echo(format_table(result))
-        return EXIT_PASS if float(result["max_real_part"]) < 0 else EXIT_FAIL
-
-    sys.exit(_guarded(body))
-
-
 def _json_default(value: Any) -> Any:
     try:
         import numpy as np
@@ -455,28 +426,20 @@ def report(run_dirs, out_md) -> None:
     sys.exit(_guarded(lambda: int(entry(list(run_dirs), out_md))))
 
 
-@cli.group()
-def sim() -> None:
-    """The simulated backend."""
+def _add_plugin_commands() -> None:
+    """Commands other packages register under the entry-point group `drivebench.commands` (the simulator's `sim`
+    and `design-check` come from sim_backend this way: the bench itself never imports the simulator)."""
+    from importlib.metadata import entry_points
+
+    for entry in entry_points(group="drivebench.commands"):
+        if entry.name not in cli.commands:
+            try:
+                cli.add_command(entry.load(), entry.name)
+            except Exception as exc:      # a broken plugin must not take the bench's own commands down
+                err_console.print(f"warning: command {entry.name!r} ({entry.value}) not available: {exc}")
 
 
-@sim.command()
-@click.option("--config", "config_path", type=click.Path(), required=True, help="Bench config with [simulator.serve].")
-def serve(config_path) -> None:
-    """Serve simulated drives over socketcand / serial TCP / Modbus TCP on 127.0.0.1 until Ctrl-C."""
-
-    def body() -> int:
-        try:
-            from sim_backend.serve import main as serve_main
-        except ImportError as exc:
-            click.echo(f"sim serve is not available: {exc}", err=True)
-            return EXIT_ERROR
-        try:
-            return int(serve_main(config_path) or 0)
-        except KeyboardInterrupt:
-            return EXIT_PASS
-
-    sys.exit(_guarded(body))
+_add_plugin_commands()
 
 
 def main(argv: list[str] | None = None) -> int:

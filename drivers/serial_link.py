@@ -39,7 +39,7 @@ class SerialDriveLink:
         self.retries = int(section.get("retries", 3))
         self.sync_period_s = float(section.get("sync_period_s", 0.001))
         self.timing = settings.timing
-        self.fault_reset = settings.fault_reset
+        self.fault_reset_policy = settings.fault_reset
         if self.timeout_s <= 0 or self.retries < 0 or self.sync_period_s <= 0:
             raise ValueError("[drive] timeout_s and sync_period_s must be > 0 and retries >= 0")
         self.base_dir = base_dir
@@ -204,7 +204,7 @@ class SerialDriveLink:
         return max(1.0, 4 * self.timeout_s)
 
     def enable_velocity_mode(self) -> None:
-        cia402.enable_operation(self, fault_reset_policy=self.fault_reset, timeout_s=self._step_timeout_s,
+        cia402.enable_operation(self, fault_reset_policy=self.fault_reset_policy, timeout_s=self._step_timeout_s,
                                 where=self.where, select_mode=lambda: self._transact(
                                     Cmd.MODE, struct.pack("<b", cia402.Mode.PROFILE_VELOCITY)),
                                 fault_detail=lambda: fault_text(self._read_status()[1]))

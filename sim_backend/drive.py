@@ -6,11 +6,15 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+from bench.errors import InputError
 from sim_backend.model import DriveModel
 
 
-class MotorConfigError(ValueError):
-    """Bad motor config: the message names the file, the field and the reason."""
+class MotorConfigError(InputError, ValueError):
+    """Bad motor config: the message names the file, the field and the reason (one problem line)."""
+
+    def __init__(self, message: str):
+        super().__init__([message])
 
 
 def load_motor_config(path: str | Path) -> dict[str, Any]:

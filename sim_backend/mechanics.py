@@ -56,9 +56,3 @@ def apply_coulomb(omega_before: float, omega_free: float, drive_torque: float, c
     if omega * omega_before < 0.0 and abs(drive_torque) <= coulomb:
         return 0.0
     return omega
-
-
-@njit(cache=True)
-def wrap_angle(angle: float) -> float:
-    """Wrap to [-pi, pi)."""
-    return (angle + np.pi) % (2.0 * np.pi) - np.pi

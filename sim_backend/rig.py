@@ -96,7 +96,8 @@ def _stopper(handle) -> Callable[[], None]:
 
 
 def _canopen(stack: contextlib.ExitStack, rig: Rig) -> None:
-    from sim_backend.canopen_node import FastVirtualBus, SimCanopenNode
+    from sim_backend.canopen.node import SimCanopenNode
+    from sim_backend.canopen.virtual_bus import FastVirtualBus
 
     spec = rig.spec
     rig.channel = private_channel()

@@ -90,7 +90,7 @@ class _Client:
             if command is None or command.strip("<> ") != "rawmode":
                 self._send_text("< error expected rawmode >")
                 return
-            from sim_backend.canopen_node import FastVirtualBus
+            from sim_backend.canopen.virtual_bus import FastVirtualBus
             self.bus = FastVirtualBus(channel=self.server.channel, receive_own_messages=False)
             self._send_text("< ok >")
             forwarder = threading.Thread(target=self._forward, name=f"socketcand-fwd-{self.addr[1]}", daemon=True)

@@ -17,7 +17,7 @@ import time
 import can
 
 from drivers.canopen.objects import HEARTBEAT
-from sim_backend.canopen_node import FastVirtualBus
+from sim_backend.canopen.virtual_bus import FastVirtualBus
 from sim_backend.faults import FaultState
 
 ERROR_FLOOD_PER_FRAME = 4        # error frames sent for every frame the drive sends while fault_bus_error is on

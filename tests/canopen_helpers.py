@@ -12,7 +12,7 @@ import can
 
 from drivers.api import LinkSettings
 from drivers.canopen.link import CanopenDriveLink
-from sim_backend.canopen_node import SimCanopenNode, start_node
+from sim_backend.canopen.node import SimCanopenNode, start_node
 from sim_backend.device import SimulatedDevice
 from sim_backend.rig import private_channel
 from sim_backend.toy import ToyDrive

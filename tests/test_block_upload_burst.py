@@ -7,10 +7,10 @@ from __future__ import annotations
 import can
 import numpy as np
 
-import sim_backend.canopen_node as canopen_node
+import sim_backend.canopen.block_server as block_server
 from drivers.canopen.sdo import accept_segments as _accept_segments, block_upload
 from drivers.trace_format import decode_rows, mask_for
-from sim_backend.canopen_node import FastVirtualBus
+from sim_backend.canopen.virtual_bus import FastVirtualBus
 from sim_backend.rig import private_channel
 from tests.canopen_helpers import Sniffer, rig
 
@@ -66,7 +66,7 @@ def test_send_frames_goes_through_an_overridden_send():
 
 
 def test_a_lost_segment_is_acked_short_and_served_again(monkeypatch):
-    real = canopen_node.send_frames
+    real = block_server.send_frames
     dropped = []
 
     def lose_the_40th_segment_once(network, frames):
@@ -75,7 +75,7 @@ def test_a_lost_segment_is_acked_short_and_served_again(monkeypatch):
             frames = frames[:39] + frames[40:]
         real(network, frames)
 
-    monkeypatch.setattr(canopen_node, "send_frames", lose_the_40th_segment_once)
+    monkeypatch.setattr(block_server, "send_frames", lose_the_40th_segment_once)
     with rig() as r:
         r.link.configure(LIVE, LIVE, 1)
         for _ in range(5):

@@ -11,7 +11,7 @@ import pytest
 
 from drivers.api import LinkError
 from drivers.trace_format import decode_rows, mask_for
-from sim_backend.canopen_node import start_node
+from sim_backend.canopen.node import start_node
 from sim_backend.device import SimulatedDevice
 from sim_backend.rig import private_channel
 from sim_backend.toy import ToyDrive

@@ -11,7 +11,7 @@ import canopen
 import pytest
 from canopen.profiles.p402 import BaseNode402
 
-from sim_backend.canopen_node import start_node
+from sim_backend.canopen.node import start_node
 from sim_backend.device import SimulatedDevice
 from sim_backend.rig import private_channel
 from sim_backend.socketcand_server import SocketcandServer, format_frame, parse_send

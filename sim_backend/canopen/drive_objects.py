@@ -1,0 +1,169 @@
+"""What the simulated node's objects mean: the standard CiA 402 objects and drivebench's extension objects, read from
+and written to the SimulatedDevice. The node calls `read` / `write` from canopen's SDO server callbacks and PDOs;
+None / False means "not mine": canopen's own object store answers."""
+
+from __future__ import annotations
+
+import logging
+from typing import Callable
+
+from canopen import objectdictionary
+from canopen.sdo import SdoAbortedError
+
+from drivers.canopen import objects as o
+from drivers.cia402 import FAULT_RESET_BIT, State
+from drivers.signals import SIGNAL_NAMES
+from sim_backend.device import SimulatedDevice
+
+log = logging.getLogger(__name__)
+
+SPEED_EST = SIGNAL_NAMES.index("speed_est_mech_rad_s")
+MRAD_PER_RAD = 1000.0      # drivebench's velocity objects: INTEGER32 in mrad/s, mechanical
+
+
+def error_register_for(code: int) -> int:
+    """Bits of 0x1001 for an EMCY error code (bit 0 generic is set for any error)."""
+    if code == 0:
+        return 0
+    reg = 0x01
+    reg |= {0x2: 0x02, 0x3: 0x04, 0x4: 0x08}.get(code >> 12, 0)
+    if code >> 8 in (0x81, 0x82):
+        reg |= 0x10
+    return reg
+
+
+class Cia402Objects:
+    """0x6040/0x6041 state machine, modes, velocity target and actual, error code and register."""
+
+    def __init__(self, device: SimulatedDevice, on_controlword: Callable[[], None]):
+        self.device = device
+        self._on_controlword = on_controlword
+
+    def read(self, index: int, subindex: int, od) -> object:
+        dev = self.device
+        if index == o.STATUSWORD:
+            return dev.device.statusword
+        if index == o.MODES_DISPLAY:
+            return dev.mode_of_operation
+        if index == o.ERROR_CODE:
+            return dev.device.error_code
+        if index == o.ERROR_REGISTER:
+            return error_register_for(dev.device.error_code) if dev.device.state is State.FAULT else 0
+        if index == o.VELOCITY_ACTUAL:
+            return int(round(float(dev.latest[SPEED_EST]) * MRAD_PER_RAD))
+        return None
+
+    def write(self, index: int, subindex: int, od, value) -> bool:
+        dev = self.device
+        if index == o.CONTROLWORD:
+            with dev.lock:
+                if value & FAULT_RESET_BIT and dev.device.state is State.FAULT:
+                    dev.reset_fault()
+                dev.write_controlword(value)
+            self._on_controlword()
+        elif index == o.MODES_OF_OPERATION:
+            with dev.lock:
+                dev.mode_of_operation = value
+        elif index == o.TARGET_VELOCITY:
+            with dev.lock:
+                dev.target_speed_mech_rad_s = value / MRAD_PER_RAD
+        else:
+            return False
+        return True
+
+    def fast_getter(self, index: int, subindex: int) -> tuple[str, Callable[[], object]] | None:
+        dev = self.device
+        if subindex == 0 and index == o.STATUSWORD:
+            return "H", lambda: dev.device.statusword
+        if subindex == 0 and index == o.MODES_DISPLAY:
+            return "b", lambda: dev.mode_of_operation
+        return None
+
+
+class ExtensionObjects:
+    """drivebench's manufacturer objects: drive clock, live signals, trace recorder, parameters
+    (drivers.canopen.objects EXT_*). Present only in the drivebench EDS files."""
+
+    def __init__(self, device: SimulatedDevice, od: objectdictionary.ObjectDictionary):
+        self.device = device
+        self.trace_pending = b""
+        self.trace_max_rows = int(od[o.EXT_TRACE][o.TRACE_MAX_ROWS].default) if o.EXT_TRACE in od else 0
+        self._trace_cfg = [device.trace.mask, device.trace.decimation, device.trace.trigger]
+
+    def read(self, index: int, subindex: int, od) -> object:
+        dev = self.device
+        if index == o.EXT_STEP_COUNT:
+            return dev.step_count & 0xFFFFFFFF
+        if index == o.EXT_CONTROL_PERIOD_NS:
+            return round(dev.model.control_period_s * 1e9)
+        if o.EXT_SIGNAL_BASE <= index < o.EXT_SIGNAL_BASE + len(SIGNAL_NAMES):
+            return float(dev.latest[index - o.EXT_SIGNAL_BASE])
+        if o.EXT_SCALED_BASE <= index < o.EXT_SCALED_BASE + len(SIGNAL_NAMES):
+            value = float(dev.latest[index - o.EXT_SCALED_BASE]) / od.factor
+            return 0 if value != value else max(-32768, min(32767, round(value)))
+        if index == o.EXT_TRACE:
+            trace = dev.trace
+            return {o.TRACE_MASK: trace.mask, o.TRACE_DECIMATION: trace.decimation, o.TRACE_TRIGGER: trace.trigger,
+                    o.TRACE_CONTROL: int(trace.running),
+                    o.TRACE_ROWS_AVAILABLE: trace.rows_available + len(self.trace_pending) // trace.row_size,
+                    o.TRACE_ROW_SIZE: trace.row_size, o.TRACE_LOST_ROWS: trace.lost_rows,
+                    o.TRACE_CAPACITY: trace.capacity_rows, o.TRACE_MAX_ROWS: self.trace_max_rows}.get(subindex)
+        if index == o.EXT_TRACE_DATA:
+            if not self.trace_pending:
+                with dev.lock:
+                    self.trace_pending = dev.trace.read(self.trace_max_rows)
+            return self.trace_pending
+        return None
+
+    def write(self, index: int, subindex: int, od, value) -> bool:
+        if index in o.EXT_PARAMETER_RANGE:
+            try:
+                self.device.write_named(od.name, float(value))
+            except (KeyError, ValueError) as exc:
+                log.warning("drive rejected %s = %r: %s", od.name, value, exc)
+                raise SdoAbortedError(o.ABORT_INVALID_VALUE) from None
+        elif index == o.EXT_TRACE:
+            self._write_trace(subindex, value)
+        else:
+            return False
+        return True
+
+    def _write_trace(self, subindex: int, value: int) -> None:
+        trace = self.device.trace
+        with self.device.lock:
+            if subindex in (o.TRACE_MASK, o.TRACE_DECIMATION, o.TRACE_TRIGGER):
+                cfg = list(self._trace_cfg)
+                cfg[subindex - 1] = value
+                try:
+                    trace.configure(*cfg)
+                except ValueError:
+                    raise SdoAbortedError(o.ABORT_INVALID_VALUE) from None
+                self._trace_cfg = cfg
+                self.trace_pending = b""
+            elif subindex == o.TRACE_CONTROL:
+                if value == o.TRACE_START:
+                    trace.start()
+                elif value == o.TRACE_STOP:
+                    trace.stop()
+                elif value == o.TRACE_CLEAR:
+                    trace.clear()
+                    self.trace_pending = b""
+                else:
+                    raise SdoAbortedError(o.ABORT_INVALID_VALUE)
+            elif subindex == o.TRACE_MAX_ROWS:
+                if value < 1:
+                    raise SdoAbortedError(o.ABORT_INVALID_VALUE)
+                self.trace_max_rows = value
+
+    def upload_complete(self, index: int, subindex: int) -> None:
+        if index == o.EXT_TRACE_DATA:
+            self.trace_pending = b""
+
+    def fast_getter(self, index: int, subindex: int) -> tuple[str, Callable[[], object]] | None:
+        dev = self.device
+        if subindex == 0 and index == o.EXT_STEP_COUNT:
+            return "L", lambda: dev.step_count & 0xFFFFFFFF
+        if o.EXT_SIGNAL_BASE <= index < o.EXT_SIGNAL_BASE + len(SIGNAL_NAMES):
+            column = index - o.EXT_SIGNAL_BASE
+            return "f", lambda: float(dev.latest[column])
+        return None

@@ -1,0 +1,67 @@
+"""The simulated node's heartbeat producer (0x1017)."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import TYPE_CHECKING
+
+from drivers.canopen import objects as o
+
+if TYPE_CHECKING:
+    from sim_backend.canopen.node import SimCanopenNode
+
+log = logging.getLogger(__name__)
+
+
+class HeartbeatProducer:
+    """Heartbeat (0x700 + id, NMT state) every producer heartbeat time (0x1017).
+
+    Sent from the SYNC handler when due, and from a thread when SYNCs are rare: a sleeping thread alone
+    (python-can's cyclic task) can starve for seconds behind a busy 1 kHz receive thread in one process.
+    """
+
+    def __init__(self, node: "SimCanopenNode"):
+        self._node = node
+        self._period_s = 0.0
+        self._last = 0.0
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name=f"heartbeat-{node.node_id}", daemon=True)
+        self._thread.start()
+
+    def set_period_ms(self, period_ms: int) -> None:
+        with self._lock:
+            self._period_s = period_ms / 1000.0
+            self._last = 0.0
+        self.maybe_send()             # the first heartbeat right away, then every period
+        self._wake.set()
+
+    def maybe_send(self) -> None:
+        with self._lock:
+            now = time.monotonic()
+            if self._period_s <= 0 or now - self._last < self._period_s or self._closed:
+                return
+            self._last = now
+        nmt = self._node.node.nmt
+        try:
+            self._node.network.send_message(o.HEARTBEAT + self._node.node_id, [nmt._state])
+        except Exception as exc:     # bus closed while stopping
+            log.debug("heartbeat: %s", exc)
+
+    def _run(self) -> None:
+        while not self._closed:
+            with self._lock:
+                period, last = self._period_s, self._last
+            timeout = None if period <= 0 else max(0.0, last + period - time.monotonic())
+            self._wake.wait(timeout)
+            self._wake.clear()
+            if not self._closed:
+                self.maybe_send()
+
+    def close(self) -> None:
+        self._closed = True
+        self._wake.set()
+        self._thread.join(timeout=1.0)

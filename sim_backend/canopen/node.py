@@ -1,0 +1,193 @@
+"""The simulated drive as a CANopen CiA 402 node, built from the same EDS the bench loads.
+
+canopen's LocalNode gives the object dictionary, the SDO server and NMT. What it lacks is added here: TPDOs sent on
+SYNC (packed from the live object values, so PDO and SDO always agree; sim_backend.canopen.pdo), RPDOs applied to
+the drive, EMCY on faults, SDO block upload (block_server), the heartbeat (heartbeat) and lockstep time — each SYNC
+advances the drive by the communication cycle period (0x1006) before its TPDOs go out. What the objects mean is in
+drive_objects.
+
+Everything runs on the node network's receive thread; SimulatedDevice's lock guards the drive against the
+other protocol servers.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+from pathlib import Path
+
+import can
+import canopen
+from canopen import objectdictionary
+from canopen.sdo import SdoAbortedError
+
+from drivers.canopen import objects as o
+from drivers.cia402 import State
+from sim_backend.canopen.block_server import DriveLocalNode
+from sim_backend.canopen.drive_objects import Cia402Objects, ExtensionObjects, error_register_for
+from sim_backend.canopen.heartbeat import HeartbeatProducer
+from sim_backend.canopen.pdo import PDO_PARAMETERS, PdoEngine
+from sim_backend.canopen.virtual_bus import FastVirtualBus, send_frames
+from sim_backend.device import SimulatedDevice
+
+log = logging.getLogger(__name__)
+
+NMT_START_BOOT_UP, NMT_ENTER_PRE_OPERATIONAL = 0x81, 0x80     # NmtSlave.send_command: reset node, pre-operational
+
+
+class SimCanopenNode:
+    """One simulated drive on a CAN bus. `stop()` takes it off the bus."""
+
+    def __init__(self, device: SimulatedDevice, eds_path: str | Path, node_id: int, bus: can.BusABC):
+        self.device = device
+        self.node_id = node_id
+        self.network = canopen.Network(bus)
+        self.network.NOTIFIER_CYCLE = 0.02      # stop() returns within 20 ms (the notifier thread polls)
+        od = canopen.import_od(str(eds_path), node_id)
+        self.od = od
+        self.node = DriveLocalNode(node_id, od)
+        self.network.add_node(self.node)
+        self.cia402 = Cia402Objects(device, self._emcy_reset_if_cleared)
+        self.extension = ExtensionObjects(device, od)
+        self._handlers = (self.cia402, self.extension)
+        self.pdos = PdoEngine(od, self._raw, self.node.get_data, self.node.set_data, self._fast_getter)
+        self.node.add_read_callback(self._on_read)
+        self.node.add_write_callback(self._on_write)
+        self.node.sdo.on_upload_complete = self.extension.upload_complete
+        self.node.after_write = self._after_write
+        self._sync_count = 0
+        self._was_fault = False
+        self.rpdo_length_errors = 0
+        self.network.subscribe(o.SYNC, self._on_sync)
+        self.steps_per_sync = self._read_steps_per_sync()
+        self._rebuild_pdos()
+        self.network.connect()
+        self.network.notifier.add_listener(_ErrorLogger())
+        self.heartbeat = HeartbeatProducer(self)
+        nmt = self.node.nmt                   # canopen's NmtSlave keeps the NMT state; we send its heartbeat
+        nmt.start_heartbeat = self.heartbeat.set_period_ms
+        nmt.stop_heartbeat = lambda: self.heartbeat.set_period_ms(0)
+        nmt.update_heartbeat = lambda: None   # the producer reads the state when it sends
+        nmt.send_command(NMT_START_BOOT_UP)   # boot-up message, then PRE-OPERATIONAL with heartbeat
+        nmt.send_command(NMT_ENTER_PRE_OPERATIONAL)
+
+    @property
+    def nmt_state(self) -> int:
+        return self.node.nmt._state
+
+    # -- drive clock ---------------------------------------------------------------------------------
+    def _read_steps_per_sync(self) -> int:
+        period_us = self._raw(o.COMM_CYCLE_PERIOD, 0)
+        return max(1, round(period_us * 1e-6 / self.device.model.control_period_s))
+
+    def _raw(self, index: int, subindex: int) -> int:
+        obj = self.od[index]
+        if not isinstance(obj, objectdictionary.ODVariable):
+            obj = obj[subindex]
+        return obj.decode_raw(self.node.get_data(index, subindex))
+
+    # -- object access -------------------------------------------------------------------------------
+    def _on_read(self, index, subindex, od):
+        for handler in self._handlers:
+            value = handler.read(index, subindex, od)
+            if value is not None:
+                return value
+        return None
+
+    def _on_write(self, index, subindex, od, data):
+        value = od.decode_raw(data) if od.data_type != objectdictionary.DOMAIN else bytes(data)
+        if any(handler.write(index, subindex, od, value) for handler in self._handlers):
+            return
+        if index == o.COMM_CYCLE_PERIOD:
+            steps = value * 1e-6 / self.device.model.control_period_s
+            if value == 0 or abs(steps - round(steps)) > 1e-6:
+                raise SdoAbortedError(o.ABORT_INVALID_VALUE)
+        elif index in PDO_PARAMETERS:
+            self.pdos.check_write(index, subindex, value)
+            self.pdos.dirty = True
+
+    def _after_write(self, index: int, subindex: int) -> None:
+        if index == o.COMM_CYCLE_PERIOD:
+            self.steps_per_sync = self._read_steps_per_sync()
+        if self.pdos.dirty and index in PDO_PARAMETERS:
+            self._rebuild_pdos()
+
+    def _fast_getter(self, index: int, subindex: int):
+        for handler in self._handlers:
+            fast = handler.fast_getter(index, subindex)
+            if fast is not None:
+                return fast
+        return None
+
+    # -- PDOs ----------------------------------------------------------------------------------------
+    def _rebuild_pdos(self) -> None:
+        old, new = self.pdos.rebuild()
+        for cob in old:
+            self.network.unsubscribe(cob, self._on_rpdo)
+        for cob in new:
+            self.network.subscribe(cob, self._on_rpdo)
+
+    def _on_rpdo(self, can_id, data, timestamp):
+        if self.nmt_state != o.NMT_OPERATIONAL:
+            return
+        pdo = self.pdos.rpdos.get(can_id)
+        if pdo is None:
+            return
+        if len(data) < pdo.length:
+            self.rpdo_length_errors += 1
+            self._send_emcy(o.EMCY_PDO_LENGTH, error_register_for(o.EMCY_PDO_LENGTH))
+            return
+        self.pdos.receive(pdo, bytes(data))
+
+    def _on_sync(self, can_id, data, timestamp):
+        self.heartbeat.maybe_send()
+        if self.pdos.dirty:
+            self._rebuild_pdos()
+        self.pdos.apply_pending()
+        self.device.advance(self.steps_per_sync)
+        for code in self.device.take_emcy():
+            self._send_emcy(code, error_register_for(code))
+            self._was_fault = True
+        self._sync_count += 1
+        if self.nmt_state != o.NMT_OPERATIONAL:
+            return
+        frames = self.pdos.tpdo_frames(self._sync_count)
+        if frames:
+            send_frames(self.network, frames)     # one burst: the bench's receive thread wakes once per SYNC
+
+    # -- EMCY / heartbeat ----------------------------------------------------------------------------
+    def _send_emcy(self, code: int, register: int) -> None:
+        stamp = struct.pack("<L", self.device.step_count & 0xFFFFFFFF)   # manufacturer field: drive clock
+        self.node.emcy.send(code, register, stamp)
+
+    def _emcy_reset_if_cleared(self) -> None:
+        if self._was_fault and self.device.device.state is not State.FAULT:
+            self._was_fault = False
+            self.node.emcy.reset(0, bytes(5))
+
+    def stop_heartbeat(self) -> None:
+        """What a crashed node looks like to the bench: no more heartbeats, no more answers."""
+        self.node.nmt.stop_heartbeat()
+
+    def stop(self) -> None:
+        self.heartbeat.close()
+        self.network.disconnect()
+
+
+class _ErrorLogger(can.Listener):
+    def on_message_received(self, msg):
+        pass
+
+    def on_error(self, exc):
+        log.error("CANopen node receive thread: %s", exc)
+
+
+def start_node(device: SimulatedDevice, eds_path: str | Path, node_id: int, **bus_kwargs) -> SimCanopenNode:
+    """Put a simulated drive on a python-can bus (e.g. interface="virtual", channel=...)."""
+    bus_kwargs.setdefault("receive_own_messages", False)
+    if bus_kwargs.get("interface") == "virtual":
+        bus_kwargs.pop("interface")
+        bus = FastVirtualBus(**bus_kwargs)
+    else:
+        bus = can.Bus(**bus_kwargs)
+    return SimCanopenNode(device, eds_path, node_id, bus)

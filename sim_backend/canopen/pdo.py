@@ -1,0 +1,157 @@
+"""The simulated node's PDO engine: mappings read from the node's own object dictionary (so what the bench writes by
+SDO is what goes out), mapping writes checked as a drive checks them, TPDOs packed on SYNC, RPDOs applied."""
+
+from __future__ import annotations
+
+import logging
+import struct
+from dataclasses import dataclass
+from typing import Callable
+
+from canopen import objectdictionary
+from canopen.sdo import SdoAbortedError
+
+from drivers.canopen import objects as o
+
+log = logging.getLogger(__name__)
+
+PDO_PARAMETERS = range(o.RPDO_COMM, o.TPDO_MAP + 0x200)
+
+
+@dataclass
+class Pdo:
+    cob_id: int
+    trans_type: int
+    entries: list[tuple[int, int, int]]     # (index, subindex, bits)
+    last: bytes = b""
+    packer: tuple | None = None             # (struct, getters) when every mapped object has a fast getter
+
+    @property
+    def length(self) -> int:
+        return sum(bits for _, _, bits in self.entries) // 8
+
+
+def is_mapping_parameter(index: int) -> bool:
+    return o.RPDO_MAP <= index < o.TPDO_COMM or o.TPDO_MAP <= index < o.TPDO_MAP + 0x200
+
+
+class PdoEngine:
+    """raw(index, sub) reads the node's object dictionary; get_data/set_data go through its callbacks;
+    fast_getters(index) may give a (struct code, getter) pair that packs a mapped object without a lookup."""
+
+    def __init__(self, od: objectdictionary.ObjectDictionary, raw: Callable[[int, int], int],
+                 get_data: Callable[[int, int], bytes], set_data: Callable[[int, int, bytes], None],
+                 fast_getter: Callable[[int, int], tuple[str, Callable[[], object]] | None]):
+        self.od = od
+        self._raw = raw
+        self._get = get_data
+        self._set = set_data
+        self._fast_getter = fast_getter
+        self.tpdos: list[Pdo] = []
+        self.rpdos: dict[int, Pdo] = {}
+        self.pending: list[tuple[Pdo, bytes]] = []
+        self.dirty = True
+
+    def check_write(self, index: int, subindex: int, value: int) -> None:
+        """SDO abort for a mapping a drive would refuse: too long, an object that cannot be mapped."""
+        if not is_mapping_parameter(index):
+            return
+        tx = index >= o.TPDO_MAP
+        if subindex == 0:
+            if value > 8:
+                raise SdoAbortedError(o.ABORT_PDO_TOO_LONG)
+            bits = sum(self._raw(index, k) & 0xFF for k in range(1, value + 1))
+            if bits > 64:
+                raise SdoAbortedError(o.ABORT_PDO_TOO_LONG)
+            return
+        if value == 0:
+            return
+        m_index, m_sub, bits = o.unpack_mapping_entry(value)
+        try:
+            obj = self.od[m_index]
+            if not isinstance(obj, objectdictionary.ODVariable):
+                obj = obj[m_sub]
+        except KeyError:
+            raise SdoAbortedError(o.ABORT_CANNOT_MAP) from None
+        if not obj.pdo_mappable or bits != len(obj) or (tx and not obj.readable) or (not tx and not obj.writable):
+            raise SdoAbortedError(o.ABORT_CANNOT_MAP)
+
+    def _read(self, comm: int, mapping: int) -> Pdo:
+        entries = [o.unpack_mapping_entry(self._raw(mapping, k)) for k in range(1, self._raw(mapping, 0) + 1)]
+        return Pdo(cob_id=self._raw(comm, 1), trans_type=self._raw(comm, 2), entries=entries)
+
+    def rebuild(self) -> tuple[list[int], list[int]]:
+        """Re-read every PDO; returns (RPDO COB-IDs no longer used, RPDO COB-IDs now used)."""
+        old = list(self.rpdos)
+        self.tpdos, self.rpdos = [], {}
+        for n in range(o.N_TPDO_MAX):
+            if o.TPDO_COMM + n not in self.od:
+                break
+            pdo = self._read(o.TPDO_COMM + n, o.TPDO_MAP + n)
+            if not pdo.cob_id & o.COB_ID_INVALID and pdo.entries:
+                pdo.cob_id &= 0x7FF
+                pdo.packer = self._packer(pdo)
+                self.tpdos.append(pdo)
+        for n in range(o.N_RPDO_MAX):
+            if o.RPDO_COMM + n not in self.od:
+                break
+            pdo = self._read(o.RPDO_COMM + n, o.RPDO_MAP + n)
+            if not pdo.cob_id & o.COB_ID_INVALID and pdo.entries:
+                pdo.cob_id &= 0x7FF
+                self.rpdos[pdo.cob_id] = pdo
+        self.dirty = False
+        return old, list(self.rpdos)
+
+    def receive(self, pdo: Pdo, data: bytes) -> None:
+        """An RPDO of the right length: synchronous ones wait for the next SYNC, the others act now."""
+        if pdo.trans_type <= 240:
+            self.pending.append((pdo, data))
+        else:
+            self.apply(pdo, data)
+
+    def apply_pending(self) -> None:
+        pending, self.pending = self.pending, []
+        for pdo, payload in pending:
+            self.apply(pdo, payload)
+
+    def apply(self, pdo: Pdo, data: bytes) -> None:
+        offset = 0
+        for index, subindex, bits in pdo.entries:
+            n = bits // 8
+            try:
+                self._set(index, subindex, data[offset:offset + n])
+            except SdoAbortedError as exc:
+                log.warning("RPDO 0x%X: object 0x%04X:%02X rejected (0x%08X)", pdo.cob_id, index, subindex, exc.code)
+            offset += n
+
+    def pack(self, pdo: Pdo) -> bytes:
+        if pdo.packer is not None:
+            layout, getters = pdo.packer
+            return layout.pack(*[get() for get in getters])
+        return b"".join(bytes(self._get(i, s)) for i, s, _ in pdo.entries)
+
+    def _packer(self, pdo: Pdo) -> tuple | None:
+        """Per-SYNC packing without the generic object lookup, for the objects TPDOs usually carry."""
+        fmt, getters = "<", []
+        for index, subindex, _ in pdo.entries:
+            fast = self._fast_getter(index, subindex)
+            if fast is None:
+                return None
+            fmt += fast[0]
+            getters.append(fast[1])
+        return struct.Struct(fmt), getters
+
+    def tpdo_frames(self, sync_count: int) -> list[tuple[int, bytes]]:
+        """The TPDOs due at this SYNC: cyclic ones every n-th SYNC, acyclic/event ones when their data changed."""
+        frames = []
+        for pdo in self.tpdos:
+            t = pdo.trans_type
+            if 1 <= t <= 240:
+                if sync_count % t == 0:
+                    frames.append((pdo.cob_id, self.pack(pdo)))
+            else:                       # 0 (acyclic synchronous), 254/255 (event): on change
+                payload = self.pack(pdo)
+                if payload != pdo.last:
+                    pdo.last = payload
+                    frames.append((pdo.cob_id, payload))
+        return frames

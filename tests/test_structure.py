@@ -1,0 +1,162 @@
+"""The structure the layout promises: bench/ never imports the simulator, firmware never imports a plant model, no
+import cycle in any package, and a bench config without [services] (a real rig) reaches its links with its own
+[bench] settings."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGES = ("bench", "drivers", "sim_backend")
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(REPO).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+MODULES = {_module_name(p): p for pkg in PACKAGES for p in (REPO / pkg).rglob("*.py")}
+
+
+def _type_checking_nodes(tree: ast.AST) -> set[int]:
+    """ids of import nodes inside `if TYPE_CHECKING:` blocks (annotations only, never executed)."""
+    skip: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            skip.update(id(n) for child in node.body for n in ast.walk(child))
+    return skip
+
+
+def imports_of(module: str) -> set[str]:
+    """Project modules `module` imports anywhere in its body (functions included), TYPE_CHECKING blocks excluded."""
+    path = MODULES[module]
+    tree = ast.parse(path.read_text())
+    skip = _type_checking_nodes(tree)
+    found: set[str] = set()
+    for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                package = module.split(".")[:len(module.split(".")) - node.level + (path.name == "__init__.py")]
+                base = ".".join(package + ([node.module] if node.module else []))
+            else:
+                base = node.module or ""
+            names = [base] + [f"{base}.{a.name}" for a in node.names]
+        else:
+            continue
+        for name in names:
+            while name and name not in MODULES:
+                name = name.rpartition(".")[0]
+            if name and name != module:
+                found.add(name)
+    return found
+
+
+GRAPH = {m: imports_of(m) for m in MODULES}
+
+
+def test_the_graph_sees_imports():
+    assert "drivers.cia402" in GRAPH["drivers.canopen.link"]
+    assert "sim_backend.device" in GRAPH["sim_backend.rig"]         # a function-level import counts too
+
+
+def test_bench_never_imports_the_simulator():
+    offending = {m: sorted(d for d in deps if d.split(".")[0] == "sim_backend")
+                 for m, deps in GRAPH.items() if m.split(".")[0] == "bench"}
+    assert {m: d for m, d in offending.items() if d} == {}
+
+
+def test_drivers_import_neither_bench_nor_the_simulator():
+    offending = {m: sorted(d for d in deps if d.split(".")[0] in ("bench", "sim_backend"))
+                 for m, deps in GRAPH.items() if m.split(".")[0] == "drivers"}
+    assert {m: d for m, d in offending.items() if d} == {}
+
+
+PLANT_SIDE = ("plant", "mechanics", "inverter", "kernel", "model", "device", "drive")
+
+
+def test_firmware_never_imports_a_plant_module():
+    firmware = [m for m in MODULES if m.endswith(".firmware")]
+    assert len(firmware) == 2
+    for module in firmware:
+        plant = [d for d in GRAPH[module] if d.startswith("sim_backend") and d.rpartition(".")[2] in PLANT_SIDE]
+        assert plant == [], f"{module} imports {plant}"
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                out.append(sorted(component))
+
+    for v in graph:
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_cycle_finder_finds_a_cycle():
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_no_import_cycle_in_any_package():
+    assert _cycles(GRAPH) == []
+
+
+@pytest.mark.parametrize("transport", ["canopen", "serial"])
+def test_a_bench_without_services_hands_its_own_settings_to_the_drive_link(tmp_path, transport):
+    """A real rig has no [services]: its [bench] timing and fault_reset must still reach the link (before, they
+    only travelled through a simulator starter and a rig silently ran lockstep while the record said realtime)."""
+    from bench.benchconfig import load_bench_config
+    from bench.links import make_links
+
+    drive = (f'transport = "canopen"\ninterface = "socketcand"\nchannel = "can0@127.0.0.1:29536"\nnode_id = 1\n'
+             f'eds = "{REPO}/config/od/drivebench-pmsm.eds"\n' if transport == "canopen"
+             else 'transport = "serial"\nport = "/dev/ttyUSB0"\n')
+    path = tmp_path / "rig.toml"
+    path.write_text(f"""[bench]
+name = "a rig"
+timing = "realtime"
+fault_reset = "never"
+
+[drive]
+{drive}
+[load]
+transport = "modbus-tcp"
+host = "127.0.0.1"
+port = 502
+""")
+    cfg = load_bench_config(path)
+    assert "start" not in cfg["services"] or cfg["services"]["start"] is None
+    link, _ = make_links(cfg, REPO)
+    assert link.timing == "realtime"
+    assert link.fault_reset_policy == "never"
