@@ -15,18 +15,21 @@ from typing import Any
 
 from bench.errors import InputError, Problems, find_repo_root
 from drivers.api import FAULT_RESET_POLICIES, TIMINGS, LinkSettings
+from drivers.canopen.profile import PROFILE_KEYS, check_section, config_keys
+from drivers.comm_loss import STOP_KEYS, check_keys
 from drivers.eds import DeviceDescription, EdsError, read_eds
+from drivers.load_map import LoadMapError, read_load_map
 
 _BENCH_KEYS = {"name", "description", "timing", "plant_injections", "wire_faults", "fault_reset"}
 _SERVICES_KEYS = {"start"}
 _DRIVE_COMMON = {"transport", "sync_period_s", "heartbeat_timeout_s", "trace_decimation", "trace_signals", "eds"}
 _DRIVE_KEYS = {
-    "canopen": _DRIVE_COMMON | {"interface", "channel", "bitrate", "node_id", "sdo_timeout_s"},
-    "serial": _DRIVE_COMMON | {"port", "baudrate", "timeout_s"},
+    "canopen": _DRIVE_COMMON | {"interface", "channel", "bitrate", "node_id", "sdo_timeout_s"} | set(PROFILE_KEYS),
+    "serial": _DRIVE_COMMON | {"port", "baudrate", "timeout_s"} | set(STOP_KEYS),
 }
 _LOAD_KEYS = {
-    "modbus-tcp": {"transport", "host", "port", "unit_id", "timeout_s"},
-    "modbus-rtu": {"transport", "port", "baudrate", "unit_id", "timeout_s"},
+    "modbus-tcp": {"transport", "map", "host", "port", "unit_id", "timeout_s"},
+    "modbus-rtu": {"transport", "map", "port", "baudrate", "unit_id", "timeout_s"},
 }
 _TOP_KEYS = {"bench", "services", "drive", "load", "simulator"}
 
@@ -60,7 +63,7 @@ def load_bench_config(path: str | Path) -> dict[str, Any]:
     cfg["services"] = {"start": start}
 
     cfg["drive"] = _drive(problems, problems.table(raw, "drive", ""), root)
-    cfg["load"] = _load(problems, problems.table(raw, "load", ""))
+    cfg["load"] = _load(problems, problems.table(raw, "load", "", required=False), root)
 
     simulator = problems.table(raw, "simulator", "", required=False)
     if simulator is not None:
@@ -151,7 +154,11 @@ def _drive(problems: Problems, drive: dict | None, root: Path) -> dict[str, Any]
     }
     if transport == "canopen":
         out["interface"] = problems.string(drive, "interface", w)
-        out["channel"] = problems.string(drive, "channel", w)
+        channel = drive.get("channel")
+        if isinstance(channel, int) and not isinstance(channel, bool):
+            out["channel"] = channel                  # python-can interfaces number their channels (pcan, kvaser)
+        else:
+            out["channel"] = problems.string(drive, "channel", w)
         out["bitrate"] = problems.integer(drive, "bitrate", w, required=False, default=1_000_000, min_value=1)
         out["node_id"] = problems.integer(drive, "node_id", w, min_value=1, max_value=127)
         out["sdo_timeout_s"] = problems.number(drive, "sdo_timeout_s", w, required=False, default=0.5, positive=True)
@@ -162,11 +169,22 @@ def _drive(problems: Problems, drive: dict | None, root: Path) -> dict[str, Any]
         out["eds"] = _existing_path(problems, "drive.eds", eds, root) if eds else None
         if out["eds"]:
             try:
-                _read_eds_cached(out["eds"], *_stamp(out["eds"]))
+                description = _read_eds_cached(out["eds"], *_stamp(out["eds"]))
             except (EdsError, OSError) as exc:
                 problems.add("drive.eds", f"{eds}: {exc}")
                 out["eds"] = None
+            else:
+                if transport == "canopen":
+                    keys, key_problems = config_keys(drive)
+                    out.update(keys)
+                    for field_, reason in key_problems + check_section(
+                            drive, description.has, description.drivebench_kind is not None):
+                        problems.add(field_, reason)
     if transport == "serial":
+        keys, key_problems = check_keys(drive)
+        out.update(keys)
+        for field_, reason in key_problems:
+            problems.add(field_, reason)
         out["port"] = problems.string(drive, "port", w)
         out["baudrate"] = problems.integer(drive, "baudrate", w, required=False, default=115200, min_value=1)
         out["timeout_s"] = problems.number(drive, "timeout_s", w, required=False, default=0.5, positive=True)
@@ -190,15 +208,26 @@ def _signal_list(problems: Problems, table: dict, key: str, where: str) -> tuple
     return tuple(value)
 
 
-def _load(problems: Problems, load: dict | None) -> dict[str, Any]:
+def _load(problems: Problems, load: dict | None, root: Path) -> dict[str, Any]:
+    """[load] is optional: a rig without a load machine (free shaft) has none."""
     if load is None:
         return {}
     w = "load"
     transport = problems.string(load, "transport", w, choices=tuple(_LOAD_KEYS))
     if transport is not None:
         problems.unknown_keys(load, _LOAD_KEYS[transport], w)
+    map_name = problems.string(load, "map", w)
+    map_path = _existing_path(problems, "load.map", map_name, root) if map_name else None
+    if map_path:
+        try:
+            read_load_map(map_path)
+        except LoadMapError as exc:
+            for field_, reason in exc.problems:
+                problems.add("load.map", f"{map_name}: {field_}: {reason}")
+            map_path = None
     out: dict[str, Any] = {
         "transport": transport,
+        "map": map_path,
         "unit_id": problems.integer(load, "unit_id", w, required=False, default=1, min_value=0, max_value=247),
         "timeout_s": problems.number(load, "timeout_s", w, required=False, default=0.5, positive=True),
     }

@@ -50,11 +50,14 @@ def _link_class(section: dict, table: dict[str, str], where: str, cfg_path: str)
 
 
 def make_links(cfg: dict, base_dir: Path) -> tuple[Any, Any]:
-    """(drive link, load link), constructed but not opened."""
+    """(drive link, load link or None for a rig without a load machine), constructed but not opened."""
     path = cfg.get("_path", "bench config")
     drive_cls = _link_class(cfg["drive"], DRIVE_TRANSPORTS, "drive", path)
+    drive = drive_cls(dict(cfg["drive"]), base_dir, link_settings(cfg))
+    if not cfg.get("load"):
+        return drive, None
     load_cls = _link_class(cfg["load"], LOAD_TRANSPORTS, "load", path)
-    return drive_cls(dict(cfg["drive"]), base_dir, link_settings(cfg)), load_cls(dict(cfg["load"]), base_dir)
+    return drive, load_cls(dict(cfg["load"]), base_dir)
 
 
 @contextlib.contextmanager

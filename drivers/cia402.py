@@ -244,5 +244,30 @@ def quick_stop(port: Cia402Port, timeout_s: float, where: str = "drive") -> Stat
     return command(port, Command.QUICK_STOP, QUICK_STOPPED, "quick stop", timeout_s, where)
 
 
+STANDSTILL_MECH_RAD_S = 0.5  # below this the shaft counts as stopped (the safe stop disables only then)
+STOP_TIMEOUT_S = 5.0         # at most this long waiting for standstill after a quick stop
+
+
+def wait_standstill(advance: Callable[[], None], speed: Callable[[], float | None], threshold_mech_rad_s: float,
+                    timeout_s: float) -> dict:
+    """After a quick stop: let the drive brake until |speed| <= threshold, bounded in time, so the power stage goes off
+    at standstill and not at speed. `advance` lets drive time pass (lockstep: one SYNC; real time: a short sleep);
+    `speed` is the drive's speed in mech rad/s (None: unknown, stop waiting). A link error ends the wait: the
+    disable step comes next whatever happened. Returns what happened, for the record."""
+    started = time.monotonic()
+    current = None
+    while time.monotonic() - started < timeout_s:
+        try:
+            advance()
+            current = speed()
+        except LinkError:
+            break
+        if current is None or abs(current) <= threshold_mech_rad_s:
+            break
+    return {"standstill": current is not None and abs(current) <= threshold_mech_rad_s,
+            "speed_at_disable_mech_rad_s": None if current is None else abs(current),
+            "wait_s": round(time.monotonic() - started, 4)}
+
+
 def disable_voltage(port: Cia402Port, timeout_s: float, where: str = "drive") -> State:
     return command(port, Command.DISABLE_VOLTAGE, DISABLED, "disable voltage", timeout_s, where)

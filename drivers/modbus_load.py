@@ -1,17 +1,16 @@
-"""LoadLink to a load machine (dynamometer) over Modbus TCP or Modbus RTU, with pymodbus's sync clients.
+"""LoadLink to a load machine (dynamometer) over Modbus TCP or Modbus RTU, with pymodbus's sync clients, driven by
+the machine's register map file (drivers.load_map; config/load-machines/).
 
-Register map: config/od/load-machine-registers.toml (the constants below; a test keeps both equal).
-One address space of holding registers: read with FC3 (FC4 reads the same), write with FC6/FC16.
-float32 values take two registers, IEEE-754, high word first ("ABCD").
+The [load] section: transport "modbus-tcp" (host, port) or "modbus-rtu" (port = device path, pty path or pyserial
+URL; baudrate), map (the machine's register map file), unit_id, timeout_s, retries.
 
-The [load] section: transport "modbus-tcp" (host, port) or "modbus-rtu" (port = device path, pty path or
-pyserial URL; baudrate), unit_id, timeout_s, retries.
+Where the map has a communication watchdog, it is armed at connect with the map's timeout and kept fed by a thread
+of this process, so the machine takes its torque off by itself when the bench process dies.
 """
 
 from __future__ import annotations
 
-import struct
-from dataclasses import dataclass
+import threading
 from pathlib import Path
 
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
@@ -19,56 +18,11 @@ from pymodbus.exceptions import ModbusException
 from pymodbus.pdu import ExceptionResponse
 
 from drivers.api import LinkError, LoadFeedback, LoadMode, attempt_all
-
-
-@dataclass(frozen=True)
-class Register:
-    name: str
-    address: int
-    kind: str          # "uint16" | "float32" | "string"
-    access: str        # "rw" | "ro"
-    count: int = 1     # registers
-
-
-REG_ENABLE = Register("enable", 0, "uint16", "rw")
-REG_MODE = Register("mode", 1, "uint16", "rw")
-REG_SETPOINT = Register("setpoint", 2, "float32", "rw", 2)
-REG_FAULT_RESET = Register("fault_reset", 4, "uint16", "rw")
-REG_SPEED = Register("speed_mech_rad_s", 16, "float32", "ro", 2)
-REG_TORQUE = Register("torque_nm", 18, "float32", "ro", 2)
-REG_STATUS = Register("status", 20, "uint16", "ro")
-REG_FAULT_CODE = Register("fault_code", 21, "uint16", "ro")
-REG_MAP_VERSION = Register("map_version", 32, "uint16", "ro")
-REG_TORQUE_LIMIT = Register("torque_limit_nm", 33, "float32", "ro", 2)
-REG_VISCOUS_LIMIT = Register("viscous_limit_nm_s_per_rad", 35, "float32", "ro", 2)
-REG_IDENTITY = Register("identity", 40, "string", "ro", 16)
-
-REGISTERS: tuple[Register, ...] = (REG_ENABLE, REG_MODE, REG_SETPOINT, REG_FAULT_RESET, REG_SPEED, REG_TORQUE,
-                                   REG_STATUS, REG_FAULT_CODE, REG_MAP_VERSION, REG_TORQUE_LIMIT,
-                                   REG_VISCOUS_LIMIT, REG_IDENTITY)
-STATUS_ENABLED = 1 << 0
-STATUS_FAULT = 1 << 1
-MAP_VERSION = 1
+from drivers.load_map import LoadMap, LoadMapError, Reg, read_load_map
 
 EXCEPTION_TEXT = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
                   4: "server device failure", 6: "server busy", 11: "gateway target failed to respond"}
-
-
-def register_at(address: int) -> Register | None:
-    return next((r for r in REGISTERS if r.address <= address < r.address + r.count), None)
-
-
-def float_to_regs(value: float) -> list[int]:
-    raw = struct.pack(">f", value)
-    return [raw[0] << 8 | raw[1], raw[2] << 8 | raw[3]]
-
-
-def regs_to_float(regs: list[int]) -> float:
-    return struct.unpack(">f", struct.pack(">HH", regs[0], regs[1]))[0]
-
-
-def regs_to_str(regs: list[int]) -> str:
-    return b"".join(struct.pack(">H", r) for r in regs).rstrip(b"\0").decode(errors="replace")
+FEEDBACK = ("speed", "torque", "status")
 
 
 class ModbusLoadLink:
@@ -83,6 +37,14 @@ class ModbusLoadLink:
             raise ValueError(f"[load] unit_id: {self.unit_id} outside 0..247")
         if self.timeout_s <= 0 or self.retries < 0:
             raise ValueError("[load] timeout_s must be > 0 and retries >= 0")
+        if not section.get("map"):
+            raise ValueError("[load] map: the load machine's register map file is required (config/load-machines/)")
+        map_path = Path(section["map"])
+        map_path = map_path if map_path.is_absolute() else Path(base_dir) / map_path
+        try:
+            self.map: LoadMap = read_load_map(map_path)
+        except LoadMapError as exc:
+            raise ValueError(f"{map_path}: {exc}") from None
         if self.transport == "modbus-tcp":
             self.host = str(section.get("host", "127.0.0.1"))
             self.port = int(section.get("port", 502))
@@ -95,31 +57,56 @@ class ModbusLoadLink:
             self.baudrate = int(section.get("baudrate", 19200))
             self.where = f"modbus-rtu {port} unit {self.unit_id}"
         self.base_dir = base_dir
+        self.report: dict = {"map": self.map.name, "modes": [m.name.lower() for m in self.map.modes]}
         self._client: ModbusTcpClient | ModbusSerialClient | None = None
+        self._lock = threading.Lock()          # the watchdog thread and the bench share the client
+        self._keepalive_stop = threading.Event()
+        self._keepalive: threading.Thread | None = None
+
+    @property
+    def modes(self) -> tuple[LoadMode, ...]:
+        return self.map.modes
 
     def _connected_client(self) -> ModbusTcpClient | ModbusSerialClient:
         if self._client is None:
             raise LinkError(f"load machine {self.where}: link not open")
         return self._client
 
+    def _roles_at(self, address: int, n: int) -> str:
+        names = [r.role for r in self.map.registers.values()
+                 if address < r.address + r.count and r.address < address + n]
+        return ", ".join(names) or "unmapped"
+
     def _call(self, request: str, address: int, **kwargs):
         client = self._connected_client()
         n = kwargs.get("count") or len(kwargs.get("values", [0]))
-        names = list(dict.fromkeys(r.name if (r := register_at(a)) else "unmapped"
-                                   for a in range(address, address + n)))
         span = f"register {address}" if n == 1 else f"registers {address}..{address + n - 1}"
-        what = f"{request} of {span} ({', '.join(names)})"
+        what = f"{request} of {span} ({self._roles_at(address, n)})"
         try:
-            response = getattr(client, request)(address, device_id=self.unit_id, **kwargs)
+            with self._lock:
+                response = getattr(client, request)(address, device_id=self.unit_id, **kwargs)
         except ModbusException as exc:
-            raise LinkError(f"load machine {self.where}: {what}: no valid reply within {self.timeout_s:g} s x {self.retries + 1}: {exc}") from None
+            raise LinkError(f"load machine {self.where}: {what}: no valid reply within {self.timeout_s:g} s x "
+                            f"{self.retries + 1}: {exc}") from None
         if isinstance(response, ExceptionResponse) or response.isError():
             code = getattr(response, "exception_code", 0)
-            raise LinkError(f"load machine {self.where}: {what} refused: Modbus exception {code} ({EXCEPTION_TEXT.get(code, 'unknown')})")
+            raise LinkError(f"load machine {self.where}: {what} refused: Modbus exception {code} "
+                            f"({EXCEPTION_TEXT.get(code, 'unknown')})")
         return response
 
-    def read(self, reg: Register, count: int | None = None) -> list[int]:
-        return list(self._call("read_holding_registers", reg.address, count=count or reg.count).registers)
+    def _read_words(self, address: int, count: int) -> list[int]:
+        request = "read_holding_registers" if self.map.read_function == 3 else "read_input_registers"
+        return list(self._call(request, address, count=count).registers)
+
+    def read(self, reg: Reg) -> object:
+        return reg.decode(self._read_words(reg.address, reg.count), self.map.word_order)
+
+    def _write(self, reg: Reg, value: float) -> None:
+        words = reg.encode(value, self.map.word_order)
+        if len(words) == 1:
+            self._call("write_register", reg.address, value=words[0])
+        else:
+            self._call("write_registers", reg.address, values=words)
 
     def open(self) -> str:
         if self.transport == "modbus-tcp":
@@ -131,36 +118,97 @@ class ModbusLoadLink:
             self._client = None
             raise LinkError(f"load machine {self.where}: cannot connect")
         try:
-            (version,) = self.read(REG_MAP_VERSION)
-            if version != MAP_VERSION:
-                raise LinkError(f"load machine {self.where}: register map version {version}, this bench knows "
-                                f"{MAP_VERSION}")
-            return regs_to_str(self.read(REG_IDENTITY))
+            if self.map.has("version"):
+                version, expect = self.read(self.map["version"]), self.map["version"].extra.get("expect")
+                if expect is not None and version != expect:
+                    raise LinkError(f"load machine {self.where}: register map version {version}, the map file "
+                                    f"{self.map.path.name} describes version {expect}")
+            name = str(self.read(self.map["identity"])) if self.map.has("identity") else self.map.name
+            self._arm_watchdog()
+            return name
         except LinkError:
             self.close()
             raise
 
+    def _arm_watchdog(self) -> None:
+        timeout_ms = self.map.watchdog_timeout_ms
+        if not timeout_ms:
+            self.report["watchdog"] = "none in the register map: the machine does not stop by itself"
+            return
+        reg = self.map["watchdog"]
+        self._write(reg, timeout_ms if reg.extra.get("unit", "ms") == "ms" else timeout_ms / 1000.0)
+        self.report["watchdog"] = f"armed: {timeout_ms} ms (register {reg.address})"
+        self._keepalive_stop.clear()
+        self._keepalive = threading.Thread(target=self._feed_watchdog, args=(timeout_ms / 4000.0,),
+                                           name="load-watchdog-keepalive", daemon=True)
+        self._keepalive.start()
+
+    def _feed_watchdog(self, period_s: float) -> None:
+        """Any request feeds a Modbus watchdog: read the status register while this process lives."""
+        while not self._keepalive_stop.wait(period_s):
+            try:
+                self.read(self.map["status"])
+            except LinkError:
+                pass                                  # the bench's own calls will report a dead link
+
     def set_load(self, mode: LoadMode, value: float) -> None:
-        self._call("write_registers", REG_MODE.address, values=[int(LoadMode(mode))] + float_to_regs(value))
+        mode = LoadMode(mode)
+        if mode not in self.map.modes:
+            raise LinkError(f"load machine {self.where}: has no {mode.name.lower()} mode (its map "
+                            f"{self.map.path.name} lists {', '.join(m.name.lower() for m in self.map.modes)})")
+        setpoint = self.map["setpoint"]
+        raw = value / float(setpoint.extra.get("scale", 1.0))
+        if not self.map.has("mode"):
+            self._write(setpoint, raw)
+            return
+        mode_reg = self.map["mode"]
+        words = setpoint.encode(raw, self.map.word_order)
+        if mode_reg.address + mode_reg.count == setpoint.address:     # one request: never a half-changed load
+            self._call("write_registers", mode_reg.address,
+                       values=mode_reg.encode(self.map.mode_value(mode), self.map.word_order) + words)
+        else:
+            self._write(mode_reg, self.map.mode_value(mode))
+            self._write(setpoint, raw)
 
     def enable(self, on: bool) -> None:
-        self._call("write_register", REG_ENABLE.address, value=1 if on else 0)
+        reg = self.map["enable"]
+        self._write(reg, reg.extra.get("on", 1) if on else reg.extra.get("off", 0))
 
     def reset_fault(self) -> None:
-        self._call("write_register", REG_FAULT_RESET.address, value=1)
+        if self.map.has("fault_reset"):
+            self._write(self.map["fault_reset"], self.map["fault_reset"].extra.get("value", 1))
 
     def feedback(self) -> LoadFeedback:
-        regs = self.read(REG_SPEED, REG_FAULT_CODE.address + 1 - REG_SPEED.address)
-        status = regs[4]
-        return LoadFeedback(speed_mech_rad_s=regs_to_float(regs[0:2]), torque_nm=regs_to_float(regs[2:4]),
-                            enabled=bool(status & STATUS_ENABLED), fault=bool(status & STATUS_FAULT))
+        regs = [self.map[r] for r in FEEDBACK]
+        start = min(r.address for r in regs)
+        end = max(r.address + r.count for r in regs)
+        if end - start <= 32:                          # one request when the feedback registers sit together
+            words = self._read_words(start, end - start)
+            value = {r.role: r.decode(words[r.address - start:r.address - start + r.count], self.map.word_order)
+                     for r in regs}
+        else:
+            value = {r.role: self.read(r) for r in regs}
+        status = int(value["status"])
+        bits = self.map["status"].extra
+        return LoadFeedback(speed_mech_rad_s=float(value["speed"]) * self.map.speed_factor,
+                            torque_nm=float(value["torque"]) * float(self.map["torque"].extra.get("scale", 1.0)),
+                            enabled=bool(status >> int(bits["enabled_bit"]) & 1),
+                            fault=bool(status >> int(bits["fault_bit"]) & 1))
 
     def zero_and_disable(self) -> None:
         """Setpoint to zero, then disable; tries both whatever the first one did."""
-        attempt_all(lambda: self._call("write_registers", REG_SETPOINT.address, values=float_to_regs(0.0)),
-                    lambda: self.enable(False))
+        attempt_all(lambda: self._write(self.map["setpoint"], 0.0), lambda: self.enable(False))
 
     def close(self) -> None:
+        self._keepalive_stop.set()
+        if self._keepalive is not None:
+            self._keepalive.join(timeout=2.0)
+            self._keepalive = None
         if self._client is not None:
+            if self.map.watchdog_timeout_ms:       # a normal end: the bench leaves politely, no reaction needed
+                try:
+                    self._write(self.map["watchdog"], 0)
+                except LinkError:
+                    pass
             self._client.close()
             self._client = None

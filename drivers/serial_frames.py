@@ -23,7 +23,7 @@ OVERHEAD = HEADER_SIZE + TRAILER_SIZE
 MAX_PAYLOAD = 65535
 
 PROTOCOL_MAJOR = 1
-PROTOCOL_MINOR = 0
+PROTOCOL_MINOR = 1
 
 RESPONSE_FLAG = 0x80     # a reply carries CMD | 0x80 and the request's SEQ
 
@@ -35,6 +35,7 @@ class Cmd(enum.IntEnum):
     STATUS = 0x11            # -> statusword u16, error_code u16, mode i8, step u64, n u8, n x emcy code u16
     MODE = 0x12              # req: mode of operation i8 -> mode displayed i8
     TARGET_VELOCITY = 0x13   # req: f64 rad/s (mechanical) -> (empty)
+    WATCHDOG = 0x14          # req: timeout_ms u16 (0 off), reaction i16 (CiA 402 0x6007 code) -> (empty)
     PARAM_LIST = 0x20        # -> n u8, n x name str8
     PARAM_WRITE_INDEX = 0x21  # req: index u16, value f64 -> (empty)
     PARAM_WRITE_NAME = 0x22  # req: value f64, name (rest of payload, UTF-8) -> (empty)

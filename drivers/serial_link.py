@@ -17,6 +17,7 @@ import serial
 
 from drivers import cia402
 from drivers.api import DriveIdentity, DriveStatus, LinkError, LinkSettings, LiveSample, attempt_all
+from drivers.comm_loss import CommLossConfig
 from drivers.serial_frames import (
     PROTOCOL_MAJOR, PROTOCOL_MINOR, RESPONSE_FLAG, SAMPLE_HEADER, Cmd, ErrorCode, Frame, FrameDecoder,
     encode_frame, fault_text, unpack_str8,
@@ -40,6 +41,11 @@ class SerialDriveLink:
         self.sync_period_s = float(section.get("sync_period_s", 0.001))
         self.timing = settings.timing
         self.fault_reset_policy = settings.fault_reset
+        self.standstill_mech_rad_s = float(section.get("standstill_mech_rad_s", cia402.STANDSTILL_MECH_RAD_S))
+        self.stop_timeout_s = float(section.get("stop_timeout_s", cia402.STOP_TIMEOUT_S))
+        self.report: dict = {}                 # what the link read and set, for the record
+        self.comm_loss = CommLossConfig.from_section(section)
+        self._watchdog_armed = False
         if self.timeout_s <= 0 or self.retries < 0 or self.sync_period_s <= 0:
             raise ValueError("[drive] timeout_s and sync_period_s must be > 0 and retries >= 0")
         self.base_dir = base_dir
@@ -173,12 +179,24 @@ class SerialDriveLink:
         self.parameters = tuple(names)
         return self.identity
 
+    def _arm_watchdog(self) -> None:
+        """The drive's own reaction to a silent bench (serial WATCHDOG, protocol 1.1: CiA 402 0x6007 codes)."""
+        cfg = self.comm_loss
+        if cfg.mode == "external":
+            self.report["comm_loss"] = {"mode": "external", "note": "the rig stops the drive by itself"}
+            return
+        self._transact(Cmd.WATCHDOG, struct.pack("<Hh", cfg.consumer_time_ms, cfg.abort_option))
+        self._watchdog_armed = True
+        self.report["comm_loss"] = {"mode": "watchdog", "timeout_ms": cfg.consumer_time_ms,
+                                    "reaction": f"{cfg.abort_option} (0x6007 code)"}
+
     def configure(self, live_signals: Sequence[str], trace_signals: Sequence[str], trace_decimation: int) -> None:
         try:
             live_mask = mask_for(tuple(live_signals))
             trace_mask = mask_for(tuple(trace_signals))
         except ValueError as exc:
             raise LinkError(f"serial drive {self.url}: {exc}") from None
+        self._arm_watchdog()
         self._transact(Cmd.LIVE_CONFIGURE, struct.pack("<I", live_mask))
         self.live_mask = live_mask
         if self.identity and self.identity.has_trace_recorder and trace_mask:
@@ -280,7 +298,22 @@ class SerialDriveLink:
                            heartbeat_ok=True, emcy=[(c, fault_text(c)) for c in codes])
 
     def quick_stop(self) -> None:
-        cia402.quick_stop(self, self._step_timeout_s, self.where)
+        """Quick stop, then wait (bounded) until the shaft is below the standstill threshold."""
+        if cia402.quick_stop(self, self._step_timeout_s, self.where) is cia402.State.FAULT:
+            return
+        latest: list[LiveSample] = []
+
+        def advance() -> None:
+            if self.timing == "lockstep":
+                latest[:] = [self._sync_once()]
+            else:
+                time.sleep(max(self.sync_period_s, 0.01))
+                latest[:] = [self.sample()]
+
+        def speed() -> float | None:
+            return latest[-1].values.get("speed_est_mech_rad_s") if latest else None
+
+        self.report["stop"] = cia402.wait_standstill(advance, speed, self.standstill_mech_rad_s, self.stop_timeout_s)
 
     def disable(self) -> None:
         # disable voltage: power stage off from every state (shutdown 0x06 is refused in QUICK STOP ACTIVE)
@@ -289,5 +322,11 @@ class SerialDriveLink:
 
     def close(self) -> None:
         if self._port is not None:
+            if self._watchdog_armed:             # a normal end: the bench leaves, the drive need not react
+                try:
+                    self._transact(Cmd.WATCHDOG, struct.pack("<Hh", 0, self.comm_loss.abort_option))
+                    self._watchdog_armed = False
+                except LinkError:
+                    pass
             self._port.close()
             self._port = None

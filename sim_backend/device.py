@@ -14,14 +14,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drivers import parameters
-from drivers.canopen.objects import EMCY_OVERCURRENT
-from drivers.cia402 import Mode, State
+from drivers.canopen.objects import EMCY_HEARTBEAT, EMCY_OVERCURRENT
+from drivers.cia402 import Command, Mode, State
 from drivers.parameters import ParamKind
 from drivers.signals import SIGNAL_NAMES
 from sim_backend.cia402 import Cia402Device
+from sim_backend.comm_watchdog import Watchdog, WatchdogThread
 from sim_backend.faults import ControlwordWritten, FaultState, LoadWritten, apply_fault
 from sim_backend.model import DriveModel
 from sim_backend.trace import TraceRecorder
+
+
+STANDSTILL_MECH_RAD_S = 0.5     # quick stop options 1-3: switch on disabled once the estimate is below this
+QUICK_STOP_TO_DISABLED = (1, 2, 3)
 
 
 @dataclass
@@ -45,6 +50,12 @@ class SimulatedDevice:
     pending_emcy: list[int] = field(default_factory=list)
     latest: np.ndarray = field(default_factory=lambda: np.zeros(len(SIGNAL_NAMES)))
     faults: FaultState = field(default_factory=FaultState)
+    quick_stop_option: int = 2                 # 0x605A
+    abort_connection_option: int = 3           # 0x6007
+    master_watchdog: Watchdog = field(default_factory=lambda: Watchdog("drive"))
+    load_watchdog: Watchdog = field(default_factory=lambda: Watchdog("load machine"))
+    _watchdogs: WatchdogThread | None = None
+    on_master_lost: list = field(default_factory=list)     # front ends' own reactions (CANopen: 0x1029)
 
     @property
     def time_s(self) -> float:
@@ -86,6 +97,47 @@ class SimulatedDevice:
             else:
                 self.model.set_hook(name, value)
 
+    def arm_watchdogs(self) -> None:
+        """Start checking the drive's and the load machine's communication watchdogs (both off until armed)."""
+        if self._watchdogs is None:
+            self._watchdogs = WatchdogThread(self.lock, tick=self._free_run)
+            self._watchdogs.add(self.master_watchdog, self._master_lost)
+            self._watchdogs.add(self.load_watchdog, self._load_master_lost)
+
+    def stop_watchdogs(self) -> None:
+        if self._watchdogs is not None:
+            self._watchdogs.stop()
+            self._watchdogs = None
+
+    def _master_lost(self, silent_s: float) -> None:
+        """CiA 402 0x6007 abort connection option: the drive's own reaction to a lost master."""
+        option = self.abort_connection_option
+        what = {1: "fault", 2: "disable voltage", 3: "quick stop"}.get(option, "no action")
+        self.faults.self_stops.append(f"drive: master silent for {silent_s:.2f} s, 0x6007 = {option} ({what})")
+        self.pending_emcy.append(EMCY_HEARTBEAT)
+        if option == 1:
+            self.device.fault(EMCY_HEARTBEAT)
+        elif option == 2 and self.device.power_enabled:
+            self.device.write_controlword(Command.DISABLE_VOLTAGE)
+        elif option == 3 and self.device.state is State.OPERATION_ENABLED:
+            self.device.write_controlword(Command.QUICK_STOP)
+        self._apply_outputs()
+        for react in self.on_master_lost:
+            react()
+
+    def _free_run(self, dt_s: float) -> None:
+        """In lockstep the drive's time moves only with the bench's SYNCs; with the bench gone, a real drive's clock
+        goes on and its reaction (braking on the quick-stop ramp) completes. So does this one's, in wall time."""
+        if self.master_watchdog.tripped and self.device.power_enabled:
+            self.advance(max(1, round(min(dt_s, 0.1) / self.model.control_period_s)))
+
+    def _load_master_lost(self, silent_s: float) -> None:
+        """A dynamometer's Modbus watchdog: torque to zero, disabled."""
+        self.faults.self_stops.append(f"load machine: no Modbus request for {silent_s:.2f} s, torque off, disabled")
+        self.load.enabled = False
+        self.load.value = 0.0
+        self.model.set_load(self.load.mode, 0.0, False)
+
     def _apply_outputs(self) -> None:
         self.model.set_enabled(self.device.power_enabled)
         running = self.device.state is State.OPERATION_ENABLED and self.mode_of_operation == Mode.PROFILE_VELOCITY
@@ -105,6 +157,10 @@ class SimulatedDevice:
                 self.pending_emcy.append(code)
                 self._apply_outputs()
             speed = self.latest[SIGNAL_NAMES.index("speed_est_mech_rad_s")]
+            if (self.device.state is State.QUICK_STOP_ACTIVE and self.quick_stop_option in QUICK_STOP_TO_DISABLED
+                    and abs(speed) <= STANDSTILL_MECH_RAD_S):
+                self.device.state = State.SWITCH_ON_DISABLED      # stopped on the quick-stop ramp (0x605A)
+                self._apply_outputs()
             self.device.target_reached = abs(speed - self.target_speed_mech_rad_s) <= 0.01 * max(
                 1.0, abs(self.target_speed_mech_rad_s))
             return block

@@ -1,9 +1,10 @@
 """The simulated load machine's Modbus server (TCP on 127.0.0.1, RTU on a pty), on pymodbus 3.16.
 
-pymodbus >= 3.13 has no datastore get/setValues hooks; its SimDevice `action` callback runs before every
-register access: writes are validated and applied to SimulatedDevice.set_load there, reads refresh the
-feedback registers from DriveModel.load_feedback(). The server's asyncio loop runs in its own thread.
-Register map: drivers.modbus_load (documented in config/od/load-machine-registers.toml).
+It serves drivebench's own register map, config/load-machines/drivebench-sim.toml, read with drivers.load_map like
+any map (the file is the single description of the machine's registers). pymodbus >= 3.13 has no datastore
+get/setValues hooks; its SimDevice `action` callback runs before every register access: writes are validated and
+applied to SimulatedDevice.set_load there, reads refresh the feedback registers from DriveModel.load_feedback().
+Every request feeds the machine's communication watchdog. The server's asyncio loop runs in its own thread.
 """
 
 from __future__ import annotations
@@ -13,69 +14,73 @@ import math
 import os
 import select
 import socket
-import struct
 import threading
 import tty
+from pathlib import Path
 
 from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from drivers.api import LoadMode
-from drivers.modbus_load import (
-    MAP_VERSION, REG_ENABLE, REG_FAULT_CODE, REG_FAULT_RESET, REG_IDENTITY, REG_MAP_VERSION, REG_MODE,
-    REG_SETPOINT, REG_SPEED, REG_STATUS, REG_TORQUE, REG_TORQUE_LIMIT, REG_VISCOUS_LIMIT, STATUS_ENABLED,
-    STATUS_FAULT, float_to_regs, regs_to_float,
-)
+from drivers.load_map import LoadMap, Reg, read_load_map
 from sim_backend.device import SimulatedDevice
 
+MAP_FILE = Path(__file__).resolve().parent.parent / "config" / "load-machines" / "drivebench-sim.toml"
 IDENTITY = "drivebench-sim load machine"
 TORQUE_LIMIT_NM = 200.0
 VISCOUS_LIMIT = 10.0          # N*m/(rad/s)
 START_TIMEOUT_S = 10.0
 READ_FUNCTIONS = (3, 4, 6, 16, 23)     # 6, 16, 23 read back after their write
 WRITE_FUNCTIONS = (6, 16, 23)
+READ_ONLY = ("speed", "torque", "status", "fault_code", "version", "identity")
+DATATYPES = {"uint16": DataType.UINT16, "int16": DataType.INT16, "uint32": DataType.UINT32,
+             "int32": DataType.INT32, "float32": DataType.FLOAT32, "string": DataType.STRING}
 
 
-def _sim_data() -> list[SimData]:
-    u16 = DataType.UINT16
-    return [
-        SimData(REG_ENABLE.address, values=0, datatype=u16),
-        SimData(REG_MODE.address, values=0, datatype=u16),
-        SimData(REG_SETPOINT.address, values=0.0, datatype=DataType.FLOAT32),
-        SimData(REG_FAULT_RESET.address, values=0, datatype=u16),
-        SimData(REG_SPEED.address, values=0.0, datatype=DataType.FLOAT32, readonly=True),
-        SimData(REG_TORQUE.address, values=0.0, datatype=DataType.FLOAT32, readonly=True),
-        SimData(REG_STATUS.address, values=0, datatype=u16, readonly=True),
-        SimData(REG_FAULT_CODE.address, values=0, datatype=u16, readonly=True),
-        SimData(REG_MAP_VERSION.address, values=MAP_VERSION, datatype=u16, readonly=True),
-        SimData(REG_TORQUE_LIMIT.address, values=TORQUE_LIMIT_NM, datatype=DataType.FLOAT32, readonly=True),
-        SimData(REG_VISCOUS_LIMIT.address, values=VISCOUS_LIMIT, datatype=DataType.FLOAT32, readonly=True),
-        SimData(REG_IDENTITY.address, values=IDENTITY.ljust(2 * REG_IDENTITY.count, "\0"),
-                datatype=DataType.STRING, readonly=True),
-    ]
+def load_map() -> LoadMap:
+    return read_load_map(MAP_FILE)
+
+
+def _sim_data(regs: LoadMap) -> list[SimData]:
+    initial = {"version": regs["version"].extra.get("expect", 0) if regs.has("version") else 0,
+               "identity": IDENTITY.ljust(2 * regs["identity"].count, "\0") if regs.has("identity") else ""}
+    return [SimData(r.address, values=initial.get(r.role, 0.0 if r.type == "float32" else 0),
+                    datatype=DATATYPES[r.type], readonly=r.role in READ_ONLY)
+            for r in sorted(regs.registers.values(), key=lambda r: r.address)]
 
 
 class LoadMachineRegisters:
     """The action callback: the load machine's controller behind its registers."""
 
-    def __init__(self, device: SimulatedDevice):
+    def __init__(self, device: SimulatedDevice, regs: LoadMap | None = None):
         self.device = device
+        self.map = regs or load_map()
         self.rejected: list[tuple[int, int, int]] = []   # (function, address, exception code) for tests/logs
 
+    def _put(self, words: list[int], base: int, reg: Reg, value) -> None:
+        if reg.address >= base and reg.address + reg.count <= base + len(words):
+            words[reg.address - base:reg.address - base + reg.count] = reg.encode(value, self.map.word_order)
+
+    def _get(self, words: list[int], base: int, reg: Reg):
+        return reg.decode(words[reg.address - base:reg.address - base + reg.count], self.map.word_order)
+
     def _refresh(self, regs: list[int], base: int) -> None:
-        dev = self.device
+        dev, m = self.device, self.map
         with dev.lock:
             speed, torque = dev.model.load_feedback()
             load = dev.load
-            regs[REG_SPEED.address - base:REG_SPEED.address - base + 2] = float_to_regs(speed)
-            regs[REG_TORQUE.address - base:REG_TORQUE.address - base + 2] = float_to_regs(torque)
-            regs[REG_STATUS.address - base] = (STATUS_ENABLED if load.enabled else 0) | (
-                STATUS_FAULT if load.fault else 0)
-            regs[REG_FAULT_CODE.address - base] = load.fault & 0xFFFF
-            regs[REG_ENABLE.address - base] = int(load.enabled)
+            bits = m["status"].extra
+            self._put(regs, base, m["speed"], speed / m.speed_factor)
+            self._put(regs, base, m["torque"], torque / float(m["torque"].extra.get("scale", 1.0)))
+            self._put(regs, base, m["status"], (int(load.enabled) << int(bits["enabled_bit"]))
+                      | (int(bool(load.fault)) << int(bits["fault_bit"])))
+            if m.has("fault_code"):
+                self._put(regs, base, m["fault_code"], load.fault & 0xFFFF)
+            self._put(regs, base, m["enable"], m["enable"].extra["on"] if load.enabled else m["enable"].extra["off"])
 
     def _write(self, regs: list[int], base: int, address: int, values: list[int]) -> ExcCodes | None:
+        m = self.map
         end = address + len(values)
         new = list(regs)
         new[address - base:end - base] = values
@@ -83,37 +88,49 @@ class LoadMachineRegisters:
         def touched(reg) -> bool:
             return address < reg.address + reg.count and reg.address < end
 
-        for reg in (REG_SETPOINT,):     # float pairs are written whole or not at all
-            if touched(reg) and not (address <= reg.address and reg.address + reg.count <= end):
+        for reg in m.registers.values():     # multi-register values are written whole or not at all
+            if reg.count > 1 and touched(reg) and not (address <= reg.address and reg.address + reg.count <= end):
                 return ExcCodes.ILLEGAL_ADDRESS
-        enable = new[REG_ENABLE.address - base]
-        mode = new[REG_MODE.address - base]
-        value = regs_to_float(new[REG_SETPOINT.address - base:REG_SETPOINT.address - base + 2])
-        if enable not in (0, 1) or new[REG_FAULT_RESET.address - base] not in (0, 1):
+        enable = self._get(new, base, m["enable"])
+        mode_value = self._get(new, base, m["mode"])
+        value = float(self._get(new, base, m["setpoint"])) * float(m["setpoint"].extra.get("scale", 1.0))
+        reset = self._get(new, base, m["fault_reset"])
+        if enable not in (m["enable"].extra["on"], m["enable"].extra["off"]) or reset not in (0, 1):
             return ExcCodes.ILLEGAL_VALUE
-        if mode not in tuple(LoadMode) or not math.isfinite(value):
+        modes = {m.mode_value(mode): mode for mode in m.modes}
+        if mode_value not in modes or not math.isfinite(value):
             return ExcCodes.ILLEGAL_VALUE
-        if touched(REG_MODE) or touched(REG_SETPOINT):
-            if LoadMode(mode) is LoadMode.TORQUE and abs(value) > TORQUE_LIMIT_NM:
+        mode = modes[mode_value]
+        if touched(m["mode"]) or touched(m["setpoint"]):
+            if mode is LoadMode.TORQUE and abs(value) > TORQUE_LIMIT_NM:
                 return ExcCodes.ILLEGAL_VALUE
-            if LoadMode(mode) is LoadMode.BRAKE and not 0.0 <= value <= TORQUE_LIMIT_NM:
+            if mode is LoadMode.BRAKE and not 0.0 <= value <= TORQUE_LIMIT_NM:
                 return ExcCodes.ILLEGAL_VALUE
-            if LoadMode(mode) is LoadMode.VISCOUS and not 0.0 <= value <= VISCOUS_LIMIT:
+            if mode is LoadMode.VISCOUS and not 0.0 <= value <= VISCOUS_LIMIT:
                 return ExcCodes.ILLEGAL_VALUE
         dev = self.device
         with dev.lock:
-            if touched(REG_FAULT_RESET) and new[REG_FAULT_RESET.address - base]:
+            if touched(m["watchdog"]):
+                timeout = float(self._get(new, base, m["watchdog"]))
+                dev.load_watchdog.arm(timeout / 1000.0)
+                dev.load_watchdog.touch()
+                if timeout:
+                    dev.arm_watchdogs()
+            if touched(m["fault_reset"]) and reset:
                 dev.load.fault = 0
-                values[REG_FAULT_RESET.address - address] = 0      # a command, reads back 0
-            if touched(REG_ENABLE) and enable and dev.load.fault:
+                values[m["fault_reset"].address - address] = 0      # a command, reads back 0
+            is_on = enable == m["enable"].extra["on"]
+            if touched(m["enable"]) and is_on and dev.load.fault:
                 return ExcCodes.DEVICE_FAILURE                      # a faulted machine refuses to enable
-            dev.set_load(mode=mode if touched(REG_MODE) else None,
-                         value=value if touched(REG_SETPOINT) else None,
-                         enabled=bool(enable) if touched(REG_ENABLE) else None)
+            if touched(m["mode"]) or touched(m["setpoint"]) or touched(m["enable"]):
+                dev.set_load(mode=int(mode) if touched(m["mode"]) else None,
+                             value=value if touched(m["setpoint"]) else None,
+                             enabled=is_on if touched(m["enable"]) else None)
         return None
 
     async def action(self, function_code: int, start_address: int, address: int, count: int,
                      registers: list[int], set_values: list[int] | list[bool] | None) -> ExcCodes | None:
+        self.device.load_watchdog.touch()           # any request feeds the communication watchdog
         if set_values is None:
             if function_code not in READ_FUNCTIONS:
                 result = ExcCodes.ILLEGAL_FUNCTION
@@ -152,7 +169,7 @@ class ModbusServerHandle:
     def __init__(self, device: SimulatedDevice, unit_id: int):
         self.device = device
         self.registers = LoadMachineRegisters(device)
-        self.sim_device = SimDevice(unit_id, simdata=_sim_data(), action=self.registers.action)
+        self.sim_device = SimDevice(unit_id, simdata=_sim_data(self.registers.map), action=self.registers.action)
         self._loop = _LoopThread(type(self).__name__)
         self.server = None
         self.port = 0

@@ -110,6 +110,10 @@ def objects(kind: str) -> list[Obj]:
         Obj(0x100A, "Manufacturer software version", Var("Manufacturer software version", VISIBLE_STRING,
                                                          "const", extension.FIRMWARE_VERSION)),
         Obj(0x1014, "COB-ID EMCY", Var("COB-ID EMCY", UNSIGNED32, "ro", "$NODEID+0x80")),
+        Obj(0x1016, "Consumer heartbeat time", subs={
+            0: Var("Highest sub-index supported", UNSIGNED8, "const", "0x01"),
+            1: Var("Consumer heartbeat time 1", UNSIGNED32, "rw", "0x00000000",
+                   description="node id << 16 | time in ms; 0 = not monitored")}),
         Obj(0x1017, "Producer heartbeat time", Var("Producer heartbeat time", UNSIGNED16, "rw", "100",
                                                    description="ms")),
         Obj(0x1018, "Identity object", subs={
@@ -118,6 +122,10 @@ def objects(kind: str) -> list[Obj]:
             2: Var("Product code", UNSIGNED32, "ro", _u32(extension.PRODUCT_CODES[kind])),
             3: Var("Revision number", UNSIGNED32, "ro", _u32(extension.REVISION)),
             4: Var("Serial number", UNSIGNED32, "ro", "0x00000001")}),
+        Obj(0x1029, "Error behaviour", subs={
+            0: Var("Highest sub-index supported", UNSIGNED8, "const", "0x01"),
+            1: Var("Communication error", UNSIGNED8, "rw", "0x00",
+                   description="0 pre-operational, 1 no change, 2 stopped")}),
         Obj(0x1200, "SDO server parameter", subs={
             0: Var("Highest sub-index supported", UNSIGNED8, "const", "0x02"),
             1: Var("COB-ID client to server", UNSIGNED32, "ro", "$NODEID+0x600"),
@@ -153,9 +161,15 @@ def objects(kind: str) -> list[Obj]:
         for i, name in enumerate(parameters.names_for(kind, *kinds)):
             objs.append(Obj(base + i, name, Var(name, REAL32, "rw", "0")))
     objs += [
+        Obj(0x6007, "Abort connection option code", Var(
+            "Abort connection option code", INTEGER16, "rw", "3",
+            description="reaction to a lost heartbeat: 0 none, 1 fault, 2 disable voltage, 3 quick stop")),
         Obj(0x603F, "Error code", Var("Error code", UNSIGNED16, "ro", "0", pdo=True)),
         Obj(0x6040, "Controlword", Var("Controlword", UNSIGNED16, "rw", "0", pdo=True)),
         Obj(0x6041, "Statusword", Var("Statusword", UNSIGNED16, "ro", "0", pdo=True)),
+        Obj(0x605A, "Quick stop option code", Var(
+            "Quick stop option code", INTEGER16, "rw", "2",
+            description="2: stop on the quick-stop ramp (current limit), then switch on disabled")),
         Obj(0x6060, "Modes of operation", Var("Modes of operation", INTEGER8, "rw", "3", pdo=True)),
         Obj(0x6061, "Modes of operation display", Var("Modes of operation display", INTEGER8, "ro", "3",
                                                       pdo=True)),
@@ -163,6 +177,8 @@ def objects(kind: str) -> list[Obj]:
                                                  description="estimated speed, mrad/s mechanical")),
         Obj(0x60FF, "Target velocity", Var("Target velocity", INTEGER32, "rw", "0", pdo=True,
                                            description="mrad/s mechanical")),
+        Obj(0x60A9, "SI unit velocity", Var("SI unit velocity", UNSIGNED32, "ro", "0xFD100300",
+                                            description="mrad/s: exponent -3, radian, per second")),
         Obj(0x6502, "Supported drive modes", Var("Supported drive modes", UNSIGNED32, "ro", "0x00000004",
                                                  description="profile velocity only")),
     ]

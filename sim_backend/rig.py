@@ -5,7 +5,8 @@
 
 Front ends: CANopen on a private python-can `virtual` channel (optionally also served over socketcand), the serial
 protocol over TCP or a pty, the load machine over Modbus TCP or Modbus RTU on a pty. With `wire_faults` the front
-ends carry the fault wrappers (sim_backend.wire_faults) and the device its own comm-loss reaction.
+ends carry the fault wrappers (sim_backend.wire_faults). The device's own reaction to a silent master is the
+standard one, configured by the bench (CANopen 0x1016/0x6007, the serial watchdog, the Modbus watchdog register).
 
 `start` is the `[services]` starter the simulated bench configs name (`start = "sim_backend.rig:start"`): it reads
 [simulator] (motor, serial line), the bench's [drive]/[load] transports and [bench] wire_faults. `sim serve` builds
@@ -74,15 +75,13 @@ def build(spec: RigSpec, device: SimulatedDevice | None = None) -> Iterator[Rig]
     device.faults.wrapped = spec.wire_faults
     rig = Rig(spec, device)
     with contextlib.ExitStack() as stack:
+        stack.callback(device.stop_watchdogs)
         if spec.eds is not None:
             _canopen(stack, rig)
         if spec.serial is not None:
             _serial(stack, rig)
         if spec.modbus is not None:
             _modbus(stack, rig)
-        if spec.wire_faults:
-            from sim_backend import comm_loss
-            stack.enter_context(comm_loss.watching(device))
         yield rig
 
 

@@ -67,6 +67,7 @@ class SerialProtocolHandler:
         self._params = parameters.names_for(getattr(self.device.model, "kind", "pmsm"))
 
     def handle(self, frame: Frame) -> bytes:
+        self.device.master_watchdog.touch()          # any valid frame is a sign of the master (WATCHDOG)
         key = (frame.seq, frame.cmd, frame.payload)
         if key == self._last_request and frame.cmd != Cmd.HELLO:
             self.replays += 1            # a retry: answer again without executing twice (SYNC!)
@@ -143,6 +144,18 @@ class SerialProtocolHandler:
                 raise CommandError(ErrorCode.BAD_VALUE, f"target velocity {speed} is not finite")
             with dev.lock:
                 dev.target_speed_mech_rad_s = speed
+            return b""
+        if cmd is Cmd.WATCHDOG:
+            _expect_len(p, 4, cmd)
+            timeout_ms, reaction = struct.unpack("<Hh", p)
+            if reaction not in (0, 1, 2, 3):
+                raise CommandError(ErrorCode.BAD_VALUE, f"watchdog reaction {reaction} is not 0..3 (0x6007 codes)")
+            with dev.lock:
+                dev.abort_connection_option = reaction
+                dev.master_watchdog.arm(timeout_ms / 1000.0)
+                dev.master_watchdog.touch()
+            if timeout_ms:
+                dev.arm_watchdogs()
             return b""
         if cmd is Cmd.PARAM_LIST:
             _expect_len(p, 0, cmd)

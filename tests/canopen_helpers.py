@@ -56,7 +56,7 @@ class Rig:
 def link_section(channel: str, **overrides) -> dict:
     section = dict(transport="canopen", interface="virtual", channel=channel, bitrate=1_000_000, node_id=1,
                    eds=str(EDS), sync_period_s=0.01, heartbeat_timeout_s=1.0, sdo_timeout_s=1.0,
-                   trace_decimation=1)
+                   trace_decimation=1, consumer_time_ms=2000)
     section.update(overrides)
     return section
 

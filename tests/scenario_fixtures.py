@@ -16,6 +16,7 @@ def write_bench(tmp: Path, *, plant_injections: bool = True, kind: str | None = 
     eds = tmp / "drive.eds"
     source = REPO / "config" / "od" / f"drivebench-{kind}.eds" if kind else THIRD_PARTY_EDS
     eds.write_text(source.read_text())
+    unit = "" if kind else 'velocity_unit = "rpm"\n'        # a third-party EDS without 0x60A9: the config says
     path = tmp / name
     path.write_text(f"""
 [bench]
@@ -24,13 +25,14 @@ plant_injections = {str(plant_injections).lower()}
 
 [drive]
 transport = "canopen"
-interface = "virtual"
+{unit}interface = "virtual"
 channel = "test"
 node_id = 1
 eds = "{eds}"
 
 [load]
 transport = "modbus-tcp"
+map = "config/load-machines/drivebench-sim.toml"
 host = "127.0.0.1"
 port = 0
 """)

@@ -117,15 +117,36 @@ def test_fault_reset_policy_never_refuses_to_enable_a_faulted_drive():
             r.link.enable_velocity_mode()
 
 
-def test_quick_stop_and_disable():
+def test_quick_stop_waits_for_standstill_before_the_power_stage_goes_off():
+    """The safe stop brakes to standstill first (quick stop option 0x605A = 2: the drive stops on its ramp, then
+    switches itself off); the power stage is never cut at speed, and disable leaves the drive disabled."""
     with rig() as r:
         r.link.configure(LIVE, TRACE, 1)
         r.link.enable_velocity_mode()
+        r.link.set_speed_ref(30.0)
+        for _ in range(60):
+            r.link.sync()
+        assert abs(r.toy.load_feedback()[0]) > 10.0
         r.link.quick_stop()
-        assert r.link.status().state == "QUICK STOP ACTIVE"
+        stop = r.link.report["stop"]
+        assert stop["standstill"] and stop["speed_at_disable_mech_rad_s"] <= 0.5 and stop["wait_s"] > 0
+        assert r.device.device.state.name == "SWITCH_ON_DISABLED"       # 0x605A = 2: off by itself at standstill
+        assert abs(r.toy.load_feedback()[0]) <= 0.5
         r.link.disable()
         assert r.link.status().state == "SWITCH ON DISABLED"
         assert not r.device.device.power_enabled
+
+
+def test_quick_stop_option_that_holds_quick_stop_active():
+    """With 0x605A = 6 the drive stays in QUICK STOP ACTIVE after stopping; the bench's disable ends it."""
+    with rig() as r:
+        r.link.sdo.write(0x605A, 0, 6)
+        r.link.configure(LIVE, TRACE, 1)
+        r.link.enable_velocity_mode()
+        r.link.quick_stop()
+        assert r.link.status().state == "QUICK STOP ACTIVE" and r.device.device.power_enabled
+        r.link.disable()
+        assert r.link.status().state == "SWITCH ON DISABLED" and not r.device.device.power_enabled
 
 
 def test_lost_heartbeat_is_detected_within_the_timeout():

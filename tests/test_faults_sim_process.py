@@ -46,6 +46,7 @@ trace_decimation = 1
 
 [load]
 transport = "modbus-tcp"
+map = "config/load-machines/drivebench-sim.toml"
 host = "127.0.0.1"
 port = {modbus}
 unit_id = 1

@@ -1,4 +1,5 @@
-"""Modbus load machine: wire bytes, register map, round trips over TCP and RTU (pty), exceptions, timeouts."""
+"""Modbus load machines by data: map files, wire bytes for two different maps, round trips over TCP and RTU (pty)
+against the simulated machine, exceptions, timeouts, and the machine's communication watchdog."""
 
 import os
 import select
@@ -6,19 +7,21 @@ import socket
 import struct
 import threading
 import time
-import tomllib
 import tty
 from pathlib import Path
 
 import pytest
 
 from drivers.api import LinkError, LoadMode
-from drivers.modbus_load import REGISTERS, ModbusLoadLink, float_to_regs
+from drivers.load_map import LoadMapError, read_load_map
+from drivers.modbus_load import ModbusLoadLink
 from sim_backend.device import SimulatedDevice
-from sim_backend.modbus_server import TORQUE_LIMIT_NM, start_modbus_rtu_pty, start_modbus_tcp
+from sim_backend.modbus_server import MAP_FILE, TORQUE_LIMIT_NM, start_modbus_rtu_pty, start_modbus_tcp
 from sim_backend.toy import ToyDrive
 
 ROOT = Path(__file__).resolve().parents[1]
+SIM_MAP = "config/load-machines/drivebench-sim.toml"
+DYNO_MAP = "config/load-machines/example-torque-only-dyno.toml"
 
 
 def crc16_modbus_reference(data: bytes) -> int:
@@ -34,19 +37,40 @@ def test_crc16_reference_check_value():
     assert crc16_modbus_reference(b"123456789") == 0x4B37
 
 
-def test_register_map_file_matches_the_code():
-    with open(ROOT / "config/od/load-machine-registers.toml", "rb") as f:
-        doc = tomllib.load(f)
-    assert doc["map"]["version"] == 1
-    in_file = {name: (r["address"], r["type"], r["access"], r.get("count", 2 if r["type"] == "float32" else 1))
-               for name, r in doc["registers"].items()}
-    in_code = {r.name: (r.address, r.kind, r.access, r.count) for r in REGISTERS}
-    assert in_file == in_code
+def test_the_simulated_machine_serves_the_map_file_the_bench_reads():
+    assert MAP_FILE == ROOT / SIM_MAP
+    m = read_load_map(MAP_FILE)
+    assert (m["setpoint"].address, m["speed"].address, m["watchdog"].address, m["version"].extra["expect"]) == (2, 16, 5, 2)
+    assert [mode.name for mode in m.modes] == ["TORQUE", "VISCOUS", "BRAKE"]
 
 
-def test_float32_word_order_is_high_word_first():
-    assert float_to_regs(2.5) == [0x4020, 0x0000]
-    assert float_to_regs(-1.0) == [0xBF80, 0x0000]
+def test_word_orders_and_types():
+    m = read_load_map(ROOT / SIM_MAP)
+    assert m["setpoint"].encode(2.5, "big") == [0x4020, 0x0000]          # float32, high word first ("ABCD")
+    assert m["setpoint"].encode(-1.0, "big") == [0xBF80, 0x0000]
+    dyno = read_load_map(ROOT / DYNO_MAP)
+    assert dyno["speed"].encode(0x12345678, "little") == [0x5678, 0x1234]   # int32, low word first ("CDAB")
+    assert dyno["speed"].decode([0x5678, 0x1234], "little") == 0x12345678
+    assert dyno["speed"].decode(dyno["speed"].encode(-5, "little"), "little") == -5
+    assert dyno.modes == (LoadMode.TORQUE,) and dyno.speed_factor == pytest.approx(0.1 * 3.141592653589793 / 30)
+
+
+@pytest.mark.parametrize("text, field, reason", [
+    ("[registers.enable]\naddress = 0\ntype = \"uint16\"\n", "registers.setpoint", "missing"),
+    ("[registers.speed]\naddress = 1\ntype = \"float64\"\n", "registers.speed.type", "must be one of"),
+    ("[registers.speed]\naddress = 70000\ntype = \"uint16\"\n", "registers.speed.address", "0..65535"),
+    ("[registers.speed]\naddress = 1\ntype = \"uint16\"\nunit = \"furlong/s\"\n", "registers.speed.unit", "rad/s"),
+    ("[registers.warp]\naddress = 1\ntype = \"uint16\"\n", "registers.warp", "unknown role"),
+    ("[registers.setpoint]\naddress = 0\ntype = \"float32\"\n[registers.enable]\naddress = 1\ntype = \"uint16\"\n",
+     "registers.enable", "overlaps registers.setpoint"),
+    ("[machine]\nword_order = \"middle\"\n", "machine.word_order", "'big' or 'little'"),
+])
+def test_map_file_problems_name_the_field(tmp_path, text, field, reason):
+    path = tmp_path / "m.toml"
+    path.write_text(text)
+    with pytest.raises(LoadMapError) as err:
+        read_load_map(path)
+    assert any(f == field and reason in r for f, r in err.value.problems), err.value.problems
 
 
 # --- exact bytes on the wire against scripted fake machines -----------------------------------------------------
@@ -54,9 +78,9 @@ def test_float32_word_order_is_high_word_first():
 def answer(pdu: bytes, value: int = 1) -> bytes:
     """What a minimal, well-behaved Modbus machine answers (every holding register reads `value`)."""
     fc = pdu[0]
-    if fc == 3:
+    if fc in (3, 4):
         (count,) = struct.unpack(">H", pdu[3:5])
-        return bytes([3, 2 * count]) + struct.pack(">H", value) * count
+        return bytes([fc, 2 * count]) + struct.pack(">H", value) * count
     if fc == 6:
         return pdu[:5]
     if fc == 16:
@@ -101,30 +125,65 @@ class FakeTcpMachine:
         self.listener.close()
 
 
+def _bench_requests(fake) -> list[bytes]:
+    """What the bench sent, without the watchdog keep-alive's status reads (their timing is the thread's)."""
+    status_read = bytes.fromhex("0000 0006")
+    return [r for r in fake.requests if not (r[2:6] == status_read and r[7:] in (bytes.fromhex("03 0014 0001"),))]
+
+
 def test_setpoint_write_exact_modbus_tcp_adu():
-    fake = FakeTcpMachine()
+    fake = FakeTcpMachine(value=2)
     link = ModbusLoadLink({"transport": "modbus-tcp", "host": "127.0.0.1", "port": fake.port, "unit_id": 7,
-                           "timeout_s": 2.0}, ROOT)
+                           "timeout_s": 2.0, "map": SIM_MAP}, ROOT)
     link.open()
     link.set_load(LoadMode.TORQUE, 2.5)
     link.enable(True)
     link.close()
     fake.close()
-    read_version, read_identity, setpoint, enable = fake.requests
+    read_version, read_identity, arm, setpoint, enable, disarm = _bench_requests(fake)
     assert read_version[2:] == bytes.fromhex("0000 0006 07 03 0020 0001")
     assert read_identity[2:] == bytes.fromhex("0000 0006 07 03 0028 0010")
+    assert arm[2:] == bytes.fromhex("0000 0006 07 06 0005 03E8")             # watchdog 1000 ms
     # MBAP: transaction id (any), protocol 0, length 13, unit 7; PDU: FC16 at 1, 3 registers, 6 bytes:
-    # mode 0 (TORQUE), setpoint 2.5 as float32 0x40200000, high word first.
+    # mode 0 (TORQUE), setpoint 2.5 as float32 0x40200000, high word first: one request, never half a change.
     assert setpoint[2:] == bytes.fromhex("0000 000D 07 10 0001 0003 06 0000 4020 0000")
     assert enable[2:] == bytes.fromhex("0000 0006 07 06 0000 0001")
+    assert disarm[2:] == bytes.fromhex("0000 0006 07 06 0005 0000")          # a normal end disarms it
     ids = [struct.unpack(">H", r[:2])[0] for r in fake.requests]
-    assert len(set(ids)) == 4
+    assert len(set(ids)) == len(ids)
+
+
+def test_a_third_party_map_puts_other_bytes_on_the_wire():
+    """The same link and the same calls, another machine: torque-only, integer registers in engineering units,
+    feedback in input registers (FC4), 32-bit values low word first."""
+    fake = FakeTcpMachine(value=0x0102)
+    link = ModbusLoadLink({"transport": "modbus-tcp", "host": "127.0.0.1", "port": fake.port, "unit_id": 9,
+                           "timeout_s": 2.0, "map": DYNO_MAP}, ROOT)
+    assert link.open() == "example torque-only dynamometer"
+    link.set_load(LoadMode.TORQUE, 2.5)
+    with pytest.raises(LinkError, match="has no viscous mode"):
+        link.set_load(LoadMode.VISCOUS, 0.1)
+    link.enable(True)
+    fb = link.feedback()
+    link.close()
+    fake.close()
+    arm, setpoint, enable, feedback, disarm = [r for r in fake.requests if r[7] != 4 or r[8:10] != b"\x00\xcb"]
+    assert arm[2:] == bytes.fromhex("0000 0006 09 06 006E 01F4")              # watchdog 500 ms at 110
+    assert setpoint[2:] == bytes.fromhex("0000 0006 09 06 0065 00FA")         # 2.5 N*m / 0.01 = 250 at 101
+    assert enable[2:] == bytes.fromhex("0000 0006 09 06 0064 0001")
+    assert feedback[2:] == bytes.fromhex("0000 0006 09 04 00C8 0004")         # FC4, 200..203 in one request
+    assert disarm[2:] == bytes.fromhex("0000 0006 09 06 006E 0000")
+    # every register reads 0x0102: speed int32 (low word first) 0x01020102 x 0.1 rpm, torque 258 x 0.01 N*m,
+    # status 0x0102: bit 0 clear (not enabled), bit 3 clear (no fault)
+    assert fb.speed_mech_rad_s == pytest.approx(0x01020102 * 0.1 * 3.141592653589793 / 30)
+    assert fb.torque_nm == pytest.approx(2.58) and not fb.enabled and not fb.fault
 
 
 class FakeRtuMachine:
     """Answers on the master side of a pty; the link opens the slave like a serial port."""
 
-    def __init__(self, silent: bool = False):
+    def __init__(self, silent: bool = False, value: int = 1):
+        self.value = value
         self.master, self.slave = os.openpty()
         tty.setraw(self.slave)
         self.path = os.ttyname(self.slave)
@@ -152,7 +211,7 @@ class FakeRtuMachine:
                 adu = head + rest
                 self.requests.append(adu)
                 if not self.silent:
-                    body = adu[:1] + answer(adu[1:-2])
+                    body = adu[:1] + answer(adu[1:-2], self.value)
                     os.write(self.master, body + struct.pack("<H", crc16_modbus_reference(body)))
         except OSError:
             return
@@ -165,23 +224,23 @@ class FakeRtuMachine:
 
 
 def test_setpoint_write_exact_modbus_rtu_frame():
-    fake = FakeRtuMachine()
+    fake = FakeRtuMachine(value=2)
     link = ModbusLoadLink({"transport": "modbus-rtu", "port": fake.path, "baudrate": 115200, "unit_id": 3,
-                           "timeout_s": 2.0}, ROOT)
+                           "timeout_s": 2.0, "map": SIM_MAP}, ROOT)
     link.open()
     link.set_load(LoadMode.BRAKE, 2.5)
     link.close()
     fake.close()
-    setpoint = fake.requests[-1]
+    setpoint = [r for r in fake.requests if r[1] == 0x10][-1]
     body = bytes.fromhex("03 10 0001 0003 06 0002 4020 0000")
     assert setpoint == body + struct.pack("<H", crc16_modbus_reference(body))
 
 
 def test_other_register_map_version_is_refused():
-    fake = FakeTcpMachine(value=2)
-    link = ModbusLoadLink({"transport": "modbus-tcp", "host": "127.0.0.1", "port": fake.port, "timeout_s": 2.0},
-                          ROOT)
-    with pytest.raises(LinkError, match="register map version 2, this bench knows 1"):
+    fake = FakeTcpMachine(value=1)
+    link = ModbusLoadLink({"transport": "modbus-tcp", "host": "127.0.0.1", "port": fake.port, "timeout_s": 2.0,
+                           "map": SIM_MAP}, ROOT)
+    with pytest.raises(LinkError, match="register map version 1, the map file drivebench-sim.toml describes version 2"):
         link.open()
     assert link._client is None
     fake.close()
@@ -190,9 +249,9 @@ def test_other_register_map_version_is_refused():
 def test_modbus_tcp_timeout_is_a_clear_link_error():
     fake = FakeTcpMachine(silent=True)
     link = ModbusLoadLink({"transport": "modbus-tcp", "host": "127.0.0.1", "port": fake.port, "timeout_s": 0.2,
-                           "retries": 1}, ROOT)
+                           "retries": 1, "map": SIM_MAP}, ROOT)
     start = time.monotonic()
-    with pytest.raises(LinkError, match=r"read_holding_registers of register 32 \(map_version\): no valid reply "
+    with pytest.raises(LinkError, match=r"read_holding_registers of register 32 \(version\): no valid reply "
                                         r"within 0.2 s x 2"):
         link.open()
     assert time.monotonic() - start < 10.0
@@ -203,8 +262,8 @@ def test_modbus_tcp_timeout_is_a_clear_link_error():
 def test_modbus_rtu_timeout_is_a_clear_link_error():
     fake = FakeRtuMachine(silent=True)
     link = ModbusLoadLink({"transport": "modbus-rtu", "port": fake.path, "baudrate": 115200, "timeout_s": 0.2,
-                           "retries": 0}, ROOT)
-    with pytest.raises(LinkError, match=r"modbus-rtu .*register 32 \(map_version\): no valid reply"):
+                           "retries": 0, "map": SIM_MAP}, ROOT)
+    with pytest.raises(LinkError, match=r"modbus-rtu .*register 32 \(version\): no valid reply"):
         link.open()
     link.close()
     fake.close()
@@ -213,7 +272,8 @@ def test_modbus_rtu_timeout_is_a_clear_link_error():
 def test_unreachable_machine_is_a_link_error():
     with socket.create_server(("127.0.0.1", 0)) as s:
         port = s.getsockname()[1]
-    link = ModbusLoadLink({"transport": "modbus-tcp", "host": "127.0.0.1", "port": port, "timeout_s": 0.5}, ROOT)
+    link = ModbusLoadLink({"transport": "modbus-tcp", "host": "127.0.0.1", "port": port, "timeout_s": 0.5,
+                           "map": SIM_MAP}, ROOT)
     with pytest.raises(LinkError, match="cannot connect"):
         link.open()
 
@@ -229,7 +289,7 @@ def machine(request):
     else:
         server = start_modbus_rtu_pty(device)
         section = {"transport": "modbus-rtu", "port": server.path, "baudrate": 115200}
-    link = ModbusLoadLink(section | {"timeout_s": 2.0}, ROOT)
+    link = ModbusLoadLink(section | {"timeout_s": 2.0, "map": SIM_MAP}, ROOT)
     yield device, server, link
     link.close()
     server.stop()
@@ -280,7 +340,7 @@ def test_out_of_range_setpoint_is_refused_naming_the_registers(machine):
 def test_illegal_addresses_are_refused_naming_the_register(machine):
     _, _, link = machine
     link.open()
-    with pytest.raises(LinkError, match=r"registers 16..17 \(speed_mech_rad_s\) refused: Modbus exception 2 "
+    with pytest.raises(LinkError, match=r"registers 16..17 \(speed\) refused: Modbus exception 2 "
                                         r"\(illegal data address\)"):
         link._call("write_registers", 16, values=[0, 0])      # read-only feedback
     with pytest.raises(LinkError, match=r"register 8 \(unmapped\) refused: Modbus exception 2"):
@@ -300,11 +360,11 @@ def test_fault_is_reported_blocks_enable_and_resets(machine):
         device.set_load(enabled=False)
     fb = link.feedback()
     assert fb.fault and not fb.enabled
-    assert link.read(REGISTERS[7])[0] == 0x0042                  # fault_code
+    assert link.read(link.map["fault_code"]) == 0x0042
     with pytest.raises(LinkError, match=r"register 0 \(enable\) refused: Modbus exception 4"):
         link.enable(True)
     link.reset_fault()
-    assert device.load.fault == 0 and link.read(REGISTERS[3]) == [0]   # fault_reset reads back 0
+    assert device.load.fault == 0 and link.read(link.map["fault_reset"]) == 0   # fault_reset reads back 0
     link.enable(True)
     assert link.feedback().enabled
 
@@ -313,10 +373,38 @@ def test_server_stops_cleanly_and_link_then_errors():
     device = SimulatedDevice(ToyDrive())
     server = start_modbus_tcp(device)
     link = ModbusLoadLink({"transport": "modbus-tcp", "host": "127.0.0.1", "port": server.port,
-                           "timeout_s": 0.3, "retries": 0}, ROOT)
+                           "timeout_s": 0.3, "retries": 0, "map": SIM_MAP}, ROOT)
     link.open()
     server.stop()
     with pytest.raises(LinkError, match="load machine modbus-tcp"):
         link.feedback()
     link.close()
     assert not server._loop.thread.is_alive()
+
+
+def test_the_machine_stops_itself_when_the_bench_goes_silent():
+    """The watchdog the link armed at connect: while the bench process lives its keep-alive feeds it; when the
+    bench dies (here: the keep-alive stopped, nothing sent any more) the machine takes its torque off within the
+    timeout, by itself."""
+    device = SimulatedDevice(ToyDrive())
+    server = start_modbus_tcp(device)
+    link = ModbusLoadLink({"transport": "modbus-tcp", "host": "127.0.0.1", "port": server.port, "timeout_s": 2.0,
+                           "map": SIM_MAP}, ROOT)
+    try:
+        link.open()
+        assert link.report["watchdog"].startswith("armed: 1000 ms")
+        link.set_load(LoadMode.TORQUE, 3.0)
+        link.enable(True)
+        time.sleep(1.5)                                   # longer than the timeout: the keep-alive holds it
+        assert device.load.enabled and device.load.value == 3.0
+        link._keepalive_stop.set()                        # the bench process dies: nothing more on the wire
+        silent = time.monotonic()
+        while device.load.enabled:
+            assert time.monotonic() - silent < 1.0 + 0.5, "the machine kept its torque"
+            time.sleep(0.01)
+        assert time.monotonic() - silent >= 1.0 - 0.3   # the keep-alive's last read can be up to 0.25 s earlier
+        assert device.load.value == 0.0 and "no Modbus request" in device.faults.self_stops[-1]
+    finally:
+        link.close()
+        server.stop()
+        device.stop_watchdogs()

@@ -28,6 +28,7 @@ sync_period_s = 0.001
 
 [load]
 transport = "modbus-tcp"
+map = "config/load-machines/drivebench-sim.toml"
 host = "127.0.0.1"
 port = 1
 """

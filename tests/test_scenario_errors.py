@@ -207,7 +207,7 @@ def test_bench_config_problems_are_listed_with_the_bench_file(tmp_path):
     bench = tmp_path / "bench.toml"
     bench.write_text('[bench]\nname = 3\ntiming = "fast"\n[drive]\ntransport = "canopen"\ninterface = "virtual"\n'
                      'channel = "c"\nnode_id = 200\neds = "nowhere.eds"\n[load]\ntransport = "modbus-tcp"\n'
-                     'host = "h"\nport = 70000\n')
+                     'map = "config/load-machines/drivebench-sim.toml"\nhost = "h"\nport = 70000\n')
     lines = "\n".join(problems(write_scenario(tmp_path, "")))
     for field, reason in [("bench.name", "must be a string"), ("bench.timing", "must be one of"),
                           ("drive.node_id", "<= 127"), ("drive.eds", "file not found"), ("load.port", "<= 65535")]:

@@ -69,8 +69,9 @@ def test_round_trip_enable_speed_sync_trace(served):
     assert device.model.hooks["flux_est_scale"] == 0.5 and device.model.plant_factors["plant_rs"] == 1.5
     sample = link.sample()
     assert sample.t_s == pytest.approx(0.3)                              # SAMPLE does not advance
-    link.quick_stop()
-    assert link.status().state == "QUICK STOP ACTIVE" and device.device.power_enabled   # braking
+    link.quick_stop()                  # brakes to standstill on the quick-stop ramp, then off by itself (0x605A = 2)
+    assert link.report["stop"]["standstill"] and abs(device.model.load_feedback()[0]) <= 0.5
+    assert link.status().state == "SWITCH ON DISABLED" and not device.device.power_enabled
     link.disable()
     assert link.status().state == "SWITCH ON DISABLED" and not device.device.power_enabled
     link.enable_velocity_mode()

@@ -152,6 +152,7 @@ fault_reset = "never"
 {drive}
 [load]
 transport = "modbus-tcp"
+map = "config/load-machines/drivebench-sim.toml"
 host = "127.0.0.1"
 port = 502
 """)

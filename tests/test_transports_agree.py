@@ -79,6 +79,7 @@ plant_injections = true
 {drive}{COMMON_DRIVE}
 [load]
 transport = "modbus-tcp"
+map = "config/load-machines/drivebench-sim.toml"
 host = "127.0.0.1"
 unit_id = 1
 timeout_s = 5.0

@@ -9,9 +9,11 @@ import can
 ERROR_PASSIVE_LEVEL = 128    # CAN receive error counter at which a controller goes error passive (ISO 11898-1)
 
 # [drive] keys the link itself reads; every other key passes through to python-can's Bus(...)
-LINK_KEYS = frozenset({"transport", "kind", "sync_period_s", "heartbeat_timeout_s", "trace_decimation",
-                       "trace_signals", "node_id", "eds", "sdo_timeout_s", "timing", "fault_reset", "interface",
-                       "channel", "bitrate"})
+LINK_KEYS = frozenset({"transport", "sync_period_s", "heartbeat_timeout_s", "trace_decimation", "trace_signals",
+                       "node_id", "eds", "sdo_timeout_s", "interface", "channel", "bitrate", "can", "profile",
+                       "velocity_unit", "encoder_increments_per_rev", "gear_ratio", "rated_torque_nm",
+                       "rated_current_a", "signals", "pdo", "comm_loss", "consumer_time_ms", "abort_option",
+                       "error_behaviour", "bench_node_id", "standstill_mech_rad_s", "stop_timeout_s"})
 
 
 def frame_bits(n_data_bytes: int) -> int:
@@ -23,13 +25,15 @@ def frame_bits(n_data_bytes: int) -> int:
 def bus_kwargs(section: dict) -> dict[str, Any]:
     """python-can Bus(...) arguments from a [drive] table.
 
-    Extra python-can keyword arguments (host, port, tcp_tune, ...) pass through. For socketcand the
-    endpoint may also be written in the channel as `can0@127.0.0.1:29536`.
+    python-can's own options (fd, data_bitrate, app_name, serial, host, port, ...) pass through from the [drive.can]
+    table, verbatim; the channel may be a name or a number, as the interface wants it. For socketcand the endpoint
+    may also be written in the channel as `can0@127.0.0.1:29536`.
     """
     kwargs: dict[str, Any] = {"interface": section["interface"], "channel": section["channel"]}
     if section.get("bitrate"):
         kwargs["bitrate"] = section["bitrate"]
     kwargs.update({k: v for k, v in section.items() if k not in LINK_KEYS})
+    kwargs.update(section.get("can") or {})
     channel = str(kwargs["channel"])
     if kwargs["interface"] == "socketcand" and "@" in channel and "host" not in kwargs:
         name, _, endpoint = channel.partition("@")

@@ -1,31 +1,31 @@
 """DriveLink over CANopen CiA 402 (python-can + canopen): any python-can interface, any 402 drive.
 
 What the bench gets from a drive:
-- identity (0x1018), device name (0x1008), software version (0x100A);
-- the 402 state machine (drivers.cia402) over RPDO1 (controlword 0x6040, target velocity 0x60FF, mode 0x6060),
-  state read back from the statusword 0x6041 (TPDO1, or SDO while stepping so the result does not depend on timing);
-- live samples from TPDOs sent on SYNC: TPDO1 = statusword, mode display and, on a drive carrying drivebench's
-  extension, its drive clock; TPDO2.. = the live signals, two REAL32 (or four scaled INTEGER16) per TPDO;
-- heartbeat consumer (0x700+id) and EMCY (0x80+id);
-- on a drive carrying the extension, the drive-side trace recorder uploaded by SDO block transfer — full-rate data
-  for the verdict that would not fit through PDOs. Other drives give has_trace_recorder=False, fetch_trace() -> None.
+- identity (0x1018), device name (0x1008), software version (0x100A) and its drive profile (drivers.canopen.profile):
+  which objects give which signals in which units, read from the drive's factor group at connect time;
+- the 402 state machine (drivers.cia402) stepped by SDO — confirmed, and usable whatever state the drive's PDOs are
+  in; the target velocity streamed by an RPDO when one carries it (else by SDO), in the drive's velocity unit;
+- live samples from TPDOs sent on SYNC (drivers.canopen.pdo: our mapping where the drive allows it, else the one read
+  from the device; the drive's own PDO parameters restored at the end);
+- heartbeat consumer (0x700+id) and EMCY (0x80+id); the bench's own heartbeat and the drive's reaction to losing it
+  (drivers.canopen.comm_loss) armed before anything moves;
+- on a drive carrying drivebench's extension, its drive clock and the trace recorder uploaded by SDO block transfer.
 
-Velocities on the wire (0x60FF, 0x606C) are INTEGER32 in mrad/s, mechanical.
-
-Timing: "lockstep" sends one SYNC per sync() and waits for that SYNC's TPDOs; "realtime" runs a wall-clock SYNC
-producer at sync_period_s and sync() returns what arrived since the last call. Every sample is stamped with the
-drive's own clock (TPDO1), never with the receive time.
+Timing: "lockstep" sends one SYNC per sync() and waits for that SYNC's TPDOs; "realtime" produces SYNC on the wall
+clock and sync() returns what arrived since the last call. Samples are stamped with the drive's own clock where the
+drive has one; otherwise SYNCs x period in lockstep and the receive time in real time.
 """
 
 from __future__ import annotations
 
 import collections
 import logging
+import math
 import struct
 import threading
 import time
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import can
 import canopen
@@ -37,18 +37,21 @@ from canopen.sdo import SdoAbortedError
 from drivers import cia402, extension
 from drivers.api import DriveIdentity, DriveStatus, LinkError, LinkSettings, LiveSample
 from drivers.canopen import objects as o
+from drivers.canopen import pdo as pdos
 from drivers.canopen.bus import BusErrorCounter, bus_kwargs
-from drivers.canopen.pdo import STRUCT_CODES, TpdoDecoder, plan_live, write_mappings
+from drivers.canopen.comm_loss import CommLossGuard
+from drivers.comm_loss import CommLossConfig
+from drivers.canopen.profile import DriveProfile, ProfileConfig, ProfileError, resolve
 from drivers.canopen.sdo import SdoAccess, block_upload
-from drivers.canopen.sync import SyncProducer
-from drivers.signals import TIME_COLUMN
+from drivers.canopen.sync import NativeSync, SyncProducer, has_native_cyclic
+from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
 from drivers.trace_format import decode_rows, mask_for
 
 log = logging.getLogger(__name__)
 
 MIN_STALL_TIMEOUT_S = 2.0
-REALTIME_BATCH_S = 0.01     # real time: sync() hands over samples in batches of at most this period
-RPDO1 = (o.CONTROLWORD, o.TARGET_VELOCITY, o.MODES_OF_OPERATION)
+REALTIME_BATCH_S = 0.01      # real time: sync() hands over samples in batches of at most this period
+HEAD = {o.STATUSWORD: "_statusword", o.MODES_DISPLAY: "_mode"}
 
 
 class CanopenDriveLink:
@@ -60,6 +63,11 @@ class CanopenDriveLink:
         self.sync_period_s = float(section.get("sync_period_s", 0.001))
         self.heartbeat_timeout_s = float(section.get("heartbeat_timeout_s", 0.5))
         self.sdo_timeout_s = float(section.get("sdo_timeout_s", 0.5))
+        self.pdo_policy = section.get("pdo", "auto")
+        self.standstill_mech_rad_s = float(section.get("standstill_mech_rad_s", cia402.STANDSTILL_MECH_RAD_S))
+        self.stop_timeout_s = float(section.get("stop_timeout_s", cia402.STOP_TIMEOUT_S))
+        self.profile_config = ProfileConfig.from_section(section)
+        self.comm_loss_config = CommLossConfig.from_section(section)
         self.timing = settings.timing
         self.fault_reset_policy = settings.fault_reset
         # Waits the drive's SDO timeout does not cover: a lockstep SYNC's TPDOs and the frames inside a running
@@ -70,22 +78,29 @@ class CanopenDriveLink:
         self.node: canopen.RemoteNode | None = None
         self.sdo: SdoAccess | None = None
         self.identity: DriveIdentity | None = None
+        self.profile: DriveProfile | None = None
+        self.plan: pdos.PdoPlan | None = None
         self.control_period_s: float | None = None
+        self.report: dict[str, Any] = {}             # what was read and set, for the record
+        self._snapshot: pdos.PdoSnapshot | None = None
+        self._guard: CommLossGuard | None = None
         self._lock = threading.Condition()
         self._last_heartbeat = 0.0
         self._heartbeat_state: int | None = None
         self._emcy: list[tuple[int, str]] = []
         self._errors: list[str] = []
         self._samples: collections.deque[LiveSample] = collections.deque()
+        self._latest: LiveSample | None = None
         self._completed = 0           # SYNC cycles whose TPDOs all arrived
-        self._decoder = TpdoDecoder(self.sync_period_s, None)
+        self._decoder = pdos.TpdoDecoder(self.sync_period_s, None)
         self._controlword = 0
-        self._target_mrad_s = 0
+        self._target = 0              # in the drive's velocity unit
         self._trace_mask = 0
-        self._sync_producer: SyncProducer | None = None
+        self._sync: SyncProducer | NativeSync | None = None
+        self.commands: collections.deque[dict] = collections.deque(maxlen=10_000)   # realtime: with their SYNC
         self.frames_sent = 0
         self.live_bus_load_pct = 0.0
-        self.live_encoding = "real32"
+        self.live_encoding = "native"
         self._rx_lag_s = 0.0
         self._last_return = 0.0
         self.bus_errors = BusErrorCounter()
@@ -100,7 +115,7 @@ class CanopenDriveLink:
             self.network = canopen.Network()
             self.network.NOTIFIER_CYCLE = 0.02  # close() returns within 20 ms (the notifier thread polls)
             self.network.connect(**kwargs)
-        except (can.CanError, OSError, ValueError, TimeoutError) as exc:
+        except (can.CanError, OSError, ValueError, TimeoutError, TypeError) as exc:
             raise LinkError(f"CAN interface {self.section.get('interface')!r} channel "
                             f"{self.section.get('channel')!r}: cannot open: {exc}") from None
         try:
@@ -111,19 +126,21 @@ class CanopenDriveLink:
         self.node = self.network.add_node(self.node_id, od)
         self.node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout_s
         self.node.sdo.MAX_RETRIES = 1
-        self.sdo = SdoAccess(self.node, self.eds_path.name, self.sdo_timeout_s)
+        self.sdo = sdo = SdoAccess(self.node, self.eds_path.name, self.sdo_timeout_s)
         self._last_heartbeat = time.monotonic()
         self.network.subscribe(o.HEARTBEAT + self.node_id, self._on_heartbeat)
         self.network.subscribe(o.EMCY + self.node_id, self._on_emcy)
 
-        sdo = self.sdo
         vendor, product, revision, serial = (sdo.read(o.IDENTITY, k) for k in (1, 2, 3, 4))
         name = sdo.read(o.DEVICE_NAME) if sdo.has(o.DEVICE_NAME) else ""
         version = sdo.read(o.SOFTWARE_VERSION) if sdo.has(o.SOFTWARE_VERSION) else ""
+        try:
+            self.profile = resolve(self.profile_config, vendor, product, sdo.read_standard, sdo.has)
+        except ProfileError as exc:
+            raise LinkError(f"{self.where}: drive profile: {exc}") from None
         has_trace = False
-        if extension.carries_extension(vendor, product):
+        if self.profile.extension:
             self.control_period_s = sdo.read(o.EXT_CONTROL_PERIOD_NS) * 1e-9
-            self._decoder.control_period_s = self.control_period_s
             try:
                 self.node.sdo.upload(o.EXT_TRACE, o.TRACE_ROW_SIZE)
                 has_trace = sdo.has(o.EXT_TRACE_DATA)
@@ -134,16 +151,31 @@ class CanopenDriveLink:
         self.identity = DriveIdentity(vendor_id=vendor, product_code=product, revision=revision, serial=serial,
                                       device_name=str(name), firmware_version=str(version),
                                       has_trace_recorder=has_trace)
+        self.report["profile"] = self.profile.as_record()
         return self.identity
 
     def close(self) -> None:
+        """The drive's own settings back (comm-loss objects first, then PDOs), then off the bus."""
         self._stop_sync_producer()
-        if self.network is not None:
+        if self.network is None:
+            return
+        errors: list[str] = []
+        if self.sdo is not None:
             try:
-                self.network.disconnect()
+                if self._guard is not None:
+                    errors += self._guard.disarm()
+                if self._snapshot is not None and self._snapshot.touched:
+                    self.node.nmt.state = "PRE-OPERATIONAL"
+                    errors += self._snapshot.restore(self.sdo)
             except Exception as exc:       # closing must not mask the run's own error
-                log.warning("closing CAN network: %s", exc)
-            self.network = None
+                errors.append(str(exc))
+        for error in errors:
+            log.warning("node %d: restoring the drive's settings: %s", self.node_id, error)
+        try:
+            self.network.disconnect()
+        except Exception as exc:
+            log.warning("closing CAN network: %s", exc)
+        self.network = None
 
     def sdo_upload(self, index: int, subindex: int = 0) -> bytes:
         """Raw SDO read of any index, with or without an EDS entry (LinkError names the index)."""
@@ -154,37 +186,73 @@ class CanopenDriveLink:
     def has_drive_clock(self) -> bool:
         return self.control_period_s is not None
 
-    def configure(self, live_signals: Sequence[str], trace_signals: Sequence[str], trace_decimation: int) -> None:
-        od = self.node.object_dictionary
-        tpdo1 = [o.STATUSWORD, o.MODES_DISPLAY] + ([o.EXT_STEP_COUNT] if self.has_drive_clock else [])
-        tpdo1_vars = [self.sdo.var(i) for i in tpdo1]
-        plan = plan_live(od, live_signals, sum(len(v) // 8 for v in tpdo1_vars),
-                         self.section.get("bitrate") or 1_000_000, self.sync_period_s, self.eds_path.name)
-        self.live_encoding, self.live_bus_load_pct = plan.encoding, plan.bus_load_pct
-        maps = [[(idx, 0) for idx in tpdo1]] + [[(od[obj].index, od[obj].subindex) for obj, _, _ in g]
-                                                for g in plan.groups]
+    def measured_signals(self) -> frozenset[str]:
+        """The signals that arrive live (what the PDO plan carries)."""
+        if self.plan is None:
+            return frozenset()
+        return frozenset(e.role for t in self.plan.tpdos for e in t.entries if e.role and not e.role.startswith("_"))
 
+    def _wanted(self, live_signals: Sequence[str]) -> tuple[list[pdos.Entry], str]:
+        """The objects to carry live, most wanted first, and their encoding."""
+        od = self.node.object_dictionary
+        if self.profile.extension:
+            for encoding in ("real32", "scaled"):
+                names = [s if encoding == "real32" else o.SCALED_PREFIX + s for s in live_signals]
+                if all(n in od for n in names):
+                    entries = [pdos.entry_for(od, od[n].index, od[n].subindex, s,
+                                              1.0 if encoding == "real32" else float(od[n].factor))
+                               for n, s in zip(names, live_signals)]
+                    if self._fits(entries) or encoding == "scaled":
+                        return entries, encoding
+            missing = [s for s in live_signals if s not in od]
+            raise LinkError(f"{self.eds_path.name}: no object for live signal(s) {', '.join(missing)}")
+        sources = sorted(self.profile.sources, key=lambda s: (s.signal not in live_signals,
+                                                              list(SIGNAL_NAMES).index(s.signal)))
+        return [pdos.entry_for(od, s.index, s.subindex, s.signal, s.factor) for s in sources], "native"
+
+    def _head(self) -> list[pdos.Entry]:
+        od = self.node.object_dictionary
+        head = [pdos.entry_for(od, o.STATUSWORD, 0, "_statusword")]
+        if self.sdo.has(o.MODES_DISPLAY):
+            head.append(pdos.entry_for(od, o.MODES_DISPLAY, 0, "_mode"))
+        if self.has_drive_clock:
+            head.append(pdos.entry_for(od, o.EXT_STEP_COUNT, 0, "_step"))
+        return head
+
+    def _fits(self, entries: list[pdos.Entry]) -> bool:
+        n_tpdo = pdos.count_pdos(self.sdo, o.TPDO_COMM, o.N_TPDO_MAX)
+        _, dropped, load = pdos.pack_groups(self._head(), entries, n_tpdo, self._bitrate, self.sync_period_s)
+        return not dropped
+
+    @property
+    def _bitrate(self) -> int:
+        return self.section.get("bitrate") or 1_000_000
+
+    def configure(self, live_signals: Sequence[str], trace_signals: Sequence[str], trace_decimation: int) -> None:
         self._stop_sync_producer()
         self.node.nmt.state = "PRE-OPERATIONAL"
         if self.sdo.has(o.COMM_CYCLE_PERIOD):
             self.sdo.write(o.COMM_CYCLE_PERIOD, 0, round(self.sync_period_s * 1e6))
-        write_mappings(self.node, maps, RPDO1)
-        our_pdo_cobs = {c + self.node_id for c in o.TPDO_COB + o.RPDO_COB}
-        for cob in our_pdo_cobs & set(self.network.subscribers):   # our decoder replaces canopen's PdoMap
+        if self._snapshot is None:
+            self._snapshot = pdos.PdoSnapshot.read(self.sdo)
+        self.plan = self._plan_pdos(live_signals)
+        self.live_encoding, self.live_bus_load_pct = self.plan.encoding, self.plan.bus_load_pct
+        self.report["pdo"] = self.plan.as_record()
+        our_cobs = {t.cob for t in self.plan.tpdos} | {c + self.node_id for c in o.TPDO_COB}
+        for cob in our_cobs & set(self.network.subscribers):   # our decoder replaces canopen's PdoMap
             self.network.unsubscribe(cob)
-        decoder = TpdoDecoder(self.sync_period_s, self.control_period_s)
-        tpdo1_names = ["_statusword", "_mode"] + (["_step"] if self.has_drive_clock else [])
-        decoder.add(o.TPDO_COB[0] + self.node_id,
-                    "<" + "".join(STRUCT_CODES[(v.data_type, len(v))] for v in tpdo1_vars), tpdo1_names,
-                    [1.0] * len(tpdo1), 0)
-        for k, g in enumerate(plan.groups, start=1):
-            layout = "<" + ("f" if plan.encoding == "real32" else "h") * len(g)
-            decoder.add(o.TPDO_COB[k] + self.node_id, layout, [s for _, s, _ in g], [f for _, _, f in g], k)
-        decoder.last_cob = o.TPDO_COB[len(plan.groups)] + self.node_id
+        decoder = pdos.TpdoDecoder(self.sync_period_s, self.control_period_s,
+                                   use_receive_time=self.timing == "realtime" and not self.has_drive_clock)
+        for tpdo in self.plan.tpdos:
+            decoder.add(tpdo)
         with self._lock:
             self._decoder = decoder
         for cob in decoder.tpdos:
             self.network.subscribe(cob, self._on_tpdo)
+
+        if self._guard is None:
+            self._guard = CommLossGuard(self.comm_loss_config, self.sdo, self.network)
+            self.report["comm_loss"] = self._guard.arm()
 
         if self.identity and self.identity.has_trace_recorder:
             self._trace_mask = mask_for(list(trace_signals)) if trace_signals else 0
@@ -196,9 +264,42 @@ class CanopenDriveLink:
         self.read_statusword()
         self.node.nmt.state = "OPERATIONAL"
         if self.timing == "realtime":
-            self._sync_producer = SyncProducer(lambda: self.network.send_message(o.SYNC, b""), self.sync_period_s,
-                                               self._add_error)
-            self._sync_producer.start()
+            self._start_sync_producer()
+
+    def _plan_pdos(self, live_signals: Sequence[str]) -> pdos.PdoPlan:
+        if self.pdo_policy not in pdos.POLICIES:
+            raise LinkError(f"{self.where}: pdo policy {self.pdo_policy!r} is not one of {', '.join(pdos.POLICIES)}")
+        od = self.node.object_dictionary
+        wanted, encoding = self._wanted(live_signals)
+        n_tpdo = pdos.count_pdos(self.sdo, o.TPDO_COMM, o.N_TPDO_MAX)
+        if self.pdo_policy in ("auto", "remap"):
+            groups, dropped, load = pdos.pack_groups(self._head(), wanted, n_tpdo, self._bitrate, self.sync_period_s)
+            if self.profile.extension and dropped:
+                raise LinkError(f"{len(wanted)} live signals every {self.sync_period_s * 1e3:g} ms need more than "
+                                f"{pdos.BUS_BUDGET_PCT:.0f}% of the {self._bitrate / 1e6:g} Mbit/s bus (budget "
+                                f"{pdos.BUS_BUDGET_PCT:.0f}%, {n_tpdo} TPDOs)")
+            rpdo = [pdos.entry_for(od, i) for i in (o.CONTROLWORD, o.TARGET_VELOCITY, o.MODES_OF_OPERATION)
+                    if self.sdo.has(i)]
+            try:
+                tpdos, rpdo_layout = pdos.apply_remap(self.sdo, self._snapshot, self.node_id, groups, rpdo)
+                return pdos.PdoPlan("remap", tpdos, rpdo_layout, load, [e.role for e in dropped], encoding)
+            except LinkError as exc:
+                if self.pdo_policy == "remap":
+                    raise LinkError(f"{self.where}: the drive refused our PDO mapping: {exc}") from None
+                log.info("node %d: fixed PDO mapping (%s); using the device's own", self.node_id, exc)
+                self.report["pdo_remap_refused"] = str(exc)
+        head = {o.STATUSWORD: "_statusword", o.MODES_DISPLAY: "_mode"}
+        if self.has_drive_clock:
+            head[o.EXT_STEP_COUNT] = "_step"
+        roles = {(e.index, e.subindex): (e.role, e.factor) for e in wanted}
+        roles.update({(i, 0): (r, 1.0) for i, r in head.items()})
+        tpdos, rpdo_layout = pdos.apply_device_mapping(self.sdo, self._snapshot, od, roles)
+        carried = {e.role for t in tpdos for e in t.entries}
+        if "_statusword" not in carried and not tpdos:
+            raise LinkError(f"{self.where}: no TPDO of the drive's fixed mapping carries anything the bench reads")
+        load = pdos.load_pct([t.size for t in tpdos], self._bitrate, self.sync_period_s)
+        return pdos.PdoPlan("device", tpdos, rpdo_layout, load,
+                            [e.role for e in wanted if e.role not in carried], encoding)
 
     # -- receive side (CAN notifier thread) ----------------------------------------------------------
     def _add_error(self, message: str) -> None:
@@ -226,13 +327,14 @@ class CanopenDriveLink:
         if abs(now - timestamp) < 3600.0:       # interfaces stamping with the epoch clock: receive backlog
             self._rx_lag_s = now - timestamp
         with self._lock:
-            result = self._decoder.decode(can_id, data)
+            result = self._decoder.decode(can_id, data, timestamp)
             if isinstance(result, str):
                 self._errors.append(result)
                 self._lock.notify_all()
-            elif result is not None:
-                self._samples.append(result)
-                self._completed += 1
+            elif result:
+                self._samples.extend(result)
+                self._latest = result[-1]
+                self._completed += len(result)
                 self._lock.notify_all()
 
     # -- SYNC ----------------------------------------------------------------------------------------
@@ -297,19 +399,38 @@ class CanopenDriveLink:
         except (can.CanError, OSError) as exc:
             raise LinkError(f"CAN send of 0x{cob:03X} failed: {exc}") from None
 
-    def _stop_sync_producer(self) -> None:
-        if self._sync_producer is not None:
-            self._sync_producer.stop()
-            self._sync_producer = None
+    def _start_sync_producer(self) -> None:
+        bus = self.network.bus
+        if has_native_cyclic(bus):
+            self._sync = NativeSync(bus, self.sync_period_s)
+        else:
+            self._sync = SyncProducer(lambda: self.network.send_message(o.SYNC, b""), self.sync_period_s,
+                                      self._add_error)
+        self._sync.start()
+        self.report["sync"] = {"period_s": self.sync_period_s,
+                               "producer": "interface (native cyclic)" if self._sync.native else "bench thread"}
 
-    # -- 402 state machine (drivers.cia402 over RPDO1 + SDO statusword) -------------------------------
+    def _stop_sync_producer(self) -> None:
+        if self._sync is not None:
+            self._sync.stop()
+            self._sync = None
+
+    @property
+    def sync_producer(self) -> SyncProducer | NativeSync | None:
+        return self._sync
+
+    # -- 402 state machine (drivers.cia402; controlword by SDO: confirmed, whatever the PDOs do) -----
     def _send_rpdo(self) -> None:
-        self._send(o.RPDO_COB[0] + self.node_id, struct.pack("<HlB", self._controlword, self._target_mrad_s,
-                                                             cia402.Mode.PROFILE_VELOCITY))
+        rpdo = self.plan.rpdo if self.plan is not None else None
+        if rpdo is None:
+            self.sdo.write_standard(o.TARGET_VELOCITY, 0, self._target, 4, signed=True)
+            return
+        self._send(rpdo.cob, rpdo.pack({o.CONTROLWORD: self._controlword, o.TARGET_VELOCITY: self._target,
+                                        o.MODES_OF_OPERATION: cia402.Mode.PROFILE_VELOCITY}))
 
     def write_controlword(self, word: int) -> None:
         self._controlword = word
-        self._send_rpdo()
+        self.sdo.write(o.CONTROLWORD, 0, word)
 
     def read_statusword(self) -> int:
         word = self.sdo.read(o.STATUSWORD)
@@ -326,12 +447,15 @@ class CanopenDriveLink:
 
     def enable_velocity_mode(self) -> None:
         self._check_health()
+        if self.profile is None:
+            raise LinkError(f"{self.where}: the drive's velocity unit is not known: not enabling")
 
         def select_mode() -> None:
-            self._target_mrad_s = 0
+            self._target = 0
+            self.sdo.write_standard(o.TARGET_VELOCITY, 0, 0, 4, signed=True)
             self.sdo.write(o.MODES_OF_OPERATION, 0, cia402.Mode.PROFILE_VELOCITY)
-            mode = self.sdo.read(o.MODES_DISPLAY)
-            if mode != cia402.Mode.PROFILE_VELOCITY:
+            mode = self.sdo.read(o.MODES_DISPLAY) if self.sdo.has(o.MODES_DISPLAY) else None
+            if mode is not None and mode != cia402.Mode.PROFILE_VELOCITY:
                 raise LinkError(f"{self.where}: mode of operation display is {mode}, not profile velocity")
 
         def fault_detail() -> str:
@@ -341,17 +465,42 @@ class CanopenDriveLink:
                                 where=self.where, select_mode=select_mode, fault_detail=fault_detail)
 
     def set_speed_ref(self, speed_mech_rad_s: float) -> None:
-        value = round(speed_mech_rad_s * 1000.0)
+        if not math.isfinite(speed_mech_rad_s):
+            raise LinkError(f"speed reference {speed_mech_rad_s} rad/s is not finite")
+        value = self.profile.velocity.to_drive(speed_mech_rad_s)
         if not -2**31 <= value < 2**31:
-            raise LinkError(f"speed reference {speed_mech_rad_s} rad/s is out of the INTEGER32 mrad/s range")
-        self._target_mrad_s = value
+            raise LinkError(f"speed reference {speed_mech_rad_s} rad/s is {value} {self.profile.velocity.unit.name}, "
+                            "outside INTEGER32")
+        self._target = value
         self._send_rpdo()
+        if self.timing == "realtime" and self._sync is not None:
+            self.commands.append({"sync": self._sync.count, "wall_ns": time.perf_counter_ns(),
+                                  "speed_mech_rad_s": speed_mech_rad_s, "drive_value": value})
+
+    def _speed_now(self) -> float | None:
+        """|shaft speed| as the drive reports it (live sample in lockstep, else SDO), for the standstill wait."""
+        source = self.profile.source("speed_est_mech_rad_s") if self.profile else None
+        latest = self._latest
+        if latest is not None and "speed_est_mech_rad_s" in latest.values and self.timing == "lockstep":
+            return abs(latest.values["speed_est_mech_rad_s"])
+        if source is not None:
+            raw = self.sdo.read_standard(source.index, source.subindex, signed=True)
+            return None if raw is None else abs(raw * source.factor)
+        if self.profile is not None and self.profile.extension:
+            return abs(float(self.sdo.read("speed_est_mech_rad_s")))
+        return None
 
     def quick_stop(self) -> None:
-        cia402.quick_stop(self, self._step_timeout_s, self.where)
+        """Quick stop, then wait (bounded) until the shaft is below the standstill threshold."""
+        state = cia402.quick_stop(self, self._step_timeout_s, self.where)
+        if state is cia402.State.FAULT:
+            return
+        advance = self.sync if self.timing == "lockstep" else (lambda: time.sleep(max(self.sync_period_s, 0.01)))
+        self.report["stop"] = cia402.wait_standstill(advance, self._speed_now, self.standstill_mech_rad_s,
+                                                     self.stop_timeout_s)
 
     def disable(self) -> None:
-        self._target_mrad_s = 0
+        self._target = 0
         cia402.disable_voltage(self, self._step_timeout_s, self.where)
 
     def status(self) -> DriveStatus:

@@ -27,6 +27,7 @@ N_RPDO_MAX, N_TPDO_MAX = 4, 8       # what the bench plans with (predefined conn
 
 # -- CiA 402 objects ----------------------------------------------------------------------------------------------
 ABORT_CONNECTION_OPTION = 0x6007    # reaction to a lost master (heartbeat/NMT/bus off): 1 fault, 2 disable voltage, 3 quick stop
+ABORT_CONNECTION_CODES = {0: "no action", 1: "fault", 2: "disable voltage", 3: "quick stop"}
 ERROR_CODE = 0x603F
 CONTROLWORD = 0x6040
 STATUSWORD = 0x6041
@@ -34,6 +35,7 @@ QUICK_STOP_OPTION = 0x605A
 MODES_OF_OPERATION = 0x6060
 MODES_DISPLAY = 0x6061
 POSITION_ACTUAL = 0x6064            # position units (0x60A8 / 0x608F)
+VELOCITY_DEMAND = 0x606B            # velocity units (0x60A9): the reference after the drive's ramp
 VELOCITY_ACTUAL = 0x606C            # velocity units (0x60A9)
 MOTOR_RATED_CURRENT = 0x6075        # mA
 MOTOR_RATED_TORQUE = 0x6076         # mN*m
@@ -60,6 +62,8 @@ SDO_RX = 0x600                      # client -> server, + node id
 HEARTBEAT = 0x700                   # + node id
 COB_ID_INVALID = 0x80000000         # bit 31 of a PDO communication parameter's COB-ID: PDO does not exist / invalid
 COB_ID_NO_RTR = 0x40000000
+
+HEARTBEAT_BENCH_NODE_ID = 0x7F      # the bench's own heartbeat (master), 0x77F, consumed by the drive (0x1016)
 
 # NMT states as a heartbeat carries them
 NMT_BOOT_UP, NMT_STOPPED, NMT_OPERATIONAL, NMT_PRE_OPERATIONAL = 0x00, 0x04, 0x05, 0x7F
@@ -89,6 +93,7 @@ ABORT_COMMAND = 0x05040001
 ABORT_BLOCK_SIZE = 0x05040002
 ABORT_SEQUENCE = 0x05040003
 ABORT_CRC = 0x05040004
+ABORT_READ_ONLY = 0x06010002
 ABORT_NOT_IN_OD = 0x06020000
 ABORT_CANNOT_MAP = 0x06040041
 ABORT_PDO_TOO_LONG = 0x06040042

@@ -18,6 +18,9 @@ from drivers.api import LinkError
 from drivers.canopen import objects as o
 
 
+NO_SUCH_OBJECT = (o.ABORT_NOT_IN_OD, 0x06090011)     # object / subindex does not exist
+
+
 def abort_text(exc: SdoAbortedError) -> str:
     text = str(exc)
     return text.split(", ", 1)[1] if ", " in text else text
@@ -72,6 +75,38 @@ class SdoAccess:
             return self.node.sdo.upload(index, subindex)
         except (SdoAbortedError, SdoCommunicationError) as exc:
             raise self._failed("read", index, subindex, "", exc) from None
+
+    def download(self, index: int, subindex: int, data: bytes) -> None:
+        """Raw write of any index, with or without an EDS entry."""
+        try:
+            self.node.sdo.download(index, subindex, data)
+        except (SdoAbortedError, SdoCommunicationError) as exc:
+            raise self._failed("write", index, subindex, "", exc) from None
+
+    def read_standard(self, index: int, subindex: int = 0, signed: bool = False) -> int | None:
+        """A standard integer object read from the device itself (the EDS may lack it, the device may have it);
+        None when the device says it has no such object."""
+        try:
+            data = self.node.sdo.upload(index, subindex)
+        except SdoAbortedError as exc:
+            if exc.code in NO_SUCH_OBJECT:
+                return None
+            raise self._failed("read", index, subindex, "", exc) from None
+        except SdoCommunicationError as exc:
+            raise self._failed("read", index, subindex, "", exc) from None
+        return int.from_bytes(data, "little", signed=signed)
+
+    def write_standard(self, index: int, subindex: int, value: int, size: int, signed: bool = False) -> bool:
+        """Write a standard integer object; False when the device has no such object."""
+        try:
+            self.node.sdo.download(index, subindex, value.to_bytes(size, "little", signed=signed))
+        except SdoAbortedError as exc:
+            if exc.code in NO_SUCH_OBJECT:
+                return False
+            raise self._failed("write", index, subindex, "", exc) from None
+        except SdoCommunicationError as exc:
+            raise self._failed("write", index, subindex, "", exc) from None
+        return True
 
 
 def block_upload(network: canopen.Network, node_id: int, index: int, subindex: int, timeout_s: float,

@@ -51,6 +51,10 @@ class Cia402Objects:
             return error_register_for(dev.device.error_code) if dev.device.state is State.FAULT else 0
         if index == o.VELOCITY_ACTUAL:
             return int(round(float(dev.latest[SPEED_EST]) * MRAD_PER_RAD))
+        if index == o.QUICK_STOP_OPTION:
+            return dev.quick_stop_option
+        if index == o.ABORT_CONNECTION_OPTION:
+            return dev.abort_connection_option
         return None
 
     def write(self, index: int, subindex: int, od, value) -> bool:
@@ -67,6 +71,14 @@ class Cia402Objects:
         elif index == o.TARGET_VELOCITY:
             with dev.lock:
                 dev.target_speed_mech_rad_s = value / MRAD_PER_RAD
+        elif index == o.QUICK_STOP_OPTION:
+            with dev.lock:
+                dev.quick_stop_option = value
+        elif index == o.ABORT_CONNECTION_OPTION:
+            if value not in o.ABORT_CONNECTION_CODES:
+                raise SdoAbortedError(o.ABORT_INVALID_VALUE)
+            with dev.lock:
+                dev.abort_connection_option = value
         else:
             return False
         return True

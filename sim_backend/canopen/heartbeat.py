@@ -65,3 +65,31 @@ class HeartbeatProducer:
         self._closed = True
         self._wake.set()
         self._thread.join(timeout=1.0)
+
+
+class HeartbeatConsumer:
+    """0x1016: the drive watches its master's heartbeat. Each non-zero entry (node id << 16 | time ms) is watched;
+    the device's master watchdog is armed with the shortest time and touched by every heartbeat of a watched node.
+    On expiry the device applies 0x6007; with 0x1029 sub 1 = 0 the node also goes pre-operational."""
+
+    def __init__(self, node: "SimCanopenNode"):
+        self._node = node
+        self._subscribed: set[int] = set()
+
+    def configure(self, entries: list[int]) -> None:
+        network, device = self._node.network, self._node.device
+        for cob in self._subscribed:
+            network.unsubscribe(cob, self._on_heartbeat)
+        self._subscribed = set()
+        watched = [(e >> 16 & 0x7F, e & 0xFFFF) for e in entries if e & 0xFFFF and e >> 16 & 0x7F]
+        with device.lock:
+            device.master_watchdog.arm(min((ms for _, ms in watched), default=0) / 1000.0)
+        for node_id, _ in watched:
+            cob = o.HEARTBEAT + node_id
+            network.subscribe(cob, self._on_heartbeat)
+            self._subscribed.add(cob)
+        if watched:
+            device.arm_watchdogs()
+
+    def _on_heartbeat(self, can_id, data, timestamp):
+        self._node.device.master_watchdog.touch()

@@ -25,7 +25,7 @@ from drivers.canopen import objects as o
 from drivers.cia402 import State
 from sim_backend.canopen.block_server import DriveLocalNode
 from sim_backend.canopen.drive_objects import Cia402Objects, ExtensionObjects, error_register_for
-from sim_backend.canopen.heartbeat import HeartbeatProducer
+from sim_backend.canopen.heartbeat import HeartbeatConsumer, HeartbeatProducer
 from sim_backend.canopen.pdo import PDO_PARAMETERS, PdoEngine
 from sim_backend.canopen.virtual_bus import FastVirtualBus, send_frames
 from sim_backend.device import SimulatedDevice
@@ -64,6 +64,11 @@ class SimCanopenNode:
         self.network.connect()
         self.network.notifier.add_listener(_ErrorLogger())
         self.heartbeat = HeartbeatProducer(self)
+        self.consumer = HeartbeatConsumer(self)
+        device.on_master_lost.append(self._on_master_lost)
+        for index in (o.QUICK_STOP_OPTION, o.ABORT_CONNECTION_OPTION):      # the device starts from the EDS defaults
+            if index in od and od[index].default is not None:
+                self.cia402.write(index, 0, od[index], int(od[index].default))
         nmt = self.node.nmt                   # canopen's NmtSlave keeps the NMT state; we send its heartbeat
         nmt.start_heartbeat = self.heartbeat.set_period_ms
         nmt.stop_heartbeat = lambda: self.heartbeat.set_period_ms(0)
@@ -107,6 +112,8 @@ class SimCanopenNode:
             self.pdos.dirty = True
 
     def _after_write(self, index: int, subindex: int) -> None:
+        if index == o.CONSUMER_HEARTBEAT and subindex > 0:
+            self.consumer.configure([self._raw(index, k) for k in range(1, self._raw(index, 0) + 1)])
         if index == o.COMM_CYCLE_PERIOD:
             self.steps_per_sync = self._read_steps_per_sync()
         if self.pdos.dirty and index in PDO_PARAMETERS:
@@ -164,6 +171,12 @@ class SimCanopenNode:
         if self._was_fault and self.device.device.state is not State.FAULT:
             self._was_fault = False
             self.node.emcy.reset(0, bytes(5))
+
+    def _on_master_lost(self) -> None:
+        """0x1029 sub 1 (communication error): 0 -> pre-operational, 2 -> stopped, 1 -> no change."""
+        behaviour = self._raw(o.ERROR_BEHAVIOUR, 1) if o.ERROR_BEHAVIOUR in self.od else 1
+        if behaviour in (0, 2):
+            self.node.nmt.state = "PRE-OPERATIONAL" if behaviour == 0 else "STOPPED"
 
     def stop_heartbeat(self) -> None:
         """What a crashed node looks like to the bench: no more heartbeats, no more answers."""
