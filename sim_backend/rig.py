@@ -9,8 +9,8 @@ ends carry the fault wrappers (sim_backend.wire_faults). The device's own reacti
 standard one, configured by the bench (CANopen 0x1016/0x6007, the serial watchdog, the Modbus watchdog register).
 
 `start` is the `[services]` starter the simulated bench configs name (`start = "sim_backend.rig:start"`): it reads
-[simulator] (motor, serial line), the bench's [drive]/[load] transports and [bench] wire_faults. `sim serve` builds
-its rig with the same function.
+[simulator] (motor, serial line, and for a third-party drive `drive = "generic"` with its units and rated values),
+the bench's [drive]/[load] transports and [bench] wire_faults. `sim serve` builds its rig with the same function.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+from sim_backend.canopen.generic import DriveSpec
 from sim_backend.device import SimulatedDevice
 from sim_backend.model import DriveModel
 
@@ -54,6 +55,7 @@ class RigSpec:
     modbus: str | None = None                      # "tcp" | "rtu-pty" | None
     modbus_tcp: tuple[str, int] = (LOOPBACK, 0)
     wire_faults: bool = False
+    drive: DriveSpec | None = None                 # a third-party drive from a vendor EDS; None: drivebench's
 
 
 @dataclass
@@ -105,7 +107,7 @@ def _canopen(stack: contextlib.ExitStack, rig: Rig) -> None:
         bus = FaultyBus(rig.device.faults, spec.node_id, channel=rig.channel, receive_own_messages=False)
     else:
         bus = FastVirtualBus(channel=rig.channel, receive_own_messages=False)
-    rig.node = SimCanopenNode(rig.device, spec.eds, spec.node_id, bus)
+    rig.node = SimCanopenNode(rig.device, spec.eds, spec.node_id, bus, spec.drive)
     stack.callback(rig.node.stop)
     rig.overrides.setdefault("drive", {})["channel"] = rig.channel
     rig.endpoints["canopen"] = f"virtual:{rig.channel} node={spec.node_id}"
@@ -160,13 +162,29 @@ def spec_for_bench(bench_cfg: dict, seed: int) -> RigSpec:
     transport = drive.get("transport")
     load_transport = load.get("transport")
     return RigSpec(
-        motor=motor, seed=seed,
+        motor=motor, seed=seed, drive=drive_spec(simulator),
         eds=drive.get("eds") if transport == "canopen" else None,
         node_id=int(drive.get("node_id") or 1),
         serial=(simulator.get("serial_line") or "tcp") if transport == "serial" else None,
         modbus={"modbus-tcp": "tcp", "modbus-rtu": "rtu-pty"}.get(load_transport),
         wire_faults=bool((bench_cfg.get("bench") or {}).get("wire_faults", False)),
     )
+
+
+GENERIC_KEYS = ("velocity_unit", "encoder_increments_per_rev", "rated_current_a", "rated_torque_nm",
+                "fixed_pdo_mapping")
+
+
+def drive_spec(simulator: dict) -> DriveSpec | None:
+    """[simulator] drive = "generic": a third-party CiA 402 drive from the bench's EDS, with these keys."""
+    kind = simulator.get("drive", "drivebench")
+    if kind == "drivebench":
+        return None
+    if kind != "generic":
+        raise RuntimeError(f"simulator.drive: {kind!r} is not 'drivebench' or 'generic'")
+    gear = simulator.get("gear_ratio")
+    return DriveSpec(**{k: simulator[k] for k in GENERIC_KEYS if k in simulator},
+                     **({"gear_ratio": (float(gear[0]), float(gear[1]))} if gear else {}))
 
 
 @contextlib.contextmanager

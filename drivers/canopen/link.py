@@ -132,8 +132,7 @@ class CanopenDriveLink:
         self.network.subscribe(o.EMCY + self.node_id, self._on_emcy)
 
         vendor, product, revision, serial = (sdo.read(o.IDENTITY, k) for k in (1, 2, 3, 4))
-        name = sdo.read(o.DEVICE_NAME) if sdo.has(o.DEVICE_NAME) else ""
-        version = sdo.read(o.SOFTWARE_VERSION) if sdo.has(o.SOFTWARE_VERSION) else ""
+        name, version = (self._optional_text(index) for index in (o.DEVICE_NAME, o.SOFTWARE_VERSION))
         try:
             self.profile = resolve(self.profile_config, vendor, product, sdo.read_standard, sdo.has)
         except ProfileError as exc:
@@ -149,10 +148,20 @@ class CanopenDriveLink:
         if sdo.has(o.PRODUCER_HEARTBEAT):   # heartbeat producer at a quarter of our timeout
             sdo.write(o.PRODUCER_HEARTBEAT, 0, max(10, min(1000, int(self.heartbeat_timeout_s * 1000 / 4))))
         self.identity = DriveIdentity(vendor_id=vendor, product_code=product, revision=revision, serial=serial,
-                                      device_name=str(name), firmware_version=str(version),
+                                      device_name=name, firmware_version=version,
                                       has_trace_recorder=has_trace)
         self.report["profile"] = self.profile.as_record()
         return self.identity
+
+    def _optional_text(self, index: int) -> str:
+        """Device name / software version: informative; a drive that does not answer them still runs."""
+        if not self.sdo.has(index):
+            return ""
+        try:
+            return str(self.sdo.read(index))
+        except LinkError as exc:
+            log.info("node %d: %s", self.node_id, exc)
+            return ""
 
     def close(self) -> None:
         """The drive's own settings back (comm-loss objects first, then PDOs), then off the bus."""
@@ -231,8 +240,9 @@ class CanopenDriveLink:
     def configure(self, live_signals: Sequence[str], trace_signals: Sequence[str], trace_decimation: int) -> None:
         self._stop_sync_producer()
         self.node.nmt.state = "PRE-OPERATIONAL"
-        if self.sdo.has(o.COMM_CYCLE_PERIOD):
-            self.sdo.write(o.COMM_CYCLE_PERIOD, 0, round(self.sync_period_s * 1e6))
+        cycle_us = round(self.sync_period_s * 1e6)    # by the device, not the EDS: an EDS may omit what a drive has
+        self.report["comm_cycle_period_0x1006"] = (f"{cycle_us} us" if self.sdo.write_standard(
+            o.COMM_CYCLE_PERIOD, 0, cycle_us, 4) else "not on this drive")
         if self._snapshot is None:
             self._snapshot = pdos.PdoSnapshot.read(self.sdo)
         self.plan = self._plan_pdos(live_signals)

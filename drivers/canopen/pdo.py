@@ -134,7 +134,7 @@ class PdoSnapshot:
     """The drive's own PDO parameters as read by SDO before the bench changed anything (raw bytes per sub)."""
 
     values: dict[tuple[int, int], bytes] = field(default_factory=dict)
-    touched: set[int] = field(default_factory=set)        # PDO numbers (comm index) the bench wrote
+    touched: dict[int, bool] = field(default_factory=dict)   # comm index the bench wrote -> its mapping too
 
     @classmethod
     def read(cls, sdo: SdoAccess) -> "PdoSnapshot":
@@ -162,11 +162,12 @@ class PdoSnapshot:
         return [o.unpack_mapping_entry(self.raw(map_index, k)) for k in range(1, n + 1)]
 
     def restore_one(self, sdo: SdoAccess, comm: int) -> None:
-        """Invalidate, mapping back, communication parameters back, COB-ID (and its validity) back."""
+        """Invalidate, mapping back (where the bench changed it), communication parameters back, COB-ID (and its
+        validity) back."""
         mapping = comm + (o.RPDO_MAP - o.RPDO_COMM)
         cob = self.values[(comm, 1)]
         sdo.download(comm, 1, (int.from_bytes(cob, "little") | o.COB_ID_INVALID).to_bytes(4, "little"))
-        if (mapping, 0) in self.values:
+        if self.touched.get(comm) and (mapping, 0) in self.values:
             sdo.download(mapping, 0, b"\0")
             for sub in range(1, self.values[(mapping, 0)][0] + 1):
                 sdo.download(mapping, sub, self.values[(mapping, sub)])
@@ -187,6 +188,9 @@ class PdoSnapshot:
         self.touched.clear()
         return errors
 
+    def touch(self, comm: int, mapping: bool = False) -> None:
+        self.touched[comm] = self.touched.get(comm, False) or mapping
+
 
 # -- writing ------------------------------------------------------------------------------------------------------
 
@@ -195,11 +199,12 @@ def write_pdo(sdo: SdoAccess, snap: PdoSnapshot, comm: int, cob: int, trans_type
     """CiA 301 order: COB-ID invalid, (mapping count 0, entries, count), transmission type, COB-ID valid. On a
     refusal the PDO is restored from the snapshot before the LinkError goes up."""
     mapping = comm + (o.RPDO_MAP - o.RPDO_COMM)
-    snap.touched.add(comm)
+    snap.touch(comm)
     try:
         sdo.download(comm, 1, (cob | o.COB_ID_INVALID).to_bytes(4, "little"))
         if entries is not None:
             sdo.download(mapping, 0, b"\0")
+            snap.touch(comm, mapping=True)
             for k, entry in enumerate(entries, start=1):
                 sdo.download(mapping, k, entry.mapping.to_bytes(4, "little"))
             sdo.download(mapping, 0, bytes([len(entries)]))
@@ -208,7 +213,7 @@ def write_pdo(sdo: SdoAccess, snap: PdoSnapshot, comm: int, cob: int, trans_type
     except LinkError:
         try:
             snap.restore_one(sdo, comm)
-            snap.touched.discard(comm)
+            snap.touched.pop(comm, None)
         except LinkError as exc:
             log.error("PDO 0x%04X: restoring after a refused write failed: %s", comm, exc)
         raise
@@ -217,7 +222,7 @@ def write_pdo(sdo: SdoAccess, snap: PdoSnapshot, comm: int, cob: int, trans_type
 def disable_pdo(sdo: SdoAccess, snap: PdoSnapshot, comm: int) -> None:
     cob = snap.raw(comm, 1)
     if not cob & o.COB_ID_INVALID:
-        snap.touched.add(comm)
+        snap.touch(comm)
         sdo.download(comm, 1, (cob | o.COB_ID_INVALID).to_bytes(4, "little"))
 
 

@@ -5,6 +5,8 @@ None / False means "not mine": canopen's own object store answers."""
 from __future__ import annotations
 
 import logging
+import math
+from dataclasses import dataclass
 from typing import Callable
 
 from canopen import objectdictionary
@@ -12,13 +14,36 @@ from canopen.sdo import SdoAbortedError
 
 from drivers.canopen import objects as o
 from drivers.cia402 import FAULT_RESET_BIT, State
-from drivers.signals import SIGNAL_NAMES
+from drivers.signals import SIGNAL_INDEX, SIGNAL_NAMES
+from drivers.units import MRAD_PER_S, UnitError, VelocityScale, decode_velocity_unit
 from sim_backend.device import SimulatedDevice
 
 log = logging.getLogger(__name__)
 
-SPEED_EST = SIGNAL_NAMES.index("speed_est_mech_rad_s")
-MRAD_PER_RAD = 1000.0      # drivebench's velocity objects: INTEGER32 in mrad/s, mechanical
+SPEED_EST = SIGNAL_INDEX["speed_est_mech_rad_s"]
+SPEED_REF = SIGNAL_INDEX["speed_ref_mech_rad_s"]
+TORQUE_EST = SIGNAL_INDEX["torque_est_nm"]
+I_SY = SIGNAL_INDEX["i_sy_a"]
+VDC = SIGNAL_INDEX["vdc_v"]
+
+
+@dataclass
+class DriveUnits:
+    """The units a simulated drive reports and takes: its velocity unit (0x60A9) with encoder resolution and gear
+    ratio, and the motor's rated current and torque that current/torque actual values are per mille of."""
+
+    velocity: VelocityScale = VelocityScale(MRAD_PER_S)
+    rated_current_a: float | None = None
+    rated_torque_nm: float | None = None
+
+    def to_drive(self, speed_mech_rad_s: float) -> int:
+        return self.velocity.to_drive(speed_mech_rad_s) if math.isfinite(speed_mech_rad_s) else 0
+
+
+def _per_mille(value: float, rated: float | None) -> int:
+    if not rated or not math.isfinite(value):
+        return 0
+    return max(-32768, min(32767, round(1000.0 * value / rated)))
 
 
 def error_register_for(code: int) -> int:
@@ -33,11 +58,15 @@ def error_register_for(code: int) -> int:
 
 
 class Cia402Objects:
-    """0x6040/0x6041 state machine, modes, velocity target and actual, error code and register."""
+    """0x6040/0x6041 state machine, modes, velocity target/demand/actual in the drive's units, torque and current
+    actual (per mille of rated), DC link (mV), position actual, the factor group, error code and register."""
 
-    def __init__(self, device: SimulatedDevice, on_controlword: Callable[[], None]):
+    def __init__(self, device: SimulatedDevice, on_controlword: Callable[[], None], units: DriveUnits | None = None):
         self.device = device
         self._on_controlword = on_controlword
+        self.units = units or DriveUnits()
+        self._position_rad = 0.0
+        self._position_step = 0
 
     def read(self, index: int, subindex: int, od) -> object:
         dev = self.device
@@ -50,7 +79,29 @@ class Cia402Objects:
         if index == o.ERROR_REGISTER:
             return error_register_for(dev.device.error_code) if dev.device.state is State.FAULT else 0
         if index == o.VELOCITY_ACTUAL:
-            return int(round(float(dev.latest[SPEED_EST]) * MRAD_PER_RAD))
+            return self.units.to_drive(float(dev.latest[SPEED_EST]))
+        if index == o.VELOCITY_DEMAND:
+            return self.units.to_drive(float(dev.latest[SPEED_REF]))
+        if index == o.TORQUE_ACTUAL:
+            return _per_mille(float(dev.latest[TORQUE_EST]), self.units.rated_torque_nm)
+        if index == o.CURRENT_ACTUAL:
+            return _per_mille(float(dev.latest[I_SY]), self.units.rated_current_a)
+        if index == o.DC_LINK_VOLTAGE:
+            vdc = float(dev.latest[VDC])
+            return max(0, round(vdc * 1000.0)) if math.isfinite(vdc) else 0
+        if index == o.POSITION_ACTUAL:
+            return self._position()
+        if index == o.SI_UNIT_VELOCITY:
+            return self.units.velocity.unit.code
+        if index == o.POSITION_ENCODER_RESOLUTION and self.units.velocity.increments_per_rev:
+            return {1: round(self.units.velocity.increments_per_rev), 2: 1}.get(subindex)
+        if index == o.GEAR_RATIO:
+            return {1: round(self.units.velocity.gear_motor_revs), 2: round(self.units.velocity.gear_shaft_revs)}.get(
+                subindex)
+        if index == o.MOTOR_RATED_CURRENT and self.units.rated_current_a:
+            return round(self.units.rated_current_a * 1000.0)
+        if index == o.MOTOR_RATED_TORQUE and self.units.rated_torque_nm:
+            return round(self.units.rated_torque_nm * 1000.0)
         if index == o.QUICK_STOP_OPTION:
             return dev.quick_stop_option
         if index == o.ABORT_CONNECTION_OPTION:
@@ -70,7 +121,16 @@ class Cia402Objects:
                 dev.mode_of_operation = value
         elif index == o.TARGET_VELOCITY:
             with dev.lock:
-                dev.target_speed_mech_rad_s = value / MRAD_PER_RAD
+                dev.target_speed_mech_rad_s = self.units.velocity.to_rad_s(value)
+        elif index == o.SI_UNIT_VELOCITY:
+            try:
+                unit = decode_velocity_unit(value)
+                scale = VelocityScale(unit, self.units.velocity.increments_per_rev, self.units.velocity.gear_motor_revs,
+                                      self.units.velocity.gear_shaft_revs)
+                scale.rad_s_per_unit
+            except UnitError:
+                raise SdoAbortedError(o.ABORT_INVALID_VALUE) from None
+            self.units.velocity = scale
         elif index == o.QUICK_STOP_OPTION:
             with dev.lock:
                 dev.quick_stop_option = value
@@ -82,6 +142,18 @@ class Cia402Objects:
         else:
             return False
         return True
+
+    def _position(self) -> int:
+        """Position actual value: the drive's own (estimated) shaft angle integrated, in increments where the unit
+        counts them, else in mrad."""
+        dev = self.device
+        if dev.step_count != self._position_step:
+            dt = (dev.step_count - self._position_step) * dev.model.control_period_s
+            self._position_rad += float(dev.latest[SPEED_EST]) * dt
+            self._position_step = dev.step_count
+        per_rad = (self.units.velocity.increments_per_rev / (2 * math.pi)
+                   if self.units.velocity.increments_per_rev else 1000.0)
+        return max(-2**31, min(2**31 - 1, round(self._position_rad * per_rad)))
 
     def fast_getter(self, index: int, subindex: int) -> tuple[str, Callable[[], object]] | None:
         dev = self.device

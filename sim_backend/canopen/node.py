@@ -24,6 +24,7 @@ from canopen.sdo import SdoAbortedError
 from drivers.canopen import objects as o
 from drivers.cia402 import State
 from sim_backend.canopen.block_server import DriveLocalNode
+from sim_backend.canopen import generic
 from sim_backend.canopen.drive_objects import Cia402Objects, ExtensionObjects, error_register_for
 from sim_backend.canopen.heartbeat import HeartbeatConsumer, HeartbeatProducer
 from sim_backend.canopen.pdo import PDO_PARAMETERS, PdoEngine
@@ -38,22 +39,34 @@ NMT_START_BOOT_UP, NMT_ENTER_PRE_OPERATIONAL = 0x81, 0x80     # NmtSlave.send_co
 class SimCanopenNode:
     """One simulated drive on a CAN bus. `stop()` takes it off the bus."""
 
-    def __init__(self, device: SimulatedDevice, eds_path: str | Path, node_id: int, bus: can.BusABC):
+    def __init__(self, device: SimulatedDevice, eds_path: str | Path, node_id: int, bus: can.BusABC,
+                 drive: generic.DriveSpec | None = None):
+        """`drive`: a third-party drive's spec (units, rated values, fixed mappings); None for drivebench's drives,
+        whose EDS says everything."""
         self.device = device
         self.node_id = node_id
         self.network = canopen.Network(bus)
         self.network.NOTIFIER_CYCLE = 0.02      # stop() returns within 20 ms (the notifier thread polls)
         od = canopen.import_od(str(eds_path), node_id)
+        spec = drive or generic.DriveSpec()
+        self.added_objects = generic.add_missing_standard_objects(od)
+        generic.fill_defaults(od)
         self.od = od
         self.node = DriveLocalNode(node_id, od)
         self.network.add_node(self.node)
-        self.cia402 = Cia402Objects(device, self._emcy_reset_if_cleared)
-        self.extension = ExtensionObjects(device, od)
-        self._handlers = (self.cia402, self.extension)
-        self.pdos = PdoEngine(od, self._raw, self.node.get_data, self.node.set_data, self._fast_getter)
+        self.cia402 = Cia402Objects(device, self._emcy_reset_if_cleared, generic.units(od, spec))
+        if generic.is_drivebench(od):
+            self.extension: ExtensionObjects | None = ExtensionObjects(device, od)
+            self._handlers = (self.cia402, self.extension)
+        else:
+            self.extension = None
+            self._handlers = (self.cia402,)
+        self.pdos = PdoEngine(od, self._raw, self.node.get_data, self.node.set_data, self._fast_getter,
+                              fixed_mapping=spec.fixed_pdo_mapping)
         self.node.add_read_callback(self._on_read)
         self.node.add_write_callback(self._on_write)
-        self.node.sdo.on_upload_complete = self.extension.upload_complete
+        if self.extension is not None:
+            self.node.sdo.on_upload_complete = self.extension.upload_complete
         self.node.after_write = self._after_write
         self._sync_count = 0
         self._was_fault = False

@@ -41,8 +41,10 @@ class PdoEngine:
 
     def __init__(self, od: objectdictionary.ObjectDictionary, raw: Callable[[int, int], int],
                  get_data: Callable[[int, int], bytes], set_data: Callable[[int, int, bytes], None],
-                 fast_getter: Callable[[int, int], tuple[str, Callable[[], object]] | None]):
+                 fast_getter: Callable[[int, int], tuple[str, Callable[[], object]] | None],
+                 fixed_mapping: bool = False):
         self.od = od
+        self.fixed_mapping = fixed_mapping      # a drive whose mappings cannot be changed (only COB-ID, type)
         self._raw = raw
         self._get = get_data
         self._set = set_data
@@ -56,6 +58,8 @@ class PdoEngine:
         """SDO abort for a mapping a drive would refuse: too long, an object that cannot be mapped."""
         if not is_mapping_parameter(index):
             return
+        if self.fixed_mapping:
+            raise SdoAbortedError(o.ABORT_READ_ONLY)
         tx = index >= o.TPDO_MAP
         if subindex == 0:
             if value > 8:

@@ -1,0 +1,110 @@
+"""A third-party CiA 402 drive in the simulator: built from a vendor's EDS, standard objects only.
+
+The vendor EDS gives the objects, their types and defaults, the identity and the default PDO mappings; the drive
+spec (a rig's [simulator] section) gives what the EDS cannot: the units the simulated drive really uses (where its
+EDS has a 0x60A9 the simulated drive reports the spec's unit there), the motor's rated current and torque, and
+whether its PDO mappings are fixed. No drive clock, no trace recorder, no test hooks: the drivebench extension
+objects are used only on a drive whose identity carries them, and a vendor's 0x2000.. objects mean what the vendor
+says, which is nothing the simulator acts on.
+
+Where the vendor EDS lacks the standard comm-loss objects (0x1016 consumer heartbeat, 0x6007 abort connection option,
+0x605A quick stop option, 0x1029 error behaviour) or the communication cycle period 0x1006 (the simulator's time
+per SYNC in lockstep), the simulated drive still has them, with CiA defaults: the bench configures them by SDO and
+reads the device, not the EDS, so a real drive without them is refused (0x1016) or told nothing (0x1006) instead.
+Objects whose EDS entry has no default get one (0, strings "sim"; a mapping's count: its non-zero entries), as a
+device does.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from canopen import objectdictionary
+from canopen.objectdictionary import ODRecord, ODVariable
+
+from drivers import extension
+from drivers.canopen import objects as o
+from drivers.units import MRAD_PER_S, VelocityScale, decode_velocity_unit, parse_velocity_unit
+from sim_backend.canopen.drive_objects import DriveUnits
+
+
+@dataclass(frozen=True)
+class DriveSpec:
+    velocity_unit: str | None = None          # e.g. "rpm", "inc/s"; None: the EDS's 0x60A9 default
+    encoder_increments_per_rev: float | None = None
+    gear_ratio: tuple[float, float] = (1.0, 1.0)
+    rated_current_a: float | None = None
+    rated_torque_nm: float | None = None
+    fixed_pdo_mapping: bool = False
+
+
+def is_drivebench(od: objectdictionary.ObjectDictionary) -> bool:
+    if o.IDENTITY not in od:
+        return False
+    identity = od[o.IDENTITY]
+    return extension.carries_extension(identity[1].default or 0, identity[2].default or 0)
+
+
+def _var(name: str, index: int, subindex: int, data_type: int, access: str, default: int) -> ODVariable:
+    var = ODVariable(name, index, subindex)
+    var.data_type, var.access_type, var.default = data_type, access, default
+    return var
+
+
+def add_missing_standard_objects(od: objectdictionary.ObjectDictionary) -> list[str]:
+    """The comm-loss objects a CiA 402 drive has even where its EDS omits them; returns what was added."""
+    added = []
+    if o.CONSUMER_HEARTBEAT not in od:
+        record = ODRecord("Consumer heartbeat time", o.CONSUMER_HEARTBEAT)
+        record.add_member(_var("Number of entries", o.CONSUMER_HEARTBEAT, 0, o.UNSIGNED8, "const", 1))
+        record.add_member(_var("Consumer heartbeat time 1", o.CONSUMER_HEARTBEAT, 1, o.UNSIGNED32, "rw", 0))
+        od.add_object(record)
+        added.append("0x1016")
+    if o.ERROR_BEHAVIOUR not in od:
+        record = ODRecord("Error behaviour", o.ERROR_BEHAVIOUR)
+        record.add_member(_var("Number of entries", o.ERROR_BEHAVIOUR, 0, o.UNSIGNED8, "const", 1))
+        record.add_member(_var("Communication error", o.ERROR_BEHAVIOUR, 1, o.UNSIGNED8, "rw", 0))
+        od.add_object(record)
+        added.append("0x1029")
+    for index, name, data_type, default in ((o.ABORT_CONNECTION_OPTION, "Abort connection option code", o.INTEGER16, 1),
+                                            (o.QUICK_STOP_OPTION, "Quick stop option code", o.INTEGER16, 2),
+                                            (o.COMM_CYCLE_PERIOD, "Communication cycle period", o.UNSIGNED32, 1000)):
+        if index not in od:
+            od.add_object(_var(name, index, 0, data_type, "rw", default))
+            added.append(f"0x{index:04X}")
+    return added
+
+
+def fill_defaults(od: objectdictionary.ObjectDictionary) -> None:
+    """Every readable number gets a value: 0, or for a PDO mapping's count the number of non-zero entries."""
+    for obj in od.values():
+        members = [obj] if isinstance(obj, ODVariable) else list(obj.values())
+        count_unknown = not isinstance(obj, ODVariable) and 0 in obj and obj[0].default is None
+        for var in members:
+            if var.default is None and var.data_type in objectdictionary.NUMBER_TYPES:
+                var.default = 0
+            elif var.default is None and var.data_type == objectdictionary.VISIBLE_STRING:
+                var.default = "sim"
+        if count_unknown and (o.RPDO_MAP <= obj.index < o.TPDO_COMM or o.TPDO_MAP <= obj.index < o.TPDO_MAP + 0x200):
+            entries = [obj[k].default for k in sorted(obj.subindices) if k > 0]
+            obj[0].default = next((k for k, e in enumerate(entries) if not e), len(entries))
+
+
+def units(od: objectdictionary.ObjectDictionary, spec: DriveSpec) -> DriveUnits:
+    """What the simulated drive uses: the spec where it says, else the EDS defaults (drivebench's EDS: mrad/s)."""
+    if spec.velocity_unit is not None:
+        unit = parse_velocity_unit(spec.velocity_unit)
+    elif o.SI_UNIT_VELOCITY in od and od[o.SI_UNIT_VELOCITY].default:
+        unit = decode_velocity_unit(int(od[o.SI_UNIT_VELOCITY].default))
+    elif is_drivebench(od):
+        unit = MRAD_PER_S
+    else:
+        raise ValueError("the simulated drive's velocity unit: its EDS has no 0x60A9, give [simulator] velocity_unit")
+    increments = spec.encoder_increments_per_rev
+    if increments is None and o.POSITION_ENCODER_RESOLUTION in od:
+        res = od[o.POSITION_ENCODER_RESOLUTION]
+        if res[1].default and res[2].default:
+            increments = res[1].default / res[2].default
+    if unit.needs_encoder and not increments:
+        raise ValueError(f"the simulated drive's unit {unit.name} needs [simulator] encoder_increments_per_rev")
+    return DriveUnits(VelocityScale(unit, increments, *spec.gear_ratio), spec.rated_current_a, spec.rated_torque_nm)
