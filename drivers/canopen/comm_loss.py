@@ -37,9 +37,6 @@ class CommLossGuard:
                                                        "(e.g. STO on a watchdog); nothing configured in the drive"}
             return self.report
         cob = o.HEARTBEAT + cfg.bench_node_id
-        self._task = self.network.send_periodic(cob, [o.NMT_OPERATIONAL], cfg.producer_period_s)
-        self.report = {"mode": "heartbeat",
-                       "bench_heartbeat": f"0x{cob:03X} every {cfg.producer_period_s * 1e3:g} ms"}
         sub = self._consumer_sub()
         if sub is None:
             raise LinkError(f"{self.sdo.where}: the drive has no consumer heartbeat (0x1016): it cannot stop itself when "
@@ -47,7 +44,8 @@ class CommLossGuard:
                             "[drive] comm_loss = \"external\"")
         value = cfg.bench_node_id << 16 | cfg.consumer_time_ms
         self._set(o.CONSUMER_HEARTBEAT, sub, value, 4)
-        self.report["consumer_heartbeat_0x1016"] = f"sub {sub} = 0x{value:08X} ({cfg.consumer_time_ms} ms)"
+        self.report = {"mode": "heartbeat", "bench_heartbeat": f"0x{cob:03X} every {cfg.producer_period_s * 1e3:g} ms",
+                       "consumer_heartbeat_0x1016": f"sub {sub} = 0x{value:08X} ({cfg.consumer_time_ms} ms)"}
         if self._set(o.ABORT_CONNECTION_OPTION, 0, cfg.abort_option, 2, signed=True):
             self.report["abort_connection_0x6007"] = (f"{cfg.abort_option} "
                                                      f"({o.ABORT_CONNECTION_CODES.get(cfg.abort_option, 'vendor')})")
@@ -56,6 +54,8 @@ class CommLossGuard:
         if cfg.error_behaviour is not None:
             if self._set(o.ERROR_BEHAVIOUR, 1, cfg.error_behaviour, 1):
                 self.report["error_behaviour_0x1029"] = f"sub 1 = {cfg.error_behaviour}"
+        # the heartbeat starts after the drive watches for it: its first frame, now, starts the drive's monitoring
+        self._task = self.network.send_periodic(cob, [o.NMT_OPERATIONAL], cfg.producer_period_s)
         return self.report
 
     def _consumer_sub(self) -> int | None:

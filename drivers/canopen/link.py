@@ -469,7 +469,8 @@ class CanopenDriveLink:
                 raise LinkError(f"{self.where}: mode of operation display is {mode}, not profile velocity")
 
         def fault_detail() -> str:
-            return f"error code 0x{self.sdo.read(o.ERROR_CODE):04X}" if self.sdo.has(o.ERROR_CODE) else "no error code"
+            code = self.sdo.read_standard(o.ERROR_CODE, 0)
+            return "no error code" if code is None else f"error code 0x{code:04X}"
 
         cia402.enable_operation(self, fault_reset_policy=self.fault_reset_policy, timeout_s=self._step_timeout_s,
                                 where=self.where, select_mode=select_mode, fault_detail=fault_detail)

@@ -36,6 +36,7 @@ class DriveSpec:
     rated_current_a: float | None = None
     rated_torque_nm: float | None = None
     fixed_pdo_mapping: bool = False
+    comm_loss_objects: bool = True            # False: a drive that really lacks 0x1016/0x6007/0x1029 (tests)
 
 
 def is_drivebench(od: objectdictionary.ObjectDictionary) -> bool:
@@ -51,16 +52,16 @@ def _var(name: str, index: int, subindex: int, data_type: int, access: str, defa
     return var
 
 
-def add_missing_standard_objects(od: objectdictionary.ObjectDictionary) -> list[str]:
+def add_missing_standard_objects(od: objectdictionary.ObjectDictionary, comm_loss: bool = True) -> list[str]:
     """The comm-loss objects a CiA 402 drive has even where its EDS omits them; returns what was added."""
     added = []
-    if o.CONSUMER_HEARTBEAT not in od:
+    if comm_loss and o.CONSUMER_HEARTBEAT not in od:
         record = ODRecord("Consumer heartbeat time", o.CONSUMER_HEARTBEAT)
         record.add_member(_var("Number of entries", o.CONSUMER_HEARTBEAT, 0, o.UNSIGNED8, "const", 1))
         record.add_member(_var("Consumer heartbeat time 1", o.CONSUMER_HEARTBEAT, 1, o.UNSIGNED32, "rw", 0))
         od.add_object(record)
         added.append("0x1016")
-    if o.ERROR_BEHAVIOUR not in od:
+    if comm_loss and o.ERROR_BEHAVIOUR not in od:
         record = ODRecord("Error behaviour", o.ERROR_BEHAVIOUR)
         record.add_member(_var("Number of entries", o.ERROR_BEHAVIOUR, 0, o.UNSIGNED8, "const", 1))
         record.add_member(_var("Communication error", o.ERROR_BEHAVIOUR, 1, o.UNSIGNED8, "rw", 0))
@@ -69,7 +70,7 @@ def add_missing_standard_objects(od: objectdictionary.ObjectDictionary) -> list[
     for index, name, data_type, default in ((o.ABORT_CONNECTION_OPTION, "Abort connection option code", o.INTEGER16, 1),
                                             (o.QUICK_STOP_OPTION, "Quick stop option code", o.INTEGER16, 2),
                                             (o.COMM_CYCLE_PERIOD, "Communication cycle period", o.UNSIGNED32, 1000)):
-        if index not in od:
+        if index not in od and (comm_loss or index != o.ABORT_CONNECTION_OPTION):
             od.add_object(_var(name, index, 0, data_type, "rw", default))
             added.append(f"0x{index:04X}")
     return added

@@ -49,7 +49,7 @@ class SimCanopenNode:
         self.network.NOTIFIER_CYCLE = 0.02      # stop() returns within 20 ms (the notifier thread polls)
         od = canopen.import_od(str(eds_path), node_id)
         spec = drive or generic.DriveSpec()
-        self.added_objects = generic.add_missing_standard_objects(od)
+        self.added_objects = generic.add_missing_standard_objects(od, spec.comm_loss_objects)
         generic.fill_defaults(od)
         self.od = od
         self.node = DriveLocalNode(node_id, od)

@@ -1,0 +1,219 @@
+"""The real-drive path against a generic CiA 402 drive built from each third-party EDS (config/od/third-party): units
+read from the drive or stated, never assumed; remappable and fixed PDO mappings; the drive's own settings restored;
+its reaction to a dead bench; the read-only probe and the node scan."""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from pathlib import Path
+
+import can
+import pytest
+
+from drivers.api import LinkError, LinkSettings
+from drivers.canopen import objects as o
+from drivers.canopen.link import CanopenDriveLink
+from drivers.canopen.probe import probe, scan
+from sim_backend.canopen.generic import DriveSpec
+from sim_backend.rig import RigSpec, build
+
+REPO = Path(__file__).resolve().parents[1]
+MOTOR = REPO / "config/motors/pmsm-paper.toml"
+LIVE = ["speed_ref_mech_rad_s", "speed_est_mech_rad_s", "i_sy_a", "vdc_v"]
+
+# eds, what the simulated drive uses, what the bench config must state (the EDS has no 0x60A9 / 0x608F / 0x6091)
+DRIVES = {
+    ("e35", "rpm"): (DriveSpec(velocity_unit="rpm", rated_current_a=3.5355, rated_torque_nm=3.9), {}),
+    ("e35", "inc/s"): (DriveSpec(velocity_unit="inc/s", encoder_increments_per_rev=4096, rated_current_a=3.5355,
+                                 rated_torque_nm=3.9), {}),
+    ("technosoft", "rpm"): (DriveSpec(velocity_unit="rpm"), {"velocity_unit": "rpm"}),
+    ("technosoft", "inc/s"): (DriveSpec(velocity_unit="inc/s", encoder_increments_per_rev=4096),
+                              {"velocity_unit": "inc/s", "encoder_increments_per_rev": 4096, "gear_ratio": [1, 1]}),
+    ("cia402_slave", "rpm"): (DriveSpec(velocity_unit="rpm"), {"velocity_unit": "rpm"}),
+    ("cia402_slave", "inc/s"): (DriveSpec(velocity_unit="inc/s", encoder_increments_per_rev=4096),
+                                {"velocity_unit": "inc/s", "gear_ratio": [1, 1]}),
+}
+
+
+def eds_path(name: str) -> Path:
+    return REPO / "config/od/third-party" / f"{name}.eds"
+
+
+@contextlib.contextmanager
+def generic_link(eds: str, spec: DriveSpec, motor=MOTOR, settings: LinkSettings = LinkSettings(), **section):
+    with build(RigSpec(motor=motor, seed=1, eds=eds_path(eds), drive=spec)) as rig:
+        fields = dict(transport="canopen", interface="virtual", channel=rig.channel, node_id=1, eds=str(eds_path(eds)),
+                      sync_period_s=0.01, heartbeat_timeout_s=2.0, sdo_timeout_s=2.0, consumer_time_ms=2000)
+        link = CanopenDriveLink(fields | section, REPO, settings)
+        try:
+            yield link, rig
+        finally:
+            link.close()
+
+
+def sync_for(link, seconds: float):
+    return [s for _ in range(round(seconds / link.sync_period_s)) for s in link.sync()]
+
+
+@pytest.mark.parametrize("fixed", [False, True], ids=["remap", "fixed"])
+@pytest.mark.parametrize("eds, unit", list(DRIVES))
+def test_a_commanded_20_rad_s_reaches_the_shaft_within_1_percent(eds, unit, fixed):
+    spec, stated = DRIVES[(eds, unit)]
+    spec = DriveSpec(**{**spec.__dict__, "fixed_pdo_mapping": fixed})
+    with generic_link(eds, spec, **stated) as (link, rig):
+        identity = link.open()
+        assert not identity.has_trace_recorder and link.profile.kind == "cia402"
+        assert link.profile.velocity.unit.name == {"rpm": "rev/min", "inc/s": "inc/s"}[unit]
+        link.configure(LIVE, [], 1)
+        assert link.plan.policy == ("device" if fixed else "remap")
+        assert "speed_est_mech_rad_s" in link.measured_signals()
+        link.enable_velocity_mode()
+        link.set_speed_ref(20.0)
+        samples = sync_for(link, 3.0)
+        true_speed = rig.device.model.load_feedback()[0]
+        assert true_speed == pytest.approx(20.0, rel=0.01)
+        assert samples[-1].values["speed_est_mech_rad_s"] == pytest.approx(20.0, rel=0.01)
+        assert samples[-1].t_s == pytest.approx(3.0)          # SYNCs x period: no drive clock on these drives
+        link.quick_stop()
+        link.disable()
+        assert link.report["stop"]["standstill"] and not rig.device.device.power_enabled
+
+
+def test_the_drive_s_own_pdo_settings_are_restored_and_no_pdo_is_left_invalid():
+    """e35 TPDOs are valid by default: after a remapped run every PDO parameter reads back as before; on a fixed
+    mapping the refused remap leaves no PDO invalidated and only the communication parameters are touched."""
+    for fixed in (False, True):
+        spec = DriveSpec(velocity_unit="rpm", rated_current_a=3.5, rated_torque_nm=3.9, fixed_pdo_mapping=fixed)
+        with generic_link("e35", spec) as (link, rig):
+            link.open()
+            link.configure(LIVE, [], 1)
+            snap = link._snapshot
+            assert snap is not None
+            during = {k: rig.node.node.get_data(*k) for k in snap.values}
+            if fixed:
+                assert "pdo_remap_refused" in link.report
+                for n in range(4):                 # mappings untouched, every used TPDO valid
+                    assert during[(o.TPDO_MAP + n, 0)] == snap.values[(o.TPDO_MAP + n, 0)]
+                for tpdo in link.plan.tpdos:
+                    assert not int.from_bytes(during[(o.TPDO_COMM + tpdo.number - 1, 1)], "little") & o.COB_ID_INVALID
+            else:
+                assert during != snap.values       # the bench's mapping is in place
+            link.enable_velocity_mode()
+            sync_for(link, 0.2)
+            link.quick_stop()
+            link.disable()
+            link.close()
+            after = {k: rig.node.node.get_data(*k) for k in snap.values}
+            assert after == snap.values
+
+
+def test_units_the_drive_reports_and_the_config_states_must_agree():
+    spec = DriveSpec(velocity_unit="inc/s", encoder_increments_per_rev=4096, rated_current_a=3.5, rated_torque_nm=3.9)
+    with generic_link("e35", spec, velocity_unit="rpm") as (link, rig):
+        with pytest.raises(LinkError, match=r"the drive reports inc/s \(0x60A9 = 0x00B50300\), the bench config "
+                                            r"states rev/min"):
+            link.open()
+        assert not rig.device.device.power_enabled
+
+
+def test_no_enable_while_the_velocity_unit_is_unknown():
+    with generic_link("technosoft", DriveSpec(velocity_unit="rpm")) as (link, rig):
+        with pytest.raises(LinkError, match="velocity unit unknown: the drive has no SI unit velocity"):
+            link.open()
+        assert rig.device.device.state.name == "SWITCH_ON_DISABLED"
+
+
+def test_fault_reset_policy_is_honoured_on_a_third_party_drive():
+    spec = DriveSpec(velocity_unit="rpm", rated_current_a=3.5, rated_torque_nm=3.9)
+    with generic_link("e35", spec, settings=LinkSettings(fault_reset="never")) as (link, rig):
+        link.open()
+        link.configure(LIVE, [], 1)
+        with rig.device.lock:
+            rig.device.device.fault(0x2310)
+        with pytest.raises(LinkError, match=r"drive is in FAULT \(error code 0x2310\) and the fault-reset policy "
+                                            r"is 'never'"):
+            link.enable_velocity_mode()
+        assert rig.device.device.state.name == "FAULT"
+        link.fault_reset_policy = "once"
+        link.enable_velocity_mode()
+        assert rig.device.device.state.name == "OPERATION_ENABLED"
+
+
+def test_a_drive_found_running_is_disabled_before_the_run_enables_it():
+    spec = DriveSpec(velocity_unit="rpm")
+    with generic_link("cia402_slave", spec, velocity_unit="rpm") as (link, rig):
+        link.open()
+        link.configure(LIVE, [], 1)
+        for word in (0x06, 0x07, 0x0F):                     # someone left it running
+            rig.device.write_controlword(word)
+        rig.device.target_speed_mech_rad_s = 10.0
+        link.enable_velocity_mode()
+        words = [str(e) for _, e in rig.device.faults.events if str(e).startswith("controlword")]
+        assert words[-4:] == ["controlword 0x0000", "controlword 0x0006", "controlword 0x0007", "controlword 0x000F"]
+        assert rig.device.target_speed_mech_rad_s == 0.0   # the new run starts from a zero target
+
+
+def test_the_drive_stops_itself_when_the_bench_goes_silent():
+    """What the bench armed (0x1016 = its node id and consumer time, 0x6007 = quick stop): the bench's heartbeat
+    stops as if the bench process died, and the drive brakes to standstill and switches off on its own."""
+    spec = DriveSpec(velocity_unit="rpm", rated_current_a=3.5, rated_torque_nm=3.9)
+    with generic_link("e35", spec, consumer_time_ms=300) as (link, rig):
+        link.open()
+        link.configure(LIVE, [], 1)
+        report = link.report["comm_loss"]
+        assert report["consumer_heartbeat_0x1016"] == "sub 1 = 0x007F012C (300 ms)"
+        assert report["abort_connection_0x6007"] == "3 (quick stop)"
+        link.enable_velocity_mode()
+        link.set_speed_ref(20.0)
+        sync_for(link, 1.0)
+        time.sleep(0.2)                                      # a few heartbeats
+        link._guard._task.stop()                             # the bench dies: no heartbeat, no SYNC, nothing
+        silent = time.monotonic()
+        while rig.device.device.power_enabled:
+            assert time.monotonic() - silent < 0.3 + 1.0, rig.device.device.state
+            time.sleep(0.01)
+        assert time.monotonic() - silent >= 0.3 - 0.05
+        assert abs(rig.device.model.load_feedback()[0]) < 1.0          # stopped, then switched off
+        assert "0x6007 = 3 (quick stop)" in rig.device.faults.self_stops[-1]
+
+
+def test_a_drive_that_cannot_stop_itself_is_refused_unless_the_rig_says_it_stops_it():
+    spec = DriveSpec(velocity_unit="rpm", rated_current_a=3.5, rated_torque_nm=3.9, comm_loss_objects=False)
+    with generic_link("e35", spec) as (link, rig):
+        link.open()
+        with pytest.raises(LinkError, match=r"no consumer heartbeat \(0x1016\): it cannot stop itself"):
+            link.configure(LIVE, [], 1)
+    with generic_link("e35", spec, comm_loss="external") as (link, rig):
+        link.open()
+        link.configure(LIVE, [], 1)
+        assert link.report["comm_loss"]["mode"] == "external"
+
+
+def test_probe_is_read_only_and_says_what_to_fix():
+    with build(RigSpec(motor="toy", eds=eds_path("technosoft"), node_id=5, drive=DriveSpec(velocity_unit="rpm"))) \
+            as rig:
+        sniffer = can.Bus(interface="virtual", channel=rig.channel, receive_own_messages=False)
+        try:
+            section = dict(transport="canopen", interface="virtual", channel=rig.channel, node_id=5,
+                           eds=str(eds_path("technosoft")))
+            report = probe(section, REPO)
+            requests = []
+            while (msg := sniffer.recv(0)) is not None:
+                if msg.arbitration_id == o.SDO_RX + 5:
+                    requests.append(msg.data[0] & 0xE0)
+        finally:
+            sniffer.shutdown()
+        assert requests and set(requests) == {0x40}          # SDO upload requests only: nothing written
+        assert report["device_type"]["cia402"] and report["identity"]["device_name"] == "iPOS"
+        assert report["units"]["velocity_0x60A9"] == "not on this drive"
+        assert "velocity unit unknown" in report["profile"]["error"]
+        assert [t["valid"] for t in report["tpdos"]] == [True, True, False, False]
+        assert "0x606C:00 Velocity actual value (32 bit)" in report["tpdos"][3]["objects"]
+
+
+def test_scan_finds_the_nodes_on_the_bus():
+    with build(RigSpec(motor="toy", eds=eds_path("cia402_slave"), node_id=3, drive=DriveSpec(velocity_unit="rpm"))) \
+            as rig:
+        found = scan(dict(interface="virtual", channel=rig.channel), range(1, 8))
+    assert [n["node_id"] for n in found] == [3] and found[0]["cia402"]
