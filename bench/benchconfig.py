@@ -19,6 +19,7 @@ from drivers.canopen.profile import PROFILE_KEYS, check_section, config_keys
 from drivers.comm_loss import STOP_KEYS, check_keys
 from drivers.eds import DeviceDescription, EdsError, read_eds
 from drivers.load_map import LoadMapError, read_load_map
+from drivers.reference import check_section as check_reference
 
 _BENCH_KEYS = {"name", "description", "timing", "plant_injections", "wire_faults", "fault_reset"}
 _SERVICES_KEYS = {"start"}
@@ -31,7 +32,7 @@ _LOAD_KEYS = {
     "modbus-tcp": {"transport", "map", "host", "port", "unit_id", "timeout_s"},
     "modbus-rtu": {"transport", "map", "port", "baudrate", "unit_id", "timeout_s"},
 }
-_TOP_KEYS = {"bench", "services", "drive", "load", "simulator"}
+_TOP_KEYS = {"bench", "services", "drive", "load", "reference", "simulator"}
 
 
 def load_bench_config(path: str | Path) -> dict[str, Any]:
@@ -64,6 +65,10 @@ def load_bench_config(path: str | Path) -> dict[str, Any]:
 
     cfg["drive"] = _drive(problems, problems.table(raw, "drive", ""), root)
     cfg["load"] = _load(problems, problems.table(raw, "load", "", required=False), root)
+    reference, reference_problems = check_reference(raw.get("reference"), bool(cfg["load"]))
+    for field_, reason in reference_problems:
+        problems.add(field_, reason)
+    cfg["reference"] = {"source": reference.source if reference else None}
 
     simulator = problems.table(raw, "simulator", "", required=False)
     if simulator is not None:

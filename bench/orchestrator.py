@@ -29,6 +29,7 @@ from bench.scenario import load_scenario
 from bench.summary_plot import write_summary_png
 from bench.supervisor import SafeStop, Supervisor, check_status
 from drivers.api import LinkError, LiveSample
+from drivers.reference import ReferenceConfig, values_from_load
 from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
 
 # Live (PDO) signals, judged by the supervisor every SYNC. Eight REAL32 fit a 1 Mbit/s CAN bus at one SYNC
@@ -186,7 +187,7 @@ def run_scenario(
 def _open(drive, load):
     identity = drive.open()
     try:
-        load_name = load.open()
+        load_name = load.open() if load is not None else None
     except BaseException:
         _close_quietly(drive)
         raise
@@ -196,6 +197,8 @@ def _open(drive, load):
 def _close_quietly(*links) -> list[str]:
     errors = []
     for link in links:
+        if link is None:
+            continue
         try:
             link.close()
         except Exception as exc:
@@ -238,6 +241,9 @@ class _Run:
         self.sync_period_s = float(cfg["drive"]["sync_period_s"])
         self.data_source = "trace" if identity.has_trace_recorder else "pdo"
         self.trace_signals = trace_signals_for(cfg, scenario)
+        self.reference = ReferenceConfig((cfg.get("reference") or {}).get("source"))
+        self.reference_signals = self.reference.signals(load is not None)
+        self.live_recorded: tuple[str, ...] = LIVE_SIGNALS
         # t_s in the record is drive time since this run's first SYNC; the drive clock counts from power-up
         self._clock_start: float | None = None
         self.signals: _StopSignals | None = None
@@ -254,7 +260,8 @@ class _Run:
             (warn or print)(f"rerun: cannot open the stream ({type(exc).__name__}: {exc}); no run.rrd")
             self.rerun = RerunStream("off", None)
         recorder.set_drive(asdict(identity))
-        recorder.note("load_machine", load_name)
+        recorder.note("load_machine", load_name if load is not None else "none: free shaft (no [load])")
+        recorder.note("reference", self.reference.as_record(load is not None))
         recorder.note("bench", {"name": cfg["bench"]["name"], "path": cfg["_path"], "timing": cfg["bench"]["timing"]})
         self._rerun_note = {"mode": rerun_mode, "url": rerun_url, "sinks": self.rerun.sinks}
         self._rerun_stride: int | None = None
@@ -309,19 +316,31 @@ class _Run:
     def _configure_and_enable(self) -> None:
         decimation = int(self.cfg["drive"]["trace_decimation"])
         self.drive.configure(LIVE_SIGNALS, self.trace_signals, decimation)
+        measured = set(getattr(self.drive, "measured_signals", lambda: SIGNAL_NAMES)()) | set(self.reference_signals)
+        self.live_recorded = tuple(n for n in SIGNAL_NAMES if n in measured or (n in LIVE_SIGNALS and
+                                                                                self.data_source == "trace"))
         self.recorder.note("trace_signals", list(self.trace_signals))
         self.recorder.note("data_source", self.data_source)
-        self.recorder.note("live_signals", list(LIVE_SIGNALS))
+        self.recorder.note("live_signals", list(self.live_recorded))
+        self.recorder.note("measured_signals", sorted(measured))
         self.recorder.note("trace_decimation", decimation)
+        self._note_link_reports()
         # the drive holds the shaft before the load machine may pull on it (an active load drops a crane's mass)
         self.drive.enable_velocity_mode()
         # after enabling: enable_velocity_mode starts the drive from a zero target (CiA 402 links reset it)
         self._speed_ref = self.scenario.speed_ref_at(0.0)
         self.drive.set_speed_ref(self._speed_ref)
         mode, value = self.scenario.load_at(0.0)
-        self._load_call(self.load.set_load, mode, value)
-        self._load_call(self.load.enable, True)
+        if self.load is not None:
+            self._load_call(self.load.set_load, mode, value)
+            self._load_call(self.load.enable, True)
         self._load_setting = (mode, value)
+
+    def _note_link_reports(self) -> None:
+        """What each link read from its device and set in it (profile, units, PDOs, comm loss, watchdog)."""
+        self.recorder.note("drive_settings", getattr(self.drive, "report", {}))
+        if self.load is not None:
+            self.recorder.note("load_settings", getattr(self.load, "report", {}))
 
     def _loop(self) -> str | None:
         duration = float(self.scenario.duration_s)
@@ -350,11 +369,18 @@ class _Run:
                 self.drive.set_speed_ref(ref)
                 self._speed_ref = ref
             setting = self.scenario.load_at(t_cmd)
-            if setting != self._load_setting:
+            if setting != self._load_setting and self.load is not None:
                 self._load_call(self.load.set_load, *setting)
                 self._load_setting = setting
 
             samples = self._run_time(self.drive.sync())
+            if samples and self.reference_signals:
+                # the rig's reference sensor, read now, stamped with this SYNC's (batch's) drive time
+                feedback = self._load_call(self.load.feedback)
+                values = values_from_load(feedback)
+                samples = [LiveSample(s.t_s, {**s.values, **values}) for s in samples]
+                self.supervisor.feed_load(samples[-1].t_s, feedback)
+                next_load_poll = samples[-1].t_s + LOAD_POLL_PERIOD_S
             k += 1
             if samples:
                 last_sample_wall = time.monotonic()
@@ -372,7 +398,7 @@ class _Run:
             if t_drive >= next_status:
                 self.supervisor.feed_status(t_drive, self.drive.status())
                 next_status = t_drive + STATUS_PERIOD_S
-            if t_drive >= next_load_poll and hasattr(self.load, "feedback"):
+            if t_drive >= next_load_poll and self.load is not None:
                 self.supervisor.feed_load(t_drive, self._load_call(self.load.feedback))
                 next_load_poll = t_drive + LOAD_POLL_PERIOD_S
             if t_drive >= next_fetch:
@@ -426,7 +452,7 @@ class _Run:
             if len(block.get(TIME_COLUMN, ())):
                 self._append(block)
         elif self.live_buffer:
-            block = live_columns(self.live_buffer, LIVE_SIGNALS)
+            block = live_columns(self.live_buffer, self.live_recorded)
             self.live_buffer = []
             self._append(block)
 
@@ -436,9 +462,9 @@ class _Run:
         tail = [s for s in self.live_buffer if s.t_s > t_last]
         self.live_buffer = []
         if tail:
-            self._append(live_columns(tail, LIVE_SIGNALS))
+            self._append(live_columns(tail, self.live_recorded))
             self.recorder.note("live_tail", {"rows": len(tail), "t_first_s": tail[0].t_s, "t_last_s": tail[-1].t_s,
-                                             "signals": list(LIVE_SIGNALS)})
+                                             "signals": list(self.live_recorded)})
 
     def _append(self, block: dict[str, np.ndarray]) -> None:
         block = {k: np.asarray(v) for k, v in block.items()}
@@ -467,6 +493,7 @@ class _Run:
         if self.signals is not None and self.signals.ignored:
             self.recorder.note("signals_ignored_while_stopping", self.signals.ignored)
         self.recorder.note("safe_stop", {"steps": self.safe_stop.steps, "errors": stop_errors})
+        self._note_link_reports()          # now with how the stop went (standstill, speed at disable)
         try:
             self._record_pending()  # final trace upload (includes the stop)
         except Exception as exc:

@@ -19,6 +19,7 @@ from bench.criteria import KINDS, CriterionSpec
 from bench.errors import InputError, Problems, find_repo_root
 from drivers import parameters
 from drivers.api import LoadMode
+from drivers.load_map import read_load_map
 from drivers.parameters import Capability, Parameter
 from drivers.signals import SIGNAL_NAMES
 
@@ -160,6 +161,7 @@ def load_scenario(path: str | Path, bench: str | Path | None = None) -> Scenario
 
     speed = _speed_segments(p, _array_of_tables(p, raw, "speed"), dur)
     load = _load_segments(p, _array_of_tables(p, raw, "load"), dur)
+    _check_load_machine(p, load, bench_cfg, bench_path)
     offered = drive_desc.offered_parameters() if drive_desc else None
     injections = _injections(p, _array_of_tables(p, raw, "injection"), dur, kind, offered, bench_cfg, bench_path)
     limits = _limits(p, raw, duration, speed)
@@ -323,6 +325,24 @@ def _load_segments(p: Problems, items: list[tuple[str, dict]], duration: float) 
             end = parsed[n + 1][2] if n + 1 < len(parsed) else duration
         segments.append(LoadSegment(kind, start, end, mode, value))
     return tuple(segments)
+
+
+def _check_load_machine(p: Problems, segments: tuple[LoadSegment, ...], bench_cfg: dict | None,
+                        bench_path: Path | None) -> None:
+    """Load segments need a load machine, and one that has their mode (its register map says which)."""
+    if not segments or bench_cfg is None:
+        return
+    load = bench_cfg.get("load") or {}
+    if not load:
+        p.add("load", f"the profile loads the shaft but bench config {bench_path} has no load machine ([load])")
+        return
+    if not load.get("map"):
+        return
+    modes = read_load_map(load["map"]).modes
+    for i, seg in enumerate(segments):
+        if seg.mode not in modes:
+            p.add(f"load[{i}].kind", f"{seg.kind!r} needs {seg.mode.name.lower()} mode; the load machine of bench "
+                                    f"config {bench_path} has {', '.join(m.name.lower() for m in modes)}")
 
 
 def _check_injection_name(p: Problems, field_: str, name: str, kind: str | None,
