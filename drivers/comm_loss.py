@@ -15,7 +15,7 @@ MODES = ("heartbeat", "external")   # the serial line's WATCHDOG command is its 
 @dataclass(frozen=True)
 class CommLossConfig:
     mode: str = "heartbeat"             # "external": the rig stops the drive itself (e.g. STO on a watchdog relay)
-    consumer_time_ms: int = 500         # the drive reacts this long after the bench's last heartbeat
+    consumer_time_ms: int = 300         # the drive reacts this long after the bench's last heartbeat
     abort_option: int = 3               # 0x6007: 1 fault, 2 disable voltage, 3 quick stop (the drive manual decides)
     error_behaviour: int | None = 0     # 0x1029 sub 1 (communication error): 0 pre-operational; None: leave it
     bench_node_id: int = HEARTBEAT_BENCH_NODE_ID

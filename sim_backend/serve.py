@@ -67,6 +67,7 @@ def load_serve_config(config_path: str | Path) -> dict:
         "serial": _endpoint(path, serve, "serial_tcp"),
         "modbus": _endpoint(path, serve, "modbus_tcp"),
         "wire_faults": bool((cfg.get("bench") or {}).get("wire_faults", False)),
+        "drive": _drive_spec(path, sim),
     }
     if not toy and not out["motor"].exists():
         raise ServeError(f"{path}: simulator.motor: file not found: {sim['motor']!r}")
@@ -75,9 +76,17 @@ def load_serve_config(config_path: str | Path) -> dict:
     return out
 
 
+def _drive_spec(path: Path, simulator: dict):
+    from sim_backend.rig import drive_spec
+    try:
+        return drive_spec(simulator)
+    except (RuntimeError, TypeError) as exc:
+        raise ServeError(f"{path}: simulator.drive: {exc}") from None
+
+
 def rig_spec(cfg: dict) -> "RigSpec":
     from sim_backend.rig import RigSpec
-    return RigSpec(motor=cfg["motor"], seed=cfg["seed"], eds=cfg["eds"] if cfg["socketcand"] else None,
+    return RigSpec(motor=cfg["motor"], seed=cfg["seed"], drive=cfg["drive"], eds=cfg["eds"] if cfg["socketcand"] else None,
                    node_id=cfg["node_id"], socketcand=cfg["socketcand"],
                    serial="tcp" if cfg["serial"] else None, serial_tcp=cfg["serial"] or ("127.0.0.1", 0),
                    modbus="tcp" if cfg["modbus"] else None, modbus_tcp=cfg["modbus"] or ("127.0.0.1", 0),
