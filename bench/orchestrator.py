@@ -27,7 +27,7 @@ from bench.records import RunRecorder
 from bench.rerun_view import RerunStream
 from bench.scenario import load_scenario
 from bench.summary_plot import write_summary_png
-from bench.supervisor import SafeStop, Supervisor, check_status
+from bench.supervisor import SafeStop, Supervisor, UnitCheck, check_status
 from drivers.api import LinkError, LiveSample
 from drivers.reference import ReferenceConfig, values_from_load
 from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
@@ -316,6 +316,11 @@ class _Run:
     def _configure_and_enable(self) -> None:
         decimation = int(self.cfg["drive"]["trace_decimation"])
         self.drive.configure(LIVE_SIGNALS, self.trace_signals, decimation)
+        profile = getattr(self.drive, "profile", None)
+        if profile is not None and profile.kind == "cia402" and "speed_true_mech_rad_s" in self.reference_signals:
+            # a drive in its own units with a reference sensor: its speed and the shaft's must agree at first motion
+            self.supervisor.unit_check = UnitCheck()
+            self.recorder.note("unit_check", {"window_s": UnitCheck.window_s, "ratio": UnitCheck.ratio})
         measured = set(getattr(self.drive, "measured_signals", lambda: SIGNAL_NAMES)()) | set(self.reference_signals)
         self.live_recorded = tuple(n for n in SIGNAL_NAMES if n in measured or (n in LIVE_SIGNALS and
                                                                                 self.data_source == "trace"))

@@ -27,7 +27,7 @@ class SupervisorLimits(Protocol):
 
 @dataclass(frozen=True)
 class Trip:
-    reason: str  # overspeed overcurrent position_error dc_link_overvoltage max_duration fault emcy heartbeat load_fault
+    reason: str  # overspeed overcurrent position_error dc_link_overvoltage unit_mismatch max_duration fault emcy heartbeat load_fault
     t_s: float | None            # drive time of the sample or status that tripped
     values: dict[str, float] = field(default_factory=dict)
     message: str = ""
@@ -85,6 +85,45 @@ def check_load(t_s: float | None, feedback: LoadFeedback) -> Trip | None:
     return None
 
 
+@dataclass
+class UnitCheck:
+    """The first second of motion: the drive's own speed, converted through the units the bench read or was told,
+    must agree with the reference sensor. A wrong velocity unit or gear ratio shows as a ratio far from 1 (rpm taken
+    for rad/s is 9.55, mrad/s for rad/s 1000) before it can hurt; a sensorless estimate is never that far off."""
+
+    moving_mech_rad_s: float = 2.0       # the check starts when the reference sees the shaft turn this fast
+    window_s: float = 1.0                # for this long
+    ratio: float = 2.0                   # |est / true| outside [1/ratio, ratio] ...
+    hold_s: float = 0.02                 # ... for this long trips (a factor of 9.55 or 1000 is never noise)
+    _start: float | None = None
+    _bad_since: float | None = None
+    done: bool = False
+
+    def check(self, t_s: float, values: dict[str, float]) -> Trip | None:
+        est, true = values.get("speed_est_mech_rad_s"), values.get("speed_true_mech_rad_s")
+        if self.done or est is None or true is None or est != est or true != true:
+            return None
+        if self._start is None:
+            if abs(true) < self.moving_mech_rad_s and abs(est) < self.moving_mech_rad_s:
+                return None
+            self._start = t_s
+        if t_s - self._start > self.window_s:
+            self.done = True
+            return None
+        ratio = abs(est) / max(abs(true), 1e-3)
+        agree = 1.0 / self.ratio <= ratio <= self.ratio and est * true >= 0
+        if agree:
+            self._bad_since = None
+            return None
+        self._bad_since = t_s if self._bad_since is None else self._bad_since
+        if t_s - self._bad_since < self.hold_s:
+            return None
+        return Trip("unit_mismatch", t_s, {"speed_est_mech_rad_s": est, "speed_true_mech_rad_s": true},
+                    f"unit mismatch at t={t_s:.4f} s: the drive reports {est:.3f} rad/s, the reference sensor "
+                    f"{true:.3f} rad/s (ratio {ratio:.3g}): check the drive's velocity unit, encoder resolution and "
+                    "gear ratio in the record")
+
+
 _STOP = object()
 WATCHDOG_PERIOD_S = 0.05
 
@@ -96,8 +135,10 @@ class Supervisor:
     nothing is fed any more (a hung link, a run loop stuck somewhere).
     """
 
-    def __init__(self, limits: SupervisorLimits, on_trip: Callable[[Trip], None] | None = None):
+    def __init__(self, limits: SupervisorLimits, on_trip: Callable[[Trip], None] | None = None,
+                 unit_check: UnitCheck | None = None):
         self.limits = limits
+        self.unit_check = unit_check
         self.on_trip = on_trip
         self.tripped = threading.Event()
         self.trip: Trip | None = None
@@ -186,7 +227,9 @@ class Supervisor:
             return check_status(*payload)
         for sample in payload:
             self._last_t_s = sample.t_s
-            trip = check_sample(self.limits, sample.t_s, sample.values)
+            trip = self.unit_check.check(sample.t_s, sample.values) if self.unit_check is not None else None
+            if trip is None:       # a unit mismatch is the cause when both trip: the overspeed is its symptom
+                trip = check_sample(self.limits, sample.t_s, sample.values)
             if trip is not None:
                 return trip
         return None
