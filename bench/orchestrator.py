@@ -28,6 +28,7 @@ from bench.rerun_view import RerunStream
 from bench.scenario import load_scenario
 from bench.summary_plot import write_summary_png
 from bench.supervisor import SafeStop, Supervisor, UnitCheck, check_status
+from bench.telemetry import TelemetryWorker
 from drivers.api import LinkError, LiveSample
 from drivers.reference import ReferenceConfig, values_from_load
 from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
@@ -237,6 +238,9 @@ class _Run:
         self.progress = progress
         self.collected = _Collected()
         self.live_buffer: list[LiveSample] = []
+        self.telemetry = TelemetryWorker()
+        self.realtime = cfg["bench"]["timing"] == "realtime"
+        self._live_lock = threading.Lock()        # live_buffer: the command thread adds, the worker prunes
         self.supervisor = Supervisor(scenario.limits)
         self.sync_period_s = float(cfg["drive"]["sync_period_s"])
         self.data_source = "trace" if identity.has_trace_recorder else "pdo"
@@ -295,7 +299,7 @@ class _Run:
         try:
             return self._finish(abort_reason, error, interrupted, stop_errors)
         finally:
-            for cleanup in (self.supervisor.stop, self.rerun.close):
+            for cleanup in (self.supervisor.stop, self.telemetry.stop, self.rerun.close):
                 try:
                     cleanup()
                 except Exception:
@@ -359,25 +363,10 @@ class _Run:
         next_progress = 0.0
         last_sample_wall = time.monotonic()
         k = 0
+        self._command(0.0, injections, applied)
         while t_drive < duration - 1e-9:
             if self.supervisor.tripped.is_set():
                 break
-            t_cmd = t_drive
-            while injections and injections[0].at_s <= t_cmd + 1e-9:
-                inj = injections.pop(0)
-                self.drive.write_parameter(inj.name, inj.value)
-                applied.append({"at_s": inj.at_s, "name": inj.name, "value": inj.value, "applied_t_s": t_cmd})
-                self.recorder.note("injections_applied", applied)
-            # commands for the coming SYNC period take the profile's values at its start
-            ref = self.scenario.speed_ref_at(t_cmd)
-            if ref != self._speed_ref:
-                self.drive.set_speed_ref(ref)
-                self._speed_ref = ref
-            setting = self.scenario.load_at(t_cmd)
-            if setting != self._load_setting and self.load is not None:
-                self._load_call(self.load.set_load, *setting)
-                self._load_setting = setting
-
             samples = self._run_time(self.drive.sync())
             if samples and self.reference_signals:
                 # the rig's reference sensor, read now, stamped with this SYNC's (batch's) drive time
@@ -394,7 +383,12 @@ class _Run:
                 self.supervisor.feed(samples)
                 # kept in trace mode too (until the next upload): if the drive's link dies, the live samples
                 # are the only record of the time since the last upload
-                self.live_buffer.extend(samples)
+                with self._live_lock:
+                    self.live_buffer.extend(samples)
+                if t_drive < duration - 1e-9:
+                    # commands for the coming SYNC period take the profile's values at its start, and go out now:
+                    # in real time a step is on the wire within the SYNC period it falls in
+                    self._command(t_drive, injections, applied)
             else:
                 if time.monotonic() - last_sample_wall > STALL_TIMEOUT_S:
                     raise LinkError(f"no telemetry from the drive for {STALL_TIMEOUT_S:g} s (after t={t_drive:.3f} s)")
@@ -406,8 +400,18 @@ class _Run:
             if t_drive >= next_load_poll and self.load is not None:
                 self.supervisor.feed_load(t_drive, self._load_call(self.load.feedback))
                 next_load_poll = t_drive + LOAD_POLL_PERIOD_S
+            worker_error = self.telemetry.take_error()
+            if worker_error is not None:
+                raise worker_error
             if t_drive >= next_fetch:
-                self._record_pending()
+                if self.realtime:
+                    # real time: the drive's clock runs on while a block upload holds the bus for ~100 ms; commands
+                    # must not wait for it. Lockstep: the drive's time stands still during an upload, so it runs
+                    # here, keeping the journal level with drive time.
+                    if not self.telemetry.busy:                  # never queue uploads behind a slow one
+                        self.telemetry.submit(self._record_pending)
+                else:
+                    self._record_pending()
                 next_fetch = t_drive + FETCH_PERIOD_S
             if self.progress is not None and t_drive >= next_progress:
                 self.progress(min(t_drive, duration), duration)
@@ -419,6 +423,22 @@ class _Run:
         if self.supervisor.trip is not None:
             return self.supervisor.trip.message + self._drive_fault_behind(self.supervisor.trip)
         return None
+
+    def _command(self, t_cmd: float, injections: list, applied: list[dict]) -> None:
+        """Due injections, the speed reference and the load of the profile at t_cmd (only what changed)."""
+        while injections and injections[0].at_s <= t_cmd + 1e-9:
+            inj = injections.pop(0)
+            self.drive.write_parameter(inj.name, inj.value)
+            applied.append({"at_s": inj.at_s, "name": inj.name, "value": inj.value, "applied_t_s": t_cmd})
+            self.recorder.note("injections_applied", applied)
+        ref = self.scenario.speed_ref_at(t_cmd)
+        if ref != self._speed_ref:
+            self.drive.set_speed_ref(ref)
+            self._speed_ref = ref
+        setting = self.scenario.load_at(t_cmd)
+        if setting != self._load_setting and self.load is not None:
+            self._load_call(self.load.set_load, *setting)
+            self._load_setting = setting
 
     def _drive_fault_behind(self, trip) -> str:
         """A limit trip is often the symptom (a drive that faulted loses its angle): ask the drive once, now."""
@@ -445,6 +465,8 @@ class _Run:
         return [LiveSample(s.t_s - self._clock_start, s.values) for s in samples]
 
     def _record_pending(self) -> None:
+        """One upload (trace mode) or the live samples since the last call (pdo mode), recorded; on the telemetry
+        worker during the run, on the main thread for the final upload."""
         if self.data_source == "trace":
             block = self.drive.fetch_trace()
             if block is not None and len(block.get(TIME_COLUMN, ())):
@@ -453,19 +475,23 @@ class _Run:
                 self.data_source = "pdo"
                 self.recorder.note("data_source", "pdo")
                 return
-            self.live_buffer = []
             if len(block.get(TIME_COLUMN, ())):
+                uploaded_to = block[TIME_COLUMN][-1]
+                with self._live_lock:       # live samples now in the trace are no longer the only record
+                    self.live_buffer = [s for s in self.live_buffer if s.t_s > uploaded_to]
                 self._append(block)
-        elif self.live_buffer:
-            block = live_columns(self.live_buffer, self.live_recorded)
-            self.live_buffer = []
-            self._append(block)
+        else:
+            with self._live_lock:
+                pending, self.live_buffer = self.live_buffer, []
+            if pending:
+                self._append(live_columns(pending, self.live_recorded))
 
     def _record_live_tail(self) -> None:
         """The trace since the last upload is out of reach (dead link): keep the live samples of that time."""
         t_last = self.collected.chunks[-1][TIME_COLUMN][-1] if self.collected.chunks else -math.inf
-        tail = [s for s in self.live_buffer if s.t_s > t_last]
-        self.live_buffer = []
+        with self._live_lock:
+            tail = [s for s in self.live_buffer if s.t_s > t_last]
+            self.live_buffer = []
         if tail:
             self._append(live_columns(tail, self.live_recorded))
             self.recorder.note("live_tail", {"rows": len(tail), "t_first_s": tail[0].t_s, "t_last_s": tail[-1].t_s,
@@ -500,6 +526,11 @@ class _Run:
         self.recorder.note("safe_stop", {"steps": self.safe_stop.steps, "errors": stop_errors})
         self._note_link_reports()          # now with how the stop went (standstill, speed at disable)
         try:
+            if not self.telemetry.drain(STALL_TIMEOUT_S):
+                raise LinkError(f"a trace upload did not finish within {STALL_TIMEOUT_S:g} s")
+            worker_error = self.telemetry.take_error()
+            if worker_error is not None:
+                raise worker_error
             self._record_pending()  # final trace upload (includes the stop)
         except Exception as exc:
             self.recorder.note("final_fetch_error", f"{type(exc).__name__}: {exc}")

@@ -8,6 +8,7 @@ as socket://127.0.0.1:29537), baudrate, timeout_s, retries, sync_period_s. The b
 from __future__ import annotations
 
 import struct
+import threading
 import time
 from pathlib import Path
 from typing import Sequence
@@ -63,6 +64,7 @@ class SerialDriveLink:
         self._rt_anchor: float | None = None
         self._rt_sent = 0
         self._names_cache: dict[int, list[str]] = {}
+        self._line = threading.RLock()
         self._emcy_codes: list[int] = []      # read with any STATUS, handed over by status()
         self.where = f"serial drive {self.url}"
 
@@ -105,6 +107,11 @@ class SerialDriveLink:
                 return None, True                   # our reply was mangled: ask again now, not at the timeout
 
     def _transact(self, cmd: Cmd, payload: bytes = b"") -> bytes:
+        """One request and its reply; one at a time (the bench's command and telemetry threads share the line)."""
+        with self._line:
+            return self._transact_locked(cmd, payload)
+
+    def _transact_locked(self, cmd: Cmd, payload: bytes) -> bytes:
         if self._port is None:
             raise LinkError(f"serial drive {self.url}: link not open")
         seq = self._next_seq()

@@ -128,8 +128,11 @@ class SimulatedDevice:
     def _free_run(self, dt_s: float) -> None:
         """In lockstep the drive's time moves only with the bench's SYNCs; with the bench gone, a real drive's clock
         goes on and its reaction (braking on the quick-stop ramp) completes. So does this one's, in wall time."""
-        if self.master_watchdog.tripped and self.device.power_enabled:
-            self.advance(max(1, round(min(dt_s, 0.1) / self.model.control_period_s)))
+        chunk = max(1, round(0.01 / self.model.control_period_s))      # the drive's own checks every 10 ms
+        steps = max(1, round(min(dt_s, 0.1) / self.model.control_period_s))
+        while steps > 0 and self.master_watchdog.tripped and self.device.power_enabled:
+            self.advance(min(chunk, steps))
+            steps -= chunk
 
     def _load_master_lost(self, silent_s: float) -> None:
         """A dynamometer's Modbus watchdog: torque to zero, disabled."""

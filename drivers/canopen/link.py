@@ -373,7 +373,9 @@ class CanopenDriveLink:
                 # Pace the caller: return a batch at most every REALTIME_BATCH_S (and not before one sample is
                 # in), so a bench loop costs per batch, not per SYNC, and leaves the CPU to the CAN threads.
                 now = time.monotonic()
-                not_before = self._last_return + max(self.sync_period_s, REALTIME_BATCH_S)
+                # a SYNC period of REALTIME_BATCH_S or more: every sample at once (commands follow it within the
+                # period); faster SYNCs: batches of REALTIME_BATCH_S
+                not_before = self._last_return + (REALTIME_BATCH_S if self.sync_period_s < REALTIME_BATCH_S else 0.0)
                 deadline = now + min(1.0, max(0.05, 20 * self.sync_period_s))
                 while not self._errors:
                     now = time.monotonic()
@@ -498,7 +500,8 @@ class CanopenDriveLink:
             raw = self.sdo.read_standard(source.index, source.subindex, signed=True)
             return None if raw is None else abs(raw * source.factor)
         if self.profile is not None and self.profile.extension:
-            return abs(float(self.sdo.read("speed_est_mech_rad_s")))
+            var = self.node.object_dictionary["speed_est_mech_rad_s"]
+            return abs(float(self.sdo.read(var.index, var.subindex)))
         return None
 
     def quick_stop(self) -> None:
@@ -543,7 +546,9 @@ class CanopenDriveLink:
         pieces = []
         available = self.sdo.read(o.EXT_TRACE, o.TRACE_ROWS_AVAILABLE)
         while available > 0:
-            data = block_upload(self.network, self.node_id, o.EXT_TRACE_DATA, 0, self.stall_timeout_s, self._send)
+            with self.sdo.lock:                  # the block upload takes over the node's SDO channel
+                data = block_upload(self.network, self.node_id, o.EXT_TRACE_DATA, 0, self.stall_timeout_s,
+                                    self._send)
             if not data:
                 break
             pieces.append(data)

@@ -27,13 +27,18 @@ def abort_text(exc: SdoAbortedError) -> str:
 
 
 class SdoAccess:
-    """Reads and writes of one node's objects; every failure is a LinkError naming index, subindex and name."""
+    """Reads and writes of one node's objects; every failure is a LinkError naming index, subindex and name.
 
-    def __init__(self, node: canopen.RemoteNode, eds_name: str, timeout_s: float):
+    One SDO transfer at a time per node (`lock`): a CANopen node has one SDO server channel, and the command thread
+    (parameters, the state machine) and the telemetry thread (trace uploads) share it."""
+
+    def __init__(self, node: canopen.RemoteNode, eds_name: str, timeout_s: float,
+                 lock: threading.RLock | None = None):
         self.node = node
         self.eds_name = eds_name
         self.timeout_s = timeout_s
         self.where = f"node {node.id}"
+        self.lock = lock or threading.RLock()
 
     def has(self, index: int, subindex: int | None = None) -> bool:
         od = self.node.object_dictionary
@@ -58,28 +63,32 @@ class SdoAccess:
     def read(self, index: int, subindex: int = 0) -> Any:
         var = self.var(index, subindex)
         try:
-            return var.decode_raw(self.node.sdo.upload(index, subindex))
+            with self.lock:
+                return var.decode_raw(self.node.sdo.upload(index, subindex))
         except (SdoAbortedError, SdoCommunicationError) as exc:
             raise self._failed("read", index, subindex, var.name, exc) from None
 
     def write(self, index: int, subindex: int, value: Any) -> None:
         var = self.var(index, subindex)
         try:
-            self.node.sdo.download(index, subindex, var.encode_raw(value))
+            with self.lock:
+                self.node.sdo.download(index, subindex, var.encode_raw(value))
         except (SdoAbortedError, SdoCommunicationError) as exc:
             raise self._failed("write", index, subindex, var.name, exc) from None
 
     def upload(self, index: int, subindex: int = 0) -> bytes:
         """Raw read of any index, with or without an EDS entry."""
         try:
-            return self.node.sdo.upload(index, subindex)
+            with self.lock:
+                return self.node.sdo.upload(index, subindex)
         except (SdoAbortedError, SdoCommunicationError) as exc:
             raise self._failed("read", index, subindex, "", exc) from None
 
     def download(self, index: int, subindex: int, data: bytes) -> None:
         """Raw write of any index, with or without an EDS entry."""
         try:
-            self.node.sdo.download(index, subindex, data)
+            with self.lock:
+                self.node.sdo.download(index, subindex, data)
         except (SdoAbortedError, SdoCommunicationError) as exc:
             raise self._failed("write", index, subindex, "", exc) from None
 
@@ -87,7 +96,8 @@ class SdoAccess:
         """A standard integer object read from the device itself (the EDS may lack it, the device may have it);
         None when the device says it has no such object."""
         try:
-            data = self.node.sdo.upload(index, subindex)
+            with self.lock:
+                data = self.node.sdo.upload(index, subindex)
         except SdoAbortedError as exc:
             if exc.code in NO_SUCH_OBJECT:
                 return None
@@ -99,7 +109,8 @@ class SdoAccess:
     def write_standard(self, index: int, subindex: int, value: int, size: int, signed: bool = False) -> bool:
         """Write a standard integer object; False when the device has no such object."""
         try:
-            self.node.sdo.download(index, subindex, value.to_bytes(size, "little", signed=signed))
+            with self.lock:
+                self.node.sdo.download(index, subindex, value.to_bytes(size, "little", signed=signed))
         except SdoAbortedError as exc:
             if exc.code in NO_SUCH_OBJECT:
                 return False
