@@ -109,6 +109,9 @@ def criteria_table(title: str, criteria: Iterable[Any]) -> Table:
     for c in map(_as_dict, criteria):
         if c.get("passed"):
             result = "[green]pass[/green]"
+        elif c.get("status") == "not_judged":
+            gaps.append(f"{c.get('name')}: not judged: {c.get('detail')}")
+            result = f"[yellow]not judged ({len(gaps)})[/yellow]"
         elif c.get("known_gap"):
             gaps.append(f"{c.get('name')}: {c['known_gap']}")
             result = f"[yellow]known gap ({len(gaps)})[/yellow]"
@@ -123,7 +126,8 @@ def criteria_table(title: str, criteria: Iterable[Any]) -> Table:
     return table
 
 
-VERDICT_STYLE = {"pass": "bold green", "fail": "bold red", "aborted": "bold red", "error": "bold magenta"}
+VERDICT_STYLE = {"pass": "bold green", "fail": "bold red", "incomplete": "bold yellow", "aborted": "bold red",
+                 "error": "bold magenta"}
 
 
 def verdict_exit_code(verdicts: Iterable[str]) -> int:
@@ -362,7 +366,7 @@ def evaluate_cmd(run_dir, scenario_path, as_json) -> None:
     def body() -> int:
         import numpy as np
 
-        from bench.criteria import evaluate, verdict
+        from bench.criteria import evaluate, time_axis, verdict
         from bench.records import load_run
         from bench.scenario import load_scenario
 
@@ -373,10 +377,16 @@ def evaluate_cmd(run_dir, scenario_path, as_json) -> None:
         scenario = load_scenario(path)
         t = np.asarray(columns.get("t_s", np.zeros(0)))
         in_test = t <= scenario.duration_s + 1e-9
+        measured = record.get("measured_signals")
         results = evaluate(scenario.criteria, t[in_test], {k: np.asarray(v)[in_test] for k, v in columns.items()
-                                                           if k != "t_s"})
+                                                           if k != "t_s"},
+                           measured=frozenset(measured) if isinstance(measured, list) else None,
+                           row_period_s=(record.get("time_axis") or {}).get("row_period_s"),
+                           tolerance=(record.get("time_axis") or {}).get("tolerance", 1.5))
         aborted = (not complete) or record.get("verdict") in ("aborted", "error")
-        new_verdict = verdict(results, aborted=aborted)
+        holes = time_axis(t[in_test], (record.get("time_axis") or {}).get("row_period_s"),
+                          (record.get("time_axis") or {}).get("tolerance", 1.5))
+        new_verdict = verdict(results, aborted=aborted, holes=holes)
         if as_json:
             click.echo(json.dumps({"run_dir": str(run_dir), "scenario": str(path), "verdict": new_verdict,
                                   "criteria": [r.to_dict() for r in results]}, default=str))

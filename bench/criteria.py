@@ -1,9 +1,14 @@
 """Acceptance criteria: one number per criterion from telemetry arrays, compared with a limit.
 
-Every kind computes a `value` where smaller is better; a criterion passes when value <= limit. A criterion
-fails (never raises) when its window holds no samples, the telemetry does not cover the window, a signal it
-needs was not recorded or is NaN in the window; `detail` says which. Angles (names ending in `_rad`) are
-compared through wrapped differences and averaged on the circle.
+Every kind computes a `value` where smaller is better; a criterion passes when value <= limit. Its status is
+"pass", "fail" or "not_judged" (never raises):
+- not judged: a signal it needs is not measured on this bench, or data is missing in its window (no telemetry, the
+  telemetry does not cover the window, rows missing from the drive clock); the bench could not see, so it neither
+  passes nor fails, and the run's verdict is at best "incomplete";
+- fail: the value is over the limit, or a measured signal is NaN/inf in the window (a drive putting out NaN is
+  broken, not unmeasured), or the criterion cannot be computed (a zero base for a percentage).
+`detail` says why. Angles (names ending in `_rad`) are compared through wrapped differences and averaged on the
+circle.
 """
 
 from __future__ import annotations
@@ -39,6 +44,15 @@ class CriterionResult:
     passed: bool
     known_gap: str | None
     detail: str
+    status: str = ""               # "pass" | "fail" | "not_judged"
+
+    def __post_init__(self) -> None:
+        if not self.status:
+            self.status = "pass" if self.passed else "fail"
+
+    @property
+    def judged(self) -> bool:
+        return self.status != "not_judged"
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -48,6 +62,10 @@ class CriterionResult:
 
 class _Unusable(Exception):
     """The criterion cannot be computed from this telemetry; the message becomes the result's detail."""
+
+
+class _NotJudged(_Unusable):
+    """The bench could not see what the criterion needs (unmeasured signal, missing data): not judged."""
 
 
 @dataclass(frozen=True)
@@ -81,21 +99,25 @@ class _Window:
     """The samples of one criterion's time window, with coverage and NaN checks on access."""
 
     def __init__(self, t_s: np.ndarray, columns: dict[str, np.ndarray], window_s: tuple[float, float],
-                 smooth_s: float | None = None):
+                 smooth_s: float | None = None, row_period_s: float | None = None, tolerance: float = 1.5):
         a, b = window_s
         t = np.asarray(t_s, dtype=np.float64)
         if t.size == 0:
-            raise _Unusable("no telemetry recorded")
-        dt = float(np.median(np.diff(t))) if t.size > 1 else 0.0
-        tol = 1.5 * dt + 1e-9
+            raise _NotJudged("no telemetry recorded")
+        dt = row_period_s or (float(np.median(np.diff(t))) if t.size > 1 else 0.0)
+        tol = tolerance * dt + 1e-9
         if t[-1] < b - tol:
-            raise _Unusable(f"telemetry ends at {t[-1]:.6g} s, before the window end {b:g} s")
+            raise _NotJudged(f"telemetry ends at {t[-1]:.6g} s, before the window end {b:g} s")
         if t[0] > a + tol:
-            raise _Unusable(f"telemetry starts at {t[0]:.6g} s, after the window start {a:g} s")
+            raise _NotJudged(f"telemetry starts at {t[0]:.6g} s, after the window start {a:g} s")
         self.mask = (t >= a) & (t <= b)
         self.t = t[self.mask]
         if self.t.size == 0:
-            raise _Unusable(f"no samples in window [{a:g}, {b:g}] s")
+            raise _NotJudged(f"no samples in window [{a:g}, {b:g}] s")
+        holes = time_axis(self.t, dt, tolerance)
+        if holes["missing_rows"] or holes["duplicates"]:
+            raise _NotJudged(f"{holes['missing_rows']} rows missing in the window ({holes['gaps']} gaps in the drive "
+                             f"clock, largest {holes['largest_gap_s']:.6g} s), {holes['duplicates']} duplicates")
         self.columns = columns
         self.window_s = window_s
         idx = np.flatnonzero(self.mask)
@@ -104,11 +126,11 @@ class _Window:
 
     def signal(self, name: str) -> np.ndarray:
         if name not in self.columns:
-            raise _Unusable(f"signal {name} was not recorded")
+            raise _NotJudged(f"signal {name} was not recorded")
         x = np.asarray(self.columns[name], dtype=np.float64)[self.mask]
         nans = int(np.count_nonzero(~np.isfinite(x)))
         if nans == x.size:
-            raise _Unusable(f"signal {name} is NaN throughout the window (not measured on this bench?)")
+            raise _NotJudged(f"signal {name} is NaN throughout the window (not measured on this bench?)")
         if nans:
             raise _Unusable(f"signal {name} has {nans} NaN/inf samples in the window")
         if self.smooth_n > 1:
@@ -379,16 +401,58 @@ for _kind in KINDS.values():
     _kind.params["smooth_s"] = _SMOOTH
 
 
-def evaluate(specs, t_s: np.ndarray, columns: dict[str, np.ndarray]) -> list[CriterionResult]:
+def time_axis(t_s: np.ndarray, row_period_s: float | None, tolerance: float = 1.5) -> dict[str, Any]:
+    """Rows, gaps (intervals over `tolerance` periods: 1.5 on a drive clock, more on receive-time stamps, which
+    jitter), the rows they miss, and duplicated or backward stamps of a time axis."""
+    t = np.asarray(t_s, dtype=np.float64)
+    steps = np.diff(t) if t.size > 1 else np.zeros(0)
+    period = row_period_s or (float(np.median(steps)) if steps.size else 0.0)
+    gaps = steps > tolerance * period if period > 0 else np.zeros(steps.size, dtype=bool)
+    return {"rows": int(t.size), "row_period_s": period, "tolerance": tolerance, "gaps": int(gaps.sum()),
+            "missing_rows": int(np.sum(np.round(steps[gaps] / period) - 1)) if gaps.any() else 0,
+            "largest_gap_s": float(steps.max()) if steps.size else 0.0,
+            "duplicates": int(np.count_nonzero(steps <= 0))}
+
+
+def signals_of(spec: CriterionSpec) -> list[str]:
+    """Every signal a criterion reads: its own, signal parameters given, and signal parameters' defaults."""
+    kind = KINDS.get(spec.kind)
+    names = [spec.signal]
+    if kind is not None:
+        for key, param in kind.params.items():
+            if param.type == "signal":
+                value = spec.params.get(key, param.default)
+                if isinstance(value, str) and value in SIGNAL_NAMES and _reads_param(spec, key):
+                    names.append(value)
+    return list(dict.fromkeys(names))
+
+
+def _reads_param(spec: CriterionSpec, key: str) -> bool:
+    """A default signal parameter is read only when nothing given replaces it (a fixed base instead of ref_signal)."""
+    if key == "ref_signal" and any(k in spec.params for k in ("base_mech_rad_s", "base_rpm")):
+        return False
+    return key in spec.params or KINDS[spec.kind].params[key].default is not None
+
+
+def evaluate(specs, t_s: np.ndarray, columns: dict[str, np.ndarray], *, measured: frozenset[str] | None = None,
+             row_period_s: float | None = None, tolerance: float = 1.5) -> list[CriterionResult]:
+    """`measured`: the signals this bench measures (None: all); `row_period_s`: the period rows are expected at
+    (None: the median interval) and `tolerance` the interval, in periods, beyond which rows count as missing."""
     results = []
     for spec in specs:
+        status = ""
         try:
+            unmeasured = [s for s in signals_of(spec) if measured is not None and s not in measured]
+            if unmeasured:
+                raise _NotJudged(f"signal {', '.join(unmeasured)} is not measured on this bench")
             with np.errstate(all="ignore"):   # overflow to inf fails the criterion like any large value
-                window = _Window(t_s, columns, spec.window_s, spec.params.get("smooth_s"))
+                window = _Window(t_s, columns, spec.window_s, spec.params.get("smooth_s"), row_period_s, tolerance)
                 value, detail = KINDS[spec.kind].compute(window, spec)
                 if window.smooth_n > 1:
                     detail += f" (moving average over {spec.params['smooth_s']:g} s)"
             passed = bool(value <= spec.limit)
+        except _NotJudged as e:
+            value, detail, passed, status = math.nan, str(e), False, "not_judged"
         except _Unusable as e:
             value, detail, passed = math.nan, str(e), False
         except KeyError:
@@ -396,16 +460,35 @@ def evaluate(specs, t_s: np.ndarray, columns: dict[str, np.ndarray]) -> list[Cri
         if not passed and math.isfinite(value):
             detail = f"value {value:.6g} > limit {spec.limit:g}; {detail}"
         results.append(CriterionResult(spec.name, spec.kind, spec.signal, tuple(spec.window_s), float(value),
-                                       float(spec.limit), passed, spec.known_gap, detail))
+                                       float(spec.limit), passed, spec.known_gap, detail, status))
     return results
 
 
-def verdict(results, aborted: bool) -> str:
+VERDICTS = ("pass", "fail", "incomplete", "aborted", "error")
+
+
+def verdict(results, aborted: bool, holes: dict | None = None) -> str:
+    """aborted > fail (a judged criterion over its limit, not a known gap) > incomplete (a criterion not judged: the
+    bench could not see; or the telemetry misses rows anywhere in the run, `holes` from time_axis) > pass. A run with
+    missing data never passes."""
     if aborted:
         return "aborted"
-    if any(not r.passed and not r.known_gap for r in results):
+    if any(r.judged and not r.passed and not r.known_gap for r in results):
         return "fail"
+    if any(not r.judged for r in results) or (holes and (holes["missing_rows"] or holes["duplicates"])):
+        return "incomplete"
     return "pass"
+
+
+def incomplete_reason(results, holes: dict | None) -> str | None:
+    parts = []
+    unjudged = [r.name for r in results if not r.judged]
+    if unjudged:
+        parts.append(f"{len(unjudged)} criteria not judged ({'; '.join(unjudged)})")
+    if holes and (holes["missing_rows"] or holes["duplicates"]):
+        parts.append(f"telemetry misses {holes['missing_rows']} rows in {holes['gaps']} gaps and has "
+                     f"{holes['duplicates']} duplicated stamps")
+    return ", ".join(parts) or None
 
 
 __all__ = ["CriterionSpec", "CriterionResult", "KINDS", "evaluate", "verdict", "wrap_angle", "SIGNAL_NAMES"]

@@ -20,7 +20,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from bench.benchconfig import load_bench_config
-from bench.criteria import evaluate, verdict as judge
+from bench.criteria import evaluate, incomplete_reason, time_axis, verdict as judge
 from bench.errors import InputError, find_repo_root
 from bench.links import make_links, started_services
 from bench.records import RunRecorder
@@ -247,6 +247,7 @@ class _Run:
         self.trace_signals = trace_signals_for(cfg, scenario)
         self.reference = ReferenceConfig((cfg.get("reference") or {}).get("source"))
         self.reference_signals = self.reference.signals(load is not None)
+        self.measured: frozenset[str] | None = None
         self.live_recorded: tuple[str, ...] = LIVE_SIGNALS
         # t_s in the record is drive time since this run's first SYNC; the drive clock counts from power-up
         self._clock_start: float | None = None
@@ -331,6 +332,9 @@ class _Run:
         self.recorder.note("trace_signals", list(self.trace_signals))
         self.recorder.note("data_source", self.data_source)
         self.recorder.note("live_signals", list(self.live_recorded))
+        if self.data_source == "trace":
+            measured |= set(self.trace_signals)          # the drive's recorder: every traced signal, full rate
+        self.measured = frozenset(measured)
         self.recorder.note("measured_signals", sorted(measured))
         self.recorder.note("trace_decimation", decimation)
         self._note_link_reports()
@@ -440,6 +444,13 @@ class _Run:
             self._load_call(self.load.set_load, *setting)
             self._load_setting = setting
 
+    def _row_period_s(self) -> float | None:
+        """The drive-clock period recorded rows come at: the recorder's decimation x control period, else one SYNC."""
+        if self.data_source == "trace":
+            control = getattr(self.drive, "control_period_s", None)
+            return control * int(self.cfg["drive"]["trace_decimation"]) if control else None
+        return self.sync_period_s
+
     def _drive_fault_behind(self, trip) -> str:
         """A limit trip is often the symptom (a drive that faulted loses its angle): ask the drive once, now."""
         if trip.reason in ("fault", "emcy", "heartbeat", "max_duration"):
@@ -540,8 +551,14 @@ class _Run:
         t, columns = self.collected.columns()
         duration = float(self.scenario.duration_s)
         in_test = t <= duration + 1e-9
+        row_period = self._row_period_s()
+        # live samples of a drive without a clock are stamped on receipt in real time: they jitter, allow for it
+        tolerance = 1.9 if self.realtime and self.data_source == "pdo" else 1.5
+        holes = time_axis(t[in_test], row_period, tolerance)
+        self.recorder.note("time_axis", holes)
         try:
-            results = evaluate(self.scenario.criteria, t[in_test], {k: v[in_test] for k, v in columns.items()})
+            results = evaluate(self.scenario.criteria, t[in_test], {k: v[in_test] for k, v in columns.items()},
+                               measured=self.measured, row_period_s=row_period, tolerance=tolerance)
         except Exception as exc:
             results = []
             if error is None:
@@ -550,11 +567,11 @@ class _Run:
             verdict = "error"
             reason = error
         else:
-            verdict = judge(results, aborted=abort_reason is not None)
-            reason = abort_reason
+            verdict = judge(results, aborted=abort_reason is not None, holes=holes)
+            reason = abort_reason or (incomplete_reason(results, holes) if verdict == "incomplete" else None)
         if stop_errors:
             reason = "; ".join(filter(None, [reason, "safe stop incomplete: " + "; ".join(stop_errors)]))
-            if verdict == "pass":
+            if verdict in ("pass", "incomplete"):
                 verdict = "error"
         try:
             if len(t):

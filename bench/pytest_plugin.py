@@ -51,7 +51,7 @@ class DriveBench:
         self.node.user_properties.append(("drivebench_run_dir", str(result.run_dir)))
         self.node.user_properties.append(("drivebench_verdict", result.verdict))
         self.node.user_properties.append(("drivebench_criteria", json.dumps([
-            {k: c.get(k) for k in ("name", "signal", "window_s", "value", "limit", "passed", "known_gap")}
+            {k: c.get(k) for k in ("name", "signal", "window_s", "value", "limit", "passed", "status", "known_gap")}
             for c in result.record.get("criteria", [])])))
         return result
 
@@ -76,7 +76,8 @@ def format_result(result) -> str:
         lines.append(f"reason:  {record['abort_reason']}")
     rows = [("criterion", "signal", "window_s", "value", "limit", "result")]
     for c in record.get("criteria", []):
-        outcome = "pass" if c.get("passed") else ("known gap" if c.get("known_gap") else "FAIL")
+        outcome = ("pass" if c.get("passed") else "not judged" if c.get("status") == "not_judged"
+                   else "known gap" if c.get("known_gap") else "FAIL")
         rows.append((str(c.get("name")), str(c.get("signal")), _fmt(c.get("window_s")), _fmt(c.get("value")),
                      _fmt(c.get("limit")), outcome))
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]

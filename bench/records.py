@@ -37,7 +37,7 @@ RECORD = "record.json"
 JOURNAL = "telemetry.arrows"
 PARQUET = "telemetry.parquet"
 JUNIT = "junit.xml"
-VERDICTS = ("pass", "fail", "aborted", "error")
+from bench.criteria import VERDICTS  # noqa: E402  (pass fail incomplete aborted error)
 _ROW_GROUP_ROWS = 1 << 20
 
 
@@ -332,7 +332,10 @@ def write_junit(path: Path, record: dict) -> None:
         case = ET.SubElement(suite, "testcase", classname=f"drivebench.{scenario}", name=str(c["name"]))
         text = (f"{c['kind']} of {c['signal']} in [{c['window_s'][0]:g}, {c['window_s'][1]:g}] s: "
                 f"value {_fmt(c['value'])}, limit {_fmt(c['limit'])}")
-        if not c["passed"] and c.get("known_gap"):
+        if c.get("status") == "not_judged":
+            skipped += 1
+            ET.SubElement(case, "skipped", message=f"not judged: {c.get('detail', '')}").text = text
+        elif not c["passed"] and c.get("known_gap"):
             skipped += 1
             ET.SubElement(case, "skipped", message=f"known gap: {c['known_gap']}").text = f"{text}; {c['detail']}"
         elif not c["passed"]:
@@ -344,6 +347,12 @@ def write_junit(path: Path, record: dict) -> None:
         errors += 1
         case = ET.SubElement(suite, "testcase", classname=f"drivebench.{scenario}", name="run")
         ET.SubElement(case, "error", message=f"run {record['verdict']}: {record.get('abort_reason') or 'no reason given'}")
+    elif record.get("verdict") == "incomplete":      # a run that could not judge everything is not a pass in CI
+        failures += 1
+        case = ET.SubElement(suite, "testcase", classname=f"drivebench.{scenario}", name="run")
+        unjudged = [c["name"] for c in criteria if c.get("status") == "not_judged"]
+        ET.SubElement(case, "failure", message=f"run incomplete: {len(unjudged)} criteria not judged").text = \
+            "; ".join(unjudged)
     suite.set("tests", str(len(criteria) + errors))
     suite.set("failures", str(failures))
     suite.set("errors", str(errors))

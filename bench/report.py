@@ -155,6 +155,8 @@ def fmt_number(value: Any) -> str:
 def verdict_of(criterion: dict) -> str:
     if criterion.get("passed"):
         return "pass"
+    if criterion.get("status") == "not_judged":
+        return "not judged"
     return "known gap" if criterion.get("known_gap") else "**FAIL**"
 
 

@@ -64,7 +64,7 @@ def test_record_lifecycle_parquet_and_junit(tmp_path):
     by_name = {c["name"]: c for c in record["criteria"]}
     assert by_name["bad"] == {"name": "bad", "kind": "peak_abs", "signal": "i_sx_a", "window_s": [0.0, 1.0],
                               "value": 2.0, "limit": 1.0, "passed": False, "known_gap": None,
-                              "detail": "detail of bad"}
+                              "detail": "detail of bad", "status": "fail"}
     assert by_name["gap"]["value"] is None and by_name["gap"]["known_gap"] == "eq. 15b offset"   # inf -> null
     assert record["telemetry"]["rows"] == 1001
 
