@@ -92,6 +92,25 @@ def drive_description(cfg: dict[str, Any]) -> DeviceDescription | None:
     return _read_eds_cached(eds, *_stamp(eds)) if eds else None
 
 
+def measurable_signals(cfg: dict[str, Any]) -> frozenset[str]:
+    """The signals this bench can measure, judged from its files alone (the run records what it really measured):
+    the drive's (from its EDS, profile and [drive] signals) and the reference sensor's."""
+    from drivers.canopen.profile import static_measurable
+    from drivers.reference import ReferenceConfig
+    from drivers.signals import SIGNAL_NAMES
+
+    drive = cfg.get("drive", {})
+    description = drive_description(cfg)
+    if drive.get("transport") != "canopen" or description is None:
+        own = frozenset(SIGNAL_NAMES)                 # the serial protocol is drivebench's: every signal
+    else:
+        own = static_measurable(drive, description.has,
+                                lambda index: description.has(index) and bool(description.od[index].default),
+                                description.drivebench_kind is not None)
+    reference = ReferenceConfig((cfg.get("reference") or {}).get("source")).signals(bool(cfg.get("load")))
+    return own | frozenset(reference)
+
+
 def _stamp(path: str) -> tuple[int, int]:
     st = Path(path).stat()
     return st.st_size, st.st_mtime_ns

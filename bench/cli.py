@@ -6,6 +6,7 @@ Bad input is reported as one line per problem on stderr, without a traceback.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -264,9 +265,12 @@ def _is_bench_config(path: Path) -> bool:
 
 @cli.command()
 @click.argument("files", nargs=-1, required=True)
-def validate(files) -> None:
-    """Check scenario and bench config FILEs; one line per problem, exit 2 if any."""
-    from bench.benchconfig import load_bench_config
+@click.option("--bench", "bench_path", type=click.Path(), help="Validate scenarios against this bench config.")
+def validate(files, bench_path) -> None:
+    """Check scenario and bench config FILEs; one line per problem, exit 2 if any. For a scenario, also the criteria
+    its bench cannot judge (signals it does not measure)."""
+    from bench.benchconfig import load_bench_config, measurable_signals
+    from bench.criteria import signals_of
     from bench.orchestrator import prepare
 
     bad = False
@@ -275,17 +279,66 @@ def validate(files) -> None:
         try:
             if _is_bench_config(path):
                 cfg = load_bench_config(path)
+                load = f"load over {cfg['load']['transport']}" if cfg.get("load") else "no load machine"
                 click.echo(f"{path}: ok (bench config {cfg['bench']['name']!r}, drive over {cfg['drive']['transport']}, "
-                           f"load over {cfg['load']['transport']})")
+                           f"{load})")
             else:
-                scenario, cfg = prepare(path)
+                scenario, cfg = prepare(path, bench_path)
                 click.echo(f"{path}: ok (scenario {scenario.name!r}, {scenario.duration_s:g} s, "
                            f"{len(scenario.criteria)} criteria, bench {cfg['bench']['name']!r})")
+                measurable = measurable_signals(cfg)
+                for i, criterion in enumerate(scenario.criteria):
+                    missing = [s for s in signals_of(criterion) if s not in measurable]
+                    if missing:
+                        click.echo(f"{path}: criteria[{i}] ({criterion.name}): not judged on bench "
+                                   f"{cfg['bench']['name']!r}: {', '.join(missing)} not measured there")
         except (InputError, FileNotFoundError, tomllib.TOMLDecodeError, OSError) as exc:
             bad = True
             for line in _problem_lines(exc):
                 click.echo(line, err=True)
     sys.exit(EXIT_ERROR if bad else EXIT_PASS)
+
+
+@cli.command()
+@click.option("--bench", "bench_path", type=click.Path(), required=True, help="The rig's bench config.")
+@click.option("--scan", is_flag=True, help="Also list every node on the CAN bus that answers (node ids 1-127).")
+@click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
+def probe(bench_path, scan, as_json) -> None:
+    """What the drive says about itself before the first run: identity, device type, modes, units and factor
+    group, PDO mappings, heartbeat and comm-loss objects, drivebench features, and the profile the bench would use
+    (or what to fix in the bench config). Read-only: nothing is written to the drive."""
+
+    def body() -> int:
+        from bench.benchconfig import load_bench_config
+        from bench.links import started_services
+
+        cfg = load_bench_config(bench_path)
+        drive = cfg["drive"]
+        with started_services(cfg, 0) as live:
+            section = live["drive"]
+            if drive["transport"] == "canopen":
+                from drivers.canopen.probe import probe as probe_canopen, scan as scan_bus
+                report = {"bench": cfg["bench"]["name"], "drive": probe_canopen(section, find_repo_root(bench_path))}
+                if scan:
+                    report["nodes"] = scan_bus(section)
+            else:
+                from drivers.api import LinkSettings
+                from drivers.serial_link import SerialDriveLink
+                link = SerialDriveLink(dict(section), find_repo_root(bench_path), LinkSettings())
+                try:
+                    identity = link.open()
+                    report = {"bench": cfg["bench"]["name"], "drive": {
+                        "identity": dataclasses.asdict(identity), "control_period_s": link.control_period_s,
+                        "parameters": list(link.parameters)}}
+                finally:
+                    link.close()
+        if as_json:
+            click.echo(json.dumps(report, default=str, indent=2))
+        else:
+            make_console().print(report)
+        return EXIT_PASS
+
+    sys.exit(_guarded(body))
 
 
 def _scenario_root() -> Path:

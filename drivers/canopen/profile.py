@@ -345,3 +345,17 @@ def _signals(table: dict, problems: list[tuple[str, str]]) -> dict[str, dict]:
             problems.append((where, f"0x{ref[0]:04X} is not a standard object: give its factor (physical = value x "
                                     "factor) or its scale"))
     return out
+
+
+def static_measurable(section: dict, has_object: Callable[[int], bool], rated_in_eds: Callable[[int], bool],
+                      is_extension_eds: bool) -> frozenset[str]:
+    """What a CANopen drive will give, judged from its EDS and the bench config alone (before connecting): the
+    extension's signals, or the standard objects the EDS has (torque and current only where the rated value is
+    known) plus the signals the config maps."""
+    if section.get("profile", "auto") == "drivebench" or (section.get("profile", "auto") == "auto" and is_extension_eds):
+        return frozenset(SIGNAL_NAMES)
+    rated = {"torque": bool(section.get("rated_torque_nm")) or rated_in_eds(o.MOTOR_RATED_TORQUE),
+             "current": bool(section.get("rated_current_a")) or rated_in_eds(o.MOTOR_RATED_CURRENT),
+             "velocity": True, "millivolt": True}
+    signals = {signal for signal, (index, scale) in STANDARD_SOURCES.items() if has_object(index) and rated[scale]}
+    return frozenset(signals | set(section.get("signals") or {}))
