@@ -249,14 +249,18 @@ STOP_TIMEOUT_S = 5.0         # at most this long waiting for standstill after a 
 
 
 def wait_standstill(advance: Callable[[], None], speed: Callable[[], float | None], threshold_mech_rad_s: float,
-                    timeout_s: float) -> dict:
+                    timeout_s: float, max_advances: int | None = None) -> dict:
     """After a quick stop: let the drive brake until |speed| <= threshold, bounded in time, so the power stage goes off
     at standstill and not at speed. `advance` lets drive time pass (lockstep: one SYNC; real time: a short sleep);
     `speed` is the drive's speed in mech rad/s (None: unknown, stop waiting). A link error ends the wait: the
-    disable step comes next whatever happened. Returns what happened, for the record."""
+    disable step comes next whatever happened. `max_advances` bounds the wait in drive time too (lockstep: a
+    simulated drive runs many times faster than the wall clock, and its trace recorder must not overrun while the
+    bench waits). Returns what happened, for the record."""
     started = time.monotonic()
     current = None
-    while time.monotonic() - started < timeout_s:
+    advances = 0
+    while time.monotonic() - started < timeout_s and (max_advances is None or advances < max_advances):
+        advances += 1
         try:
             advance()
             current = speed()

@@ -7,6 +7,7 @@ as socket://127.0.0.1:29537), baudrate, timeout_s, retries, sync_period_s. The b
 
 from __future__ import annotations
 
+import math
 import struct
 import threading
 import time
@@ -320,7 +321,9 @@ class SerialDriveLink:
         def speed() -> float | None:
             return latest[-1].values.get("speed_est_mech_rad_s") if latest else None
 
-        self.report["stop"] = cia402.wait_standstill(advance, speed, self.standstill_mech_rad_s, self.stop_timeout_s)
+        advances = math.ceil(self.stop_timeout_s / self.sync_period_s) if self.timing == "lockstep" else None
+        self.report["stop"] = cia402.wait_standstill(advance, speed, self.standstill_mech_rad_s, self.stop_timeout_s,
+                                                     advances)
 
     def disable(self) -> None:
         # disable voltage: power stage off from every state (shutdown 0x06 is refused in QUICK STOP ACTIVE)

@@ -63,3 +63,17 @@ def test_trace_waits_for_enable_trigger():
     assert rec.rows_available == 0
     rec.push(5, np.zeros((5, len(SIGNAL_NAMES))), enabled=True)
     assert rec.rows_available == 5
+
+
+def test_standstill_wait_is_bounded_in_drive_time_too():
+    """A frozen speed estimate never reaches standstill: in lockstep the wait ends after stop_timeout_s of drive time
+    (max_advances SYNCs), long before the wall-clock bound, so the drive's trace recorder cannot overrun."""
+    from drivers import cia402
+
+    advances = []
+    report = cia402.wait_standstill(lambda: advances.append(1), lambda: 12.0, 0.5, timeout_s=30.0, max_advances=500)
+    assert len(advances) == 500 and report["standstill"] is False and report["wait_s"] < 5.0
+    speeds = iter([8.0, 3.0, 0.2, 0.1])
+    advances.clear()
+    report = cia402.wait_standstill(lambda: advances.append(1), lambda: next(speeds), 0.5, timeout_s=30.0, max_advances=500)
+    assert len(advances) == 3 and report["standstill"] is True and report["speed_at_disable_mech_rad_s"] == 0.2

@@ -511,7 +511,10 @@ class CanopenDriveLink:
             return
         advance = self.sync if self.timing == "lockstep" else (lambda: time.sleep(max(self.sync_period_s, 0.01)))
         self.report["stop"] = cia402.wait_standstill(advance, self._speed_now, self.standstill_mech_rad_s,
-                                                     self.stop_timeout_s)
+                                                     self.stop_timeout_s, self._stop_advances())
+
+    def _stop_advances(self) -> int | None:
+        return math.ceil(self.stop_timeout_s / self.sync_period_s) if self.timing == "lockstep" else None
 
     def disable(self) -> None:
         self._target = 0
