@@ -24,9 +24,9 @@ from bench.records import load_run
 REPO_ROOT = Path(__file__).resolve().parents[1]
 PAPERS: dict[str, str] = {
     "pmsm": "PMSM — Rashed, MacConnell, Stronach, Acarnley: sensorless IRFOC with MRAS speed and flux "
-            "estimators (`/work/shared/papers/pmsm-mras-irfoc.md`)",
+            "estimators, Proc. 44th IEEE CDC-ECC 2005",
     "spim": "SPIM — Jemli, Ben Azza, Boussak, Gossa: sensorless ISFOC of a single-phase induction motor, "
-            "IEEE TPEL 24(6) 2009 (`/work/shared/papers/spim-sensorless-isfoc.md`)",
+            "IEEE TPEL 24(6) 2009, doi:10.1109/TPEL.2009.2014867",
     "other": "Other runs",
 }
 
