@@ -20,13 +20,13 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from bench.benchconfig import load_bench_config
-from bench.criteria import evaluate, incomplete_reason, time_axis, verdict as judge
+from bench.criteria import evaluate, incomplete_reason, signals_of, time_axis, verdict as judge
 from bench.errors import InputError, find_repo_root
 from bench.links import make_links, started_services
 from bench.records import RunRecorder
 from bench.rerun_view import RerunStream
 from bench.scenario import load_scenario
-from bench.summary_plot import write_summary_png
+from bench.summary_plot import PLOT_SIGNALS, write_summary_png
 from bench.supervisor import SafeStop, Supervisor, UnitCheck, check_status
 from bench.telemetry import TelemetryWorker
 from drivers.api import LinkError, LiveSample
@@ -47,10 +47,12 @@ TRACE_SIGNALS: tuple[str, ...] = (
     "speed_ref_mech_rad_s", "speed_est_mech_rad_s", "speed_true_mech_rad_s", "pos_est_elec_rad",
     "pos_err_elec_rad", "flux_est_wb", "flux_true_wb", "i_sx_a", "i_sy_a", "u_sx_v", "u_sy_v", "torque_load_nm",
 )
-FETCH_PERIOD_S = 0.5       # upload the trace recorder every 0.5 s of drive time
+FETCH_PERIOD_S = 0.25      # upload the trace recorder every 0.25 s of drive time (a killed bench loses at most that)
 RERUN_MAX_RATE_HZ = 2000.0 # run.rrd / viewer: a 10 kHz trace is thinned to 2 kHz (3.6 -> 0.8 MB/s); parquet has all
 STATUS_PERIOD_S = 0.02     # poll the drive's status (fault, EMCY, heartbeat) every 20 ms of drive time
 PROGRESS_PERIOD_S = 0.1
+STUCK_GRACE_S = 2.0        # after a trip, how long the run loop may take to notice before it is abandoned
+SUPERVISE_POLL_S = 0.05    # the main thread's wait on the run loop (signals are handled between waits)
 STALL_TIMEOUT_S = 5.0      # wall seconds without any live sample -> the link is dead
 LOAD_POLL_PERIOD_S = 0.1   # read the load machine's status (fault bit; a dead Modbus link) every 0.1 s of drive time
 
@@ -74,30 +76,6 @@ class RunResult:
     @property
     def passed(self) -> bool:
         return self.verdict == "pass"
-
-
-@dataclass
-class _Collected:
-    """Telemetry kept in memory for the verdict and the plot (the recorder has it on disk too)."""
-
-    chunks: list[dict[str, np.ndarray]] = field(default_factory=list)
-
-    def add(self, columns: dict[str, np.ndarray]) -> None:
-        if len(columns.get(TIME_COLUMN, ())):
-            self.chunks.append(columns)
-
-    def columns(self) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        if not self.chunks:
-            return np.zeros(0), {}
-        names = [n for n in self.chunks[0] if n != TIME_COLUMN]
-        t = np.concatenate([c[TIME_COLUMN] for c in self.chunks])
-        cols = {}
-        for n in names:
-            cols[n] = np.concatenate([
-                np.asarray(c[n], dtype=float) if n in c else np.full(len(c[TIME_COLUMN]), math.nan)
-                for c in self.chunks
-            ])
-        return t, cols
 
 
 def live_columns(samples: Sequence[LiveSample], names: Sequence[str]) -> dict[str, np.ndarray]:
@@ -224,6 +202,88 @@ def _run_connected(scenario, cfg, seed, drive, load, out_root, rerun_mode, rerun
     return run.execute()
 
 
+class RunLoopAbandoned(Exception):
+    """A call from a run loop that the supervisor has abandoned: the run is over, nothing more goes to the rig."""
+
+
+class _Gate:
+    """The run loop's view of a link: once the loop is abandoned, its calls are refused (other threads — the safe
+    stop, the final upload — still reach the link)."""
+
+    def __init__(self, target: Any, loop_thread: Callable[[], int | None], closed: threading.Event):
+        self._target, self._loop_thread, self._closed = target, loop_thread, closed
+
+    def __getattr__(self, name: str) -> Any:
+        attr = getattr(self._target, name)
+        if not callable(attr):
+            return attr
+
+        def call(*args, **kwargs):
+            if self._closed.is_set() and threading.get_ident() == self._loop_thread():
+                raise RunLoopAbandoned(f"{name}() refused: the run loop was abandoned")
+            return attr(*args, **kwargs)
+        return call
+
+
+class _LoopThread:
+    """_configure_and_enable() and _loop() on a thread of their own, so that the main thread can end a run whose
+    loop is stuck in a call (the supervisor's wall-clock bound) and take SIGINT/SIGTERM at any time."""
+
+    def __init__(self, run: "_Run"):
+        self.run = run
+        self._thread = threading.Thread(target=self._body, name="run-loop", daemon=True)
+        self._done = threading.Event()
+        self._abandoned = threading.Event()
+        self._abort_reason: str | None = None
+        self._exc: BaseException | None = None
+        self.traceback: str | None = None
+        self._raw = (run.drive, run.load)
+        ident = lambda: self._thread.ident    # noqa: E731
+        run.drive = _Gate(run.drive, ident, self._abandoned)
+        if run.load is not None:
+            run.load = _Gate(run.load, ident, self._abandoned)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def _body(self) -> None:
+        try:
+            self.run._configure_and_enable()
+            self._abort_reason = self.run._loop()
+        except BaseException as exc:
+            self._exc = exc
+            self.traceback = traceback.format_exc()
+        finally:
+            self._done.set()
+
+    def wait(self, timeout_s: float) -> bool:
+        return self._done.wait(timeout_s)
+
+    def result(self, ended_by_itself: bool) -> str | None:
+        """The loop's abort reason, or its exception raised here; an abandoned loop: the supervisor's trip."""
+        if not ended_by_itself:
+            trip = self.run.supervisor.trip
+            return (trip.message if trip else "run loop abandoned") + "; the run loop was stuck and abandoned"
+        if self._exc is not None:
+            raise self._exc
+        return self._abort_reason
+
+    def stop_and_wait(self, grace_s: float) -> None:
+        self.run._stop_loop.set()
+        if not self._done.wait(grace_s):
+            self.abandon()
+
+    def abandon(self) -> None:
+        self._abandoned.set()
+        for link in self._raw:
+            interrupt = getattr(link, "interrupt", None)
+            if interrupt is not None:
+                try:
+                    interrupt()
+                except Exception:
+                    pass
+
+
 class _Run:
     def __init__(self, scenario, cfg, seed, drive, load, identity, load_name, recorder, safe_stop, rerun_mode,
                  rerun_url, progress, warn):
@@ -236,7 +296,7 @@ class _Run:
         self.recorder = recorder
         self.safe_stop = safe_stop
         self.progress = progress
-        self.collected = _Collected()
+        self._t_recorded_last = -math.inf    # drive time of the last recorded row (the data is on disk only)
         self.live_buffer: list[LiveSample] = []
         self.telemetry = TelemetryWorker()
         self.realtime = cfg["bench"]["timing"] == "realtime"
@@ -256,6 +316,7 @@ class _Run:
         self._link_in_use = "drive"          # which link a LinkError came from
         self._t_drive = 0.0
         self._started_wall = time.monotonic()
+        self._stop_loop = threading.Event()        # the main thread asks the run loop to end (operator abort)
         try:
             self.rerun = RerunStream(rerun_mode, recorder.run_dir / "run.rrd", url=rerun_url,
                                      recording_name=recorder.run_dir.name,
@@ -279,11 +340,13 @@ class _Run:
         error: str | None = None
         interrupted = False
         self.supervisor.start()
+        loop = _LoopThread(self)
         try:
-            self._configure_and_enable()
-            abort_reason = self._loop()
+            loop.start()
+            abort_reason = loop.result(self._supervise(loop))
         except KeyboardInterrupt as exc:      # Interrupted (SIGINT/SIGTERM handler) or a bare KeyboardInterrupt
             interrupted = True
+            loop.stop_and_wait(STUCK_GRACE_S)
             abort_reason = (str(exc) if isinstance(exc, Interrupted) else "") or "interrupted (Ctrl-C)"
             self._add_trip("operator", abort_reason)
         except LinkError as exc:
@@ -291,7 +354,7 @@ class _Run:
             self._add_trip(f"{self._link_in_use}_link", str(exc))
         except Exception as exc:
             error = f"{type(exc).__name__}: {exc}"
-            self.recorder.note("traceback", traceback.format_exc())
+            self.recorder.note("traceback", loop.traceback or traceback.format_exc())
             self._add_trip("exception", error)
         finally:
             if self.signals is not None:
@@ -306,6 +369,23 @@ class _Run:
                 except Exception:
                     pass  # the record is written; a failing viewer or thread must not lose the result
             _close_quietly(self.drive, self.load)
+
+    def _supervise(self, loop: "_LoopThread") -> bool:
+        """Wait for the run loop; True when it ended by itself. Once the supervisor has tripped (a limit, the
+        wall-clock bound), the loop gets STUCK_GRACE_S to notice; a loop stuck in a call past that is abandoned:
+        its links are interrupted, its further calls refused, and the safe stop runs from here."""
+        tripped_at: float | None = None
+        while not loop.wait(SUPERVISE_POLL_S):
+            if self.supervisor.tripped.is_set() and tripped_at is None:
+                tripped_at = time.monotonic()
+            if tripped_at is not None and time.monotonic() - tripped_at > STUCK_GRACE_S:
+                loop.abandon()
+                trip = self.supervisor.trip
+                self._add_trip("stuck", f"the run loop did not return within {STUCK_GRACE_S:g} s after "
+                                        f"{trip.reason if trip else 'the trip'}; abandoned, safe stop from the "
+                                        f"supervisor side")
+                return False
+        return True
 
     def _add_trip(self, reason: str, message: str, values: dict | None = None, t_s: float | None = None) -> None:
         self.trips.append({"reason": reason, "t_s": self._t_drive if t_s is None else t_s, "values": values or {},
@@ -369,7 +449,7 @@ class _Run:
         k = 0
         self._command(0.0, injections, applied)
         while t_drive < duration - 1e-9:
-            if self.supervisor.tripped.is_set():
+            if self.supervisor.tripped.is_set() or self._stop_loop.is_set():
                 break
             samples = self._run_time(self.drive.sync())
             if samples and self.reference_signals:
@@ -499,7 +579,7 @@ class _Run:
 
     def _record_live_tail(self) -> None:
         """The trace since the last upload is out of reach (dead link): keep the live samples of that time."""
-        t_last = self.collected.chunks[-1][TIME_COLUMN][-1] if self.collected.chunks else -math.inf
+        t_last = self._t_recorded_last
         with self._live_lock:
             tail = [s for s in self.live_buffer if s.t_s > t_last]
             self.live_buffer = []
@@ -511,7 +591,8 @@ class _Run:
     def _append(self, block: dict[str, np.ndarray]) -> None:
         block = {k: np.asarray(v) for k, v in block.items()}
         self.recorder.append(block)
-        self.collected.add(block)
+        if len(block[TIME_COLUMN]):
+            self._t_recorded_last = float(block[TIME_COLUMN][-1])
         # the viewer shows what is recorded (every signal), in blocks of FETCH_PERIOD_S, at most RERUN_MAX_RATE_HZ
         t = block[TIME_COLUMN]
         step = self._rerun_step(t)
@@ -548,7 +629,10 @@ class _Run:
             if error is None and abort_reason is None:
                 error = f"final trace upload failed: {exc}"
             self._record_live_tail()
-        t, columns = self.collected.columns()
+        # read back from the run's journal what the verdict and the plot need: no copy of the run in memory
+        needed = {name for spec in self.scenario.criteria for name in signals_of(spec)} | set(PLOT_SIGNALS)
+        columns = self.recorder.read_back(needed)
+        t = columns.pop(TIME_COLUMN)
         duration = float(self.scenario.duration_s)
         in_test = t <= duration + 1e-9
         row_period = self._row_period_s()

@@ -22,7 +22,7 @@ import threading
 import time
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable
 from xml.etree import ElementTree as ET
 
 import numpy as np
@@ -104,7 +104,8 @@ def _run_dir_name(name: str) -> str:
 class RunRecorder:
     """Writes one run directory. append() is cheap; a background thread flushes the journal on time."""
 
-    def __init__(self, out_root: Path, scenario, seed: int, bench_cfg: dict, flush_interval_s: float = 0.5):
+    def __init__(self, out_root: Path, scenario, seed: int, bench_cfg: dict, flush_interval_s: float = 0.5,
+                 flush_drive_s: float = 0.25):
         out_root = Path(out_root)
         out_root.mkdir(parents=True, exist_ok=True)
         base = _run_dir_name(scenario.name)
@@ -119,6 +120,10 @@ class RunRecorder:
             raise RuntimeError(f"cannot create a run directory under {out_root}")
         self.run_dir: Path = candidate
         self.flush_interval_s = float(flush_interval_s)
+        # flushed at least every flush_interval_s of wall time and every flush_drive_s of drive time (a simulator
+        # in lockstep runs many times faster than the wall clock: a SIGKILL must not lose seconds of drive time)
+        self.flush_drive_s = float(flush_drive_s)
+        self._t_flushed = -math.inf
         bench = bench_cfg.get("bench", {}) if isinstance(bench_cfg, dict) else {}
         self.record: dict[str, Any] = {
             "verdict": "running",
@@ -190,7 +195,9 @@ class RunRecorder:
             for name, parts in self._pending.items():
                 parts.append(block.get(name))
             self._pending_sizes.append(n)
-            due = time.monotonic() - self._last_flush >= self.flush_interval_s
+            t_last = float(block[TIME_COLUMN][-1])
+            due = (time.monotonic() - self._last_flush >= self.flush_interval_s
+                   or not t_last - self._t_flushed < self.flush_drive_s)
         if due:
             self.flush()
 
@@ -199,19 +206,26 @@ class RunRecorder:
         with self._lock:
             self._flush_locked()
 
-    def read_back(self) -> dict[str, np.ndarray]:
-        """Every row appended so far (t_s + signal columns), read back from the journal after a flush.
-
-        Lets the caller evaluate criteria without keeping its own copy of the run in memory."""
+    def read_back(self, signals: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+        """Every row appended so far (t_s + the given signal columns, default all), read back from the journal after
+        a flush. Lets the caller evaluate criteria without keeping its own copy of the run in memory; a signal
+        never recorded comes back as NaN."""
         with self._lock:
             self._flush_locked()
             if self._journal_file is not None:
                 self._journal_file.flush()
             schema = self._schema or _empty_schema()
+        names = list(schema.names) if signals is None else [TIME_COLUMN, *dict.fromkeys(signals)]
+        kept = [n for n in names if n in schema.names]
         journal = self.run_dir / JOURNAL
-        batches = list(_read_journal(journal)[1]) if journal.exists() else []
-        table = pa.Table.from_batches(batches, schema=schema)
-        return {name: table.column(name).to_numpy() for name in table.column_names}
+        parts: dict[str, list[np.ndarray]] = {n: [] for n in kept}
+        rows = 0
+        for batch in (_read_journal(journal)[1] if journal.exists() else ()):
+            rows += batch.num_rows
+            for n in kept:
+                parts[n].append(batch.column(schema.get_field_index(n)).to_numpy(zero_copy_only=False))
+        return {n: (np.concatenate(parts[n]) if parts[n] else np.zeros(0)) if n in parts else np.full(rows, np.nan)
+                for n in names}
 
     # --- at the end --------------------------------------------------------------------------------------
 
@@ -264,6 +278,7 @@ class RunRecorder:
         self._writer.write_batch(batch)
         self._journal_file.flush()
         t = arrays[0]
+        self._t_flushed = float(t[n - 1].as_py())
         tel = self.record["telemetry"]
         if tel["t_first_s"] is None:
             tel["t_first_s"] = float(t[0].as_py())

@@ -14,6 +14,7 @@ PANELS: tuple[tuple[str, str, tuple[tuple[str, str], ...]], ...] = (
     ("flux", "Wb", (("flux_est_wb", "estimated"), ("flux_true_wb", "true"))),
     ("currents", "A", (("i_sx_a", "i_sx"), ("i_sy_a", "i_sy"), ("i_sx_ref_a", "i_sx ref"), ("i_sy_ref_a", "i_sy ref"))),
 )
+PLOT_SIGNALS: tuple[str, ...] = tuple(dict.fromkeys(sig for _, _, lines in PANELS for sig, _ in lines))
 BUCKETS = 1500  # per line: min and max of each bucket are drawn, so spikes survive the decimation
 
 

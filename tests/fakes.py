@@ -27,11 +27,14 @@ class FakeRig:
     sync_error_at_s: float | None = None     # sync() raises LinkError from this drive time on
     open_error: str | None = None            # open() raises LinkError(open_error)
     interrupt_at_s: float | None = None      # sync() raises KeyboardInterrupt once at this drive time
+    hang_at_s: float | None = None           # sync() blocks (a stuck call) from this drive time until `release` is set
     overspeed_offset: float = 0.0            # added to the true speed reported live (to trip the supervisor)
     calls: list[tuple[str, tuple]] = field(default_factory=list)
     model: object = None                     # any sim_backend DriveModel; default a ToyDrive
 
     def __post_init__(self):
+        import threading
+        self.release = threading.Event()
         if self.model is None:
             self.model = ToyDrive()
         self.drive = FakeDriveLink(self)
@@ -74,6 +77,8 @@ class FakeDriveLink:
         self.rig.model.set_enabled(True)
 
     def set_speed_ref(self, speed_mech_rad_s: float) -> None:
+        if self.rig.hang_at_s is not None:
+            self._log("drive.set_speed_ref", speed_mech_rad_s)
         self.rig.model.set_speed_ref(speed_mech_rad_s)
 
     def write_parameter(self, name: str, value: float) -> None:
@@ -89,6 +94,9 @@ class FakeDriveLink:
         t = model.time_s
         if self.rig.sync_error_at_s is not None and t >= self.rig.sync_error_at_s:
             raise LinkError("SYNC not answered (fake)")
+        if self.rig.hang_at_s is not None and t >= self.rig.hang_at_s and not self.rig.release.is_set():
+            self._log("drive.sync_hangs")
+            self.rig.release.wait(120.0)
         if self.rig.interrupt_at_s is not None and t >= self.rig.interrupt_at_s and not self._interrupted:
             self._interrupted = True
             raise KeyboardInterrupt

@@ -162,6 +162,40 @@ def test_link_error_mid_run_is_an_error_record(tmp_path):
     assert safe_stop_calls(rig) == SAFE_STOP
 
 
+def test_a_stuck_call_is_abandoned_and_the_supervisor_side_stops_the_rig(tmp_path):
+    """A link call that never returns (issue: an SDO abort during a block upload spun forever with the drive
+    enabled): the wall-clock bound trips, the loop gets STUCK_GRACE_S, then the safe stop runs from the main
+    thread and the record is finished; the abandoned loop's later calls never reach the rig."""
+    import time
+
+    from bench.orchestrator import STUCK_GRACE_S
+
+    rig = FakeRig(hang_at_s=0.3)
+    started = time.monotonic()
+    try:
+        result = _run_with_limit(tmp_path, rig, max_duration_s=1.5)
+        wall = time.monotonic() - started
+        assert result.verdict == "aborted"
+        reasons = [t["reason"] for t in result.record["trips"]]
+        assert reasons[0] == "max_duration" and "stuck" in reasons
+        assert "stuck and abandoned" in result.record["abort_reason"]
+        assert safe_stop_calls(rig) == SAFE_STOP
+        assert result.record["complete"] and 0.25 < result.record["telemetry"]["t_last_s"] < 0.4
+        assert wall < 1.5 + STUCK_GRACE_S + 3.0
+        calls_at_stop = len(rig.calls)
+    finally:
+        rig.release.set()            # the stuck call returns now: the abandoned loop must not command the drive
+    time.sleep(0.3)
+    assert [name for name, _ in rig.calls[calls_at_stop:]] == []
+
+
+def _run_with_limit(tmp_path, rig, max_duration_s: float):
+    scenario = write_case(tmp_path, duration=1.0)
+    text = scenario.read_text().replace("[limits]\n", f"[limits]\nmax_duration_s = {max_duration_s}\n")
+    scenario.write_text(text)
+    return run(tmp_path, rig, scenario=scenario)
+
+
 def test_link_error_at_connect_raises_before_a_run_dir(tmp_path):
     rig = FakeRig(open_error="no answer from node 1")
     with pytest.raises(LinkError, match="node 1"):
