@@ -50,6 +50,7 @@ from drivers.trace_format import decode_rows, mask_for
 log = logging.getLogger(__name__)
 
 MIN_STALL_TIMEOUT_S = 2.0
+MAX_UPLOADS_PER_FETCH = 64     # bounds one fetch_trace() whatever the node reports as available; the rest comes next time
 REALTIME_BATCH_S = 0.01      # real time: sync() hands over samples in batches of at most this period
 HEAD = {o.STATUSWORD: "_statusword", o.MODES_DISPLAY: "_mode"}
 
@@ -85,6 +86,7 @@ class CanopenDriveLink:
         self._snapshot: pdos.PdoSnapshot | None = None
         self._guard: CommLossGuard | None = None
         self._lock = threading.Condition()
+        self._cancel = threading.Event()
         self._last_heartbeat = 0.0
         self._heartbeat_state: int | None = None
         self._emcy: list[tuple[int, str]] = []
@@ -162,6 +164,11 @@ class CanopenDriveLink:
         except LinkError as exc:
             log.info("node %d: %s", self.node_id, exc)
             return ""
+
+    def interrupt(self) -> None:
+        """From another thread: end a trace upload in progress at once (the bench is abandoning a stuck run loop
+        and its safe stop needs the node's SDO channel). Uploads stay refused from then on."""
+        self._cancel.set()
 
     def close(self) -> None:
         """The drive's own settings back (comm-loss objects first, then PDOs), then off the bus."""
@@ -548,10 +555,12 @@ class CanopenDriveLink:
             return {TIME_COLUMN: np.zeros(0)}
         pieces = []
         available = self.sdo.read(o.EXT_TRACE, o.TRACE_ROWS_AVAILABLE)
-        while available > 0:
+        for _ in range(MAX_UPLOADS_PER_FETCH):
+            if available <= 0:
+                break
             with self.sdo.lock:                  # the block upload takes over the node's SDO channel
                 data = block_upload(self.network, self.node_id, o.EXT_TRACE_DATA, 0, self.stall_timeout_s,
-                                    self._send)
+                                    self._send, self._cancel)
             if not data:
                 break
             pieces.append(data)

@@ -120,12 +120,21 @@ class SdoAccess:
         return True
 
 
+MIN_FRAMES_PER_S = 1000.0   # the slowest transfer rate a block upload may take before its deadline
+MAX_STALLED_SUBBLOCKS = 3    # sub-blocks in a row that bring no new segment: the transfer is dead
+
+
 def block_upload(network: canopen.Network, node_id: int, index: int, subindex: int, timeout_s: float,
-                 send: Callable[[int, bytes], None]) -> bytes:
+                 send: Callable[[int, bytes], None], cancel: threading.Event | None = None) -> bytes:
     """SDO block upload, client side, with CRC. Segments are collected on the receive thread and handed over once
-    per sub-block, which is what makes ~50k frames/s possible in Python. b"" when the server has no data."""
+    per sub-block, which is what makes ~50k frames/s possible in Python. b"" when the server has no data.
+
+    Bounded whatever the bus does: an abort frame (0x80: never a valid segment, whose sequence numbers start at 1)
+    ends the transfer wherever it comes; each wait has timeout_s; sub-blocks that bring nothing new end it after
+    MAX_STALLED_SUBBLOCKS; the whole transfer has a deadline of timeout_s plus the announced size at
+    MIN_FRAMES_PER_S; `cancel` set by another thread ends it at once (the bench's safe stop needs the bus)."""
     rx = o.SDO_TX + node_id
-    collector = _BlockCollector()
+    collector = _BlockCollector(cancel)
     saved = network.subscribers.get(rx, [])
     network.subscribers[rx] = [collector.on_frame]
     where = f"node {node_id}: block upload of 0x{index:04X}:{subindex:02X}"
@@ -161,16 +170,29 @@ def block_upload(network: canopen.Network, node_id: int, index: int, subindex: i
             raise fail(f"unexpected answer {bytes(head).hex()}", o.ABORT_COMMAND)
         size = struct.unpack_from("<L", head, 4)[0] if head[0] & o.BLOCK_SIZE_INDICATED else None
         crc_on = bool(head[0] & o.BLOCK_CRC_SUPPORTED)
+        frames_expected = (size or 0) / 7 + 2
+        deadline = time.monotonic() + timeout_s + frames_expected / MIN_FRAMES_PER_S
         chunks: list[bytes] = []
+        stalled = 0
         collector.expect_block(o.MAX_BLOCK_SIZE)
         request(bytes([o.BLOCK_UPLOAD_START]))
         while True:
-            frames = collector.wait(timeout_s)
+            frames = collector.wait(min(timeout_s, max(0.0, deadline - time.monotonic())))
             if frames is None:
+                if collector.cancelled:
+                    raise fail("cancelled by the bench (safe stop)", o.ABORT_GENERAL)
+                if time.monotonic() >= deadline:
+                    raise fail(f"not finished within its deadline ({len(chunks)} sub-blocks received)")
                 raise fail(f"block segments stopped arriving (timeout {timeout_s} s)")
-            if not any(chunks) and len(frames) == 1 and frames[0][0] == o.SDO_ABORT:   # abort before any segment
-                raise aborted(frames[0])
+            abort = next((f for f in frames if len(f) == 8 and f[0] == o.SDO_ABORT), None)
+            if abort is not None:
+                raise aborted(abort)
             ackseq, last, data = accept_segments(frames)
+            stalled = 0 if ackseq else stalled + 1
+            if stalled >= MAX_STALLED_SUBBLOCKS:
+                raise fail(f"{stalled} sub-blocks in a row without a valid segment", o.ABORT_SEQUENCE)
+            if time.monotonic() >= deadline:
+                raise fail(f"not finished within its deadline ({len(chunks)} sub-blocks received)")
             chunks.append(data)
             if last:
                 collector.expect(1)
@@ -182,6 +204,8 @@ def block_upload(network: canopen.Network, node_id: int, index: int, subindex: i
         frames = collector.wait(timeout_s)
         if frames is None:
             raise fail(f"no end of transfer within {timeout_s} s")
+        if frames[0][0] == o.SDO_ABORT:
+            raise aborted(frames[0])
         end = frames[0]
         if end[0] & 0xE1 != o.BLOCK_RESPONSE_END:
             raise fail(f"unexpected end {bytes(end).hex()}", o.ABORT_COMMAND)
@@ -229,7 +253,9 @@ class _BlockCollector:
     taken once, to wake the uploader, which then takes the list. A frame outside the expected window (after
     the block's last segment, before the next request) may be dropped, as the protocol allows."""
 
-    def __init__(self):
+    def __init__(self, cancel: threading.Event | None = None):
+        self._cancel = cancel
+        self.cancelled = False
         self._cond = threading.Condition()
         self._frames: list[bytearray] = []
         self._want = 1
@@ -258,9 +284,12 @@ class _BlockCollector:
         deadline = time.monotonic() + timeout
         with self._cond:
             while not self._ready:
+                if self._cancel is not None and self._cancel.is_set():
+                    self.cancelled = True
+                    return None
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     return None
-                self._cond.wait(remaining)
+                self._cond.wait(min(remaining, 0.05) if self._cancel is not None else remaining)
             frames, self._frames, self._ready = self._frames, [], False
             return frames
