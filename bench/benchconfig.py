@@ -9,14 +9,15 @@ config's own path is kept in cfg["_path"]. Defaults are filled in, so readers ca
 from __future__ import annotations
 
 import functools
-import tomllib
 from pathlib import Path
 from typing import Any
 
 from bench.errors import InputError, Problems, find_repo_root
+from bench.services import check_service
 from drivers.api import FAULT_RESET_POLICIES, TIMINGS, LinkSettings
 from drivers.canopen.profile import PROFILE_KEYS, check_section, config_keys
 from drivers.comm_loss import STOP_KEYS, check_keys
+from drivers.toml_file import TomlFileError, read_toml_file
 from drivers.eds import DeviceDescription, EdsError, read_eds
 from drivers.load_map import LoadMapError, read_load_map
 from drivers.reference import check_section as check_reference
@@ -59,8 +60,10 @@ def load_bench_config(path: str | Path) -> dict[str, Any]:
     services = problems.table(raw, "services", "", required=False) or {}
     problems.unknown_keys(services, _SERVICES_KEYS, "services")
     start = problems.string(services, "start", "services", required=False)
-    if start is not None and (start.count(":") != 1 or not all(start.split(":"))):
-        problems.add("services.start", f"must be 'module:function', got {start!r}")
+    if start is not None:
+        reason = check_service(start)
+        if reason:
+            problems.add("services.start", reason)
     cfg["services"] = {"start": start}
 
     cfg["drive"] = _drive(problems, problems.table(raw, "drive", ""), root)
@@ -122,19 +125,14 @@ def _read_eds_cached(path: str, size: int, mtime_ns: int) -> DeviceDescription:
 
 
 def read_toml(path: Path) -> dict[str, Any]:
+    return read_toml_with_bytes(path)[0]
+
+
+def read_toml_with_bytes(path: Path) -> tuple[dict[str, Any], bytes]:
     try:
-        with open(path, "rb") as f:
-            return tomllib.load(f)
-    except FileNotFoundError:
-        raise InputError([f"{path}: (file): not found"]) from None
-    except IsADirectoryError:
-        raise InputError([f"{path}: (file): is a directory, not a TOML file"]) from None
-    except OSError as e:
-        raise InputError([f"{path}: (file): cannot read: {e.strerror or e}"]) from None
-    except tomllib.TOMLDecodeError as e:
-        raise InputError([f"{path}: (file): not valid TOML: {e}"]) from None
-    except UnicodeDecodeError:
-        raise InputError([f"{path}: (file): not valid TOML: not UTF-8 text"]) from None
+        return read_toml_file(path)
+    except TomlFileError as exc:
+        raise InputError([f"{path}: (file): {exc}"]) from None
 
 
 def resolve_path(value: str, root: Path, also: Path | None = None) -> Path | None:

@@ -11,8 +11,13 @@ class InputError(Exception):
     """A scenario, bench config or run directory the bench cannot use. str(e) lists every problem, one per line."""
 
     def __init__(self, problems: list[str]):
-        self.problems = list(problems)
+        self.problems = [one_line(p) for p in problems]
         super().__init__("\n".join(self.problems))
+
+
+def one_line(text: str) -> str:
+    """Control characters (a key with an escaped newline, a stray tab) shown escaped: one problem, one line."""
+    return "".join(c if c.isprintable() or c == " " else repr(c)[1:-1] for c in text)
 
 
 class Problems:
@@ -23,7 +28,7 @@ class Problems:
         self.lines: list[str] = []
 
     def add(self, field: str, reason: str) -> None:
-        self.lines.append(f"{self.file}: {field or '(file)'}: {reason}")
+        self.lines.append(one_line(f"{self.file}: {field or '(file)'}: {reason}"))
 
     def extend(self, lines: list[str]) -> None:
         self.lines.extend(lines)

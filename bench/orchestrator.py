@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import signal
 import threading
 import time
@@ -51,6 +52,7 @@ FETCH_PERIOD_S = 0.25      # upload the trace recorder every 0.25 s of drive tim
 RERUN_MAX_RATE_HZ = 2000.0 # run.rrd / viewer: a 10 kHz trace is thinned to 2 kHz (3.6 -> 0.8 MB/s); parquet has all
 STATUS_PERIOD_S = 0.02     # poll the drive's status (fault, EMCY, heartbeat) every 20 ms of drive time
 PROGRESS_PERIOD_S = 0.1
+MAX_SEED = 2**63 - 1
 STUCK_GRACE_S = 2.0        # after a trip, how long the run loop may take to notice before it is abandoned
 SUPERVISE_POLL_S = 0.05    # the main thread's wait on the run loop (signals are handled between waits)
 STALL_TIMEOUT_S = 5.0      # wall seconds without any live sample -> the link is dead
@@ -151,8 +153,11 @@ def run_scenario(
     `links` replaces the links and services the bench config names (unit tests with in-memory fakes).
     """
     scenario, cfg = prepare(scenario_path, bench_path)
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED):
+        raise InputError([f"--seed: must be an integer from 0 to {MAX_SEED}, got {seed!r}"])
     if seed is None:
         seed = scenario.seed if scenario.seed is not None else DEFAULT_SEED
+    check_out_root(Path(out_root))      # before anything is connected: a bad --out must not leave a rig touched
     with _StopSignals() as signals:
         if links is not None:
             return _run_connected(scenario, cfg, seed, *links, Path(out_root), rerun_mode, rerun_url, progress, warn,
@@ -161,6 +166,22 @@ def run_scenario(
             drive, load = make_links(live_cfg, find_repo_root(cfg["_path"]))
             return _run_connected(scenario, live_cfg, seed, drive, load, Path(out_root), rerun_mode, rerun_url,
                                   progress, warn, signals)
+
+
+def check_out_root(out_root: Path) -> None:
+    """The run-directory root exists (or is created) and takes files; else one line naming --out."""
+    try:
+        if out_root.is_symlink() and not out_root.exists():
+            raise NotADirectoryError(0, "a symbolic link that leads nowhere or into a loop")
+        out_root.mkdir(parents=True, exist_ok=True)
+        if not out_root.is_dir():
+            raise NotADirectoryError(f"{out_root} is not a directory")
+        probe = out_root / f".drivebench-write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        raise InputError([f"{out_root}: --out: cannot hold run directories: {reason}"]) from None
 
 
 def _open(drive, load):
@@ -191,8 +212,10 @@ def _run_connected(scenario, cfg, seed, drive, load, out_root, rerun_mode, rerun
     recorder = None
     safe_stop = SafeStop(drive, load)
     try:
-        out_root.mkdir(parents=True, exist_ok=True)
         recorder = RunRecorder(out_root, scenario, seed, cfg)
+    except OSError as exc:
+        _close_quietly(drive, load)
+        raise InputError([f"{out_root}: --out: cannot create the run directory: {exc.strerror or exc}"]) from None
     except BaseException:
         _close_quietly(drive, load)
         raise

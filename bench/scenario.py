@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from bench.benchconfig import drive_description, load_bench_config, read_toml, resolve_path
+from bench.benchconfig import drive_description, load_bench_config, read_toml_with_bytes, resolve_path
 from bench.criteria import KINDS, CriterionSpec
 from bench.errors import InputError, Problems, find_repo_root
 from drivers import parameters
@@ -131,6 +131,9 @@ _LIMIT_KEYS = ("overspeed_mech_rad_s", "overspeed_rpm", "overcurrent_a", "max_du
 _CRITERION_KEYS = ("name", "kind", "signal", "window_s", "limit", "known_gap")
 
 
+MAX_DURATION_S = 86_400.0      # 24 h of drive time: beyond that a number is a typo, not a test
+
+
 def default_max_duration_s(duration_s: float) -> float:
     """Wall-clock allowance when a scenario gives none: ten times the drive time plus 30 s of setup."""
     return 10.0 * duration_s + 30.0
@@ -139,8 +142,8 @@ def default_max_duration_s(duration_s: float) -> float:
 def load_scenario(path: str | Path, bench: str | Path | None = None) -> Scenario:
     """Read and validate a scenario file. `bench` overrides the file's bench config (e.g. `--bench`)."""
     path = Path(path)
-    raw = read_toml(path)
-    sha256 = hashlib.sha256(path.read_bytes()).hexdigest()
+    raw, data = read_toml_with_bytes(path)
+    sha256 = hashlib.sha256(data).hexdigest()
     p = Problems(path)
     p.unknown_keys(raw, _TOP_KEYS, "")
 
@@ -152,6 +155,9 @@ def load_scenario(path: str | Path, bench: str | Path | None = None) -> Scenario
         p.add("name", "must not be empty")
     description = p.string(raw, "description", "", required=False, default="") or ""
     duration = p.number(raw, "duration_s", "", positive=True)
+    if duration is not None and duration > MAX_DURATION_S:
+        p.add("duration_s", f"{duration:g} s is longer than a bench run may be ({MAX_DURATION_S:g} s, 24 h)")
+        duration = None
     seed = p.integer(raw, "seed", "", required=False, min_value=0, max_value=2**63 - 1)
 
     bench_path, bench_cfg = _bench(p, raw, path, bench)
@@ -421,6 +427,9 @@ def _limits(p: Problems, raw: dict, duration: float | None, speed: tuple[SpeedSe
             max_dur = default_max_duration_s(duration)
         elif max_dur is not None and max_dur < duration:
             p.add("limits.max_duration_s", f"{max_dur:g} s (wall clock) is shorter than duration_s = {duration:g}")
+    if max_dur is not None and max_dur > default_max_duration_s(MAX_DURATION_S):
+        p.add("limits.max_duration_s", f"{max_dur:g} s: longer than any run may take "
+                                       f"({default_max_duration_s(MAX_DURATION_S):g} s)")
     pos = p.number(table, "pos_err_max_elec_rad", w, required=False, positive=True)
     if pos is not None and pos > math.pi:
         p.add("limits.pos_err_max_elec_rad", f"{pos:g} rad can never trip: a wrapped angle error is at most pi")

@@ -23,12 +23,12 @@ from __future__ import annotations
 
 import math
 import struct
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from drivers.api import LoadMode
+from drivers.toml_file import TomlFileError, read_toml_file
 
 TYPES = {"uint16": (1, ">H"), "int16": (1, ">h"), "uint32": (2, ">I"), "int32": (2, ">i"), "float32": (2, ">f")}
 ROLES = ("enable", "setpoint", "mode", "speed", "torque", "status", "fault_code", "fault_reset", "watchdog",
@@ -116,17 +116,9 @@ def read_load_map(path: str | Path) -> LoadMap:
     """Parse and check a map file; LoadMapError lists every problem as (field, reason)."""
     path = Path(path)
     try:
-        if not path.is_file():
-            raise LoadMapError([("(file)", "not a regular file")])
-        if path.stat().st_size > MAX_MAP_BYTES:
-            raise LoadMapError([("(file)", f"larger than {MAX_MAP_BYTES} bytes: not a register map")])
-        raw = tomllib.loads(path.read_text())
-    except LoadMapError:
-        raise
-    except (OSError, UnicodeDecodeError) as exc:
-        raise LoadMapError([("(file)", f"cannot read: {getattr(exc, 'strerror', None) or exc}")]) from None
-    except tomllib.TOMLDecodeError as exc:
-        raise LoadMapError([("(file)", f"not valid TOML: {exc}")]) from None
+        raw, _ = read_toml_file(path, MAX_MAP_BYTES)
+    except TomlFileError as exc:
+        raise LoadMapError([("(file)", str(exc))]) from None
     problems: list[tuple[str, str]] = []
     machine = raw.get("machine", {})
     if not isinstance(machine, dict):

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 from typing import Any
 
 from bench.errors import InputError
+from drivers.toml_file import TomlFileError, read_toml_file
 from sim_backend.model import DriveModel
 
 
@@ -20,12 +20,9 @@ class MotorConfigError(InputError, ValueError):
 def load_motor_config(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:
-        with path.open("rb") as fh:
-            cfg = tomllib.load(fh)
-    except FileNotFoundError:
-        raise MotorConfigError(f"{path}: file not found") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise MotorConfigError(f"{path}: not valid TOML: {exc}") from None
+        cfg, _ = read_toml_file(path)
+    except TomlFileError as exc:
+        raise MotorConfigError(f"{path}: (file): {exc}") from None
     kind = cfg.get("motor", {}).get("kind") if isinstance(cfg.get("motor"), dict) else None
     if kind not in ("pmsm", "spim"):
         raise MotorConfigError(f"{path}: [motor] kind: expected 'pmsm' or 'spim', got {kind!r}")

@@ -12,8 +12,9 @@ from __future__ import annotations
 import signal
 import sys
 import threading
-import tomllib
 from pathlib import Path
+
+from drivers.toml_file import TomlFileError, read_toml_file
 
 
 
@@ -28,7 +29,21 @@ def _endpoint(path: Path, serve: dict, key: str) -> tuple[str, int] | None:
     host, sep, port = str(value).rpartition(":")
     if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
         raise ServeError(f"{path}: simulator.serve.{key}: expected 'host:port', got {value!r}")
+    if not _loopback(host):
+        raise ServeError(f"{path}: simulator.serve.{key}: {host} is not a loopback address: the simulator serves "
+                         f"127.0.0.1 only (no authentication: anyone who reaches the port drives the rig)")
     return host, int(port)
+
+
+def _loopback(host: str) -> bool:
+    import ipaddress
+
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def _resolve(path: Path, value: str) -> Path:
@@ -44,12 +59,9 @@ def _resolve(path: Path, value: str) -> Path:
 def load_serve_config(config_path: str | Path) -> dict:
     path = Path(config_path)
     try:
-        with path.open("rb") as f:
-            cfg = tomllib.load(f)
-    except FileNotFoundError:
-        raise ServeError(f"{path}: (file): not found") from None
-    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ServeError(f"{path}: (file): cannot read as TOML: {exc}") from None
+        cfg, _ = read_toml_file(path)
+    except TomlFileError as exc:
+        raise ServeError(f"{path}: (file): {exc}") from None
     sim = cfg.get("simulator")
     if not isinstance(sim, dict) or not sim.get("motor"):
         raise ServeError(f"{path}: simulator.motor: missing (sim serve needs a motor model)")

@@ -134,7 +134,7 @@ def test_make_drive_errors_name_file_and_field(tmp_path):
     cfg["firmware"]["flux_est_kp"] = "fast"
     with pytest.raises(MotorConfigError, match=r"\[firmware\] flux_est_kp: expected a number"):
         make_drive(cfg)
-    with pytest.raises(MotorConfigError, match="file not found"):
+    with pytest.raises(MotorConfigError, match=r"\(file\): not found"):
         make_drive(tmp_path / "missing.toml")
 
 
