@@ -16,6 +16,7 @@ from typing import Any, Callable, ContextManager, Iterator
 
 from bench.benchconfig import link_settings
 from bench.errors import InputError
+from bench.services import registered_service
 
 DRIVE_TRANSPORTS: dict[str, str] = {
     "canopen": "drivers.canopen.link:CanopenDriveLink",
@@ -67,7 +68,8 @@ def started_services(cfg: dict, seed: int) -> Iterator[dict]:
     if not spec:
         yield cfg
         return
-    start = import_object(spec, f"{cfg.get('_path', 'bench config')}: services.start")
+    start = import_object(registered_service(spec, f"{cfg.get('_path', 'bench config')}: services.start"),
+                          f"{cfg.get('_path', 'bench config')}: services.start")
     manager: ContextManager = start(cfg, seed)
     with manager as overrides:
         yield merge_overrides(cfg, overrides or {})
