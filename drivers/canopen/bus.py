@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from typing import Any
+import socket
+import threading
+import time
+from typing import Any, Callable
 
 import can
 
@@ -42,6 +45,59 @@ def bus_kwargs(section: dict) -> dict[str, Any]:
     if kwargs["interface"] == "virtual":
         kwargs.setdefault("receive_own_messages", False)
     return kwargs
+
+
+CONNECT_TIMEOUT_S = 5.0   # opening a CAN interface (a socketcand TCP connection and its handshake) at most this long
+
+
+def socketcand_greeting(host: str, port: int, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
+    """A socketcand server greets with `< hi >` at once. python-can's client waits for it without a timeout: a port
+    that accepts and never speaks (a typo pointing at the Modbus port, a hung server) would hang the bench. OSError
+    (TimeoutError) with the reason when the greeting does not come."""
+    with socket.create_connection((host, port), timeout=timeout_s) as sock:
+        deadline = time.monotonic() + timeout_s
+        got = b""
+        while b">" not in got:
+            sock.settimeout(max(0.01, deadline - time.monotonic()))
+            try:
+                chunk = sock.recv(64)
+            except socket.timeout:
+                raise TimeoutError(f"no socketcand greeting from {host}:{port} within {timeout_s:g} s "
+                                   f"(is it a socketcand server?)") from None
+            if not chunk:
+                if got:
+                    break
+                raise ConnectionError(f"{host}:{port} closed the connection before greeting (not socketcand?)")
+            got += chunk
+            if len(got) > 64 or time.monotonic() > deadline:
+                break
+        if not got.startswith(b"< hi >"):
+            raise ConnectionError(f"{host}:{port} is not a socketcand server (it said {got[:32]!r})")
+
+
+def open_bus(kwargs: dict[str, Any], connect: Callable[[], Any] | None = None,
+             timeout_s: float = CONNECT_TIMEOUT_S) -> Any:
+    """Open a CAN interface within timeout_s: connect() (default can.Bus(**kwargs)) runs on a helper thread so that
+    no driver's handshake can block the bench for good; a socketcand endpoint is checked for its greeting first."""
+    if kwargs.get("interface") == "socketcand":
+        socketcand_greeting(str(kwargs.get("host", "127.0.0.1")), int(kwargs.get("port", 29536)), timeout_s)
+    result: dict[str, Any] = {}
+
+    def run() -> None:
+        try:
+            result["value"] = connect() if connect is not None else can.Bus(**kwargs)
+        except BaseException as exc:         # handed to the caller's thread
+            result["error"] = exc
+
+    worker = threading.Thread(target=run, name="can-open", daemon=True)
+    worker.start()
+    worker.join(timeout_s)
+    if worker.is_alive():
+        raise TimeoutError(f"opening CAN interface {kwargs.get('interface')!r} channel {kwargs.get('channel')!r} "
+                           f"took longer than {timeout_s:g} s")
+    if "error" in result:
+        raise result["error"]
+    return result.get("value")
 
 
 class BusErrorCounter(can.Listener):

@@ -38,7 +38,7 @@ from drivers import cia402, extension
 from drivers.api import DriveIdentity, DriveStatus, LinkError, LinkSettings, LiveSample
 from drivers.canopen import objects as o
 from drivers.canopen import pdo as pdos
-from drivers.canopen.bus import BusErrorCounter, bus_kwargs
+from drivers.canopen.bus import BusErrorCounter, bus_kwargs, open_bus
 from drivers.canopen.comm_loss import CommLossGuard
 from drivers.comm_loss import CommLossConfig
 from drivers.canopen.profile import DriveProfile, ProfileConfig, ProfileError, resolve
@@ -116,7 +116,7 @@ class CanopenDriveLink:
         try:
             self.network = canopen.Network()
             self.network.NOTIFIER_CYCLE = 0.02  # close() returns within 20 ms (the notifier thread polls)
-            self.network.connect(**kwargs)
+            open_bus(kwargs, lambda: self.network.connect(**kwargs))
         except (can.CanError, OSError, ValueError, TimeoutError, TypeError) as exc:
             raise LinkError(f"CAN interface {self.section.get('interface')!r} channel "
                             f"{self.section.get('channel')!r}: cannot open: {exc}") from None

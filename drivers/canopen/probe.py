@@ -17,7 +17,7 @@ import canopen
 from drivers import cia402, extension
 from drivers.api import LinkError
 from drivers.canopen import objects as o
-from drivers.canopen.bus import bus_kwargs
+from drivers.canopen.bus import bus_kwargs, open_bus
 from drivers.canopen.profile import ProfileConfig, ProfileError, resolve
 from drivers.canopen.sdo import SdoAccess
 from drivers.units import UnitError, decode_velocity_unit
@@ -60,8 +60,9 @@ def probe(section: dict, base_dir: Path) -> dict[str, Any]:
     eds = eds if eds.is_absolute() else base_dir / eds
     node_id = int(section["node_id"])
     network = canopen.Network()
+    kwargs = bus_kwargs(section)
     try:
-        network.connect(**bus_kwargs(section))
+        open_bus(kwargs, lambda: network.connect(**kwargs))
     except (can.CanError, OSError, ValueError, TimeoutError, TypeError) as exc:
         raise LinkError(f"CAN interface {section.get('interface')!r} channel {section.get('channel')!r}: "
                         f"cannot open: {exc}") from None
@@ -129,7 +130,11 @@ def _pair(sdo: SdoAccess, index: int, text: str) -> str:
 
 def scan(section: dict, node_ids: range = range(1, 128), timeout_s: float = SCAN_TIMEOUT_S) -> list[dict]:
     """Nodes that answer an SDO read of 0x1000 (device type), with identity; read-only, ~timeout_s per node id."""
-    bus = can.Bus(**bus_kwargs(section))
+    try:
+        bus = open_bus(bus_kwargs(section))
+    except (can.CanError, OSError, ValueError, TimeoutError, TypeError) as exc:
+        raise LinkError(f"CAN interface {section.get('interface')!r} channel {section.get('channel')!r}: "
+                        f"cannot open: {exc}") from None
     found = []
     try:
         for node_id in node_ids:
