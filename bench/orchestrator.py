@@ -6,7 +6,6 @@ config's [services] entry and the link classes its transports name.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import signal
@@ -21,7 +20,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from bench.benchconfig import load_bench_config
-from bench.criteria import evaluate, incomplete_reason, signals_of, time_axis, verdict as judge
+from bench.criteria import signals_of
 from bench.errors import InputError, find_repo_root
 from bench.links import make_links, started_services
 from bench.records import RunRecorder
@@ -29,7 +28,9 @@ from bench.rerun_view import RerunStream
 from bench.scenario import load_scenario
 from bench.summary_plot import PLOT_SIGNALS, write_summary_png
 from bench.supervisor import SafeStop, Supervisor, UnitCheck, check_status
+from bench.run_thread import LoopThread
 from bench.telemetry import TelemetryWorker
+from bench.verdict import judge_run
 from drivers.api import LinkError, LiveSample
 from drivers.reference import ReferenceConfig, values_from_load
 from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
@@ -225,88 +226,6 @@ def _run_connected(scenario, cfg, seed, drive, load, out_root, rerun_mode, rerun
     return run.execute()
 
 
-class RunLoopAbandoned(Exception):
-    """A call from a run loop that the supervisor has abandoned: the run is over, nothing more goes to the rig."""
-
-
-class _Gate:
-    """The run loop's view of a link: once the loop is abandoned, its calls are refused (other threads — the safe
-    stop, the final upload — still reach the link)."""
-
-    def __init__(self, target: Any, loop_thread: Callable[[], int | None], closed: threading.Event):
-        self._target, self._loop_thread, self._closed = target, loop_thread, closed
-
-    def __getattr__(self, name: str) -> Any:
-        attr = getattr(self._target, name)
-        if not callable(attr):
-            return attr
-
-        def call(*args, **kwargs):
-            if self._closed.is_set() and threading.get_ident() == self._loop_thread():
-                raise RunLoopAbandoned(f"{name}() refused: the run loop was abandoned")
-            return attr(*args, **kwargs)
-        return call
-
-
-class _LoopThread:
-    """_configure_and_enable() and _loop() on a thread of their own, so that the main thread can end a run whose
-    loop is stuck in a call (the supervisor's wall-clock bound) and take SIGINT/SIGTERM at any time."""
-
-    def __init__(self, run: "_Run"):
-        self.run = run
-        self._thread = threading.Thread(target=self._body, name="run-loop", daemon=True)
-        self._done = threading.Event()
-        self._abandoned = threading.Event()
-        self._abort_reason: str | None = None
-        self._exc: BaseException | None = None
-        self.traceback: str | None = None
-        self._raw = (run.drive, run.load)
-        ident = lambda: self._thread.ident    # noqa: E731
-        run.drive = _Gate(run.drive, ident, self._abandoned)
-        if run.load is not None:
-            run.load = _Gate(run.load, ident, self._abandoned)
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def _body(self) -> None:
-        try:
-            self.run._configure_and_enable()
-            self._abort_reason = self.run._loop()
-        except BaseException as exc:
-            self._exc = exc
-            self.traceback = traceback.format_exc()
-        finally:
-            self._done.set()
-
-    def wait(self, timeout_s: float) -> bool:
-        return self._done.wait(timeout_s)
-
-    def result(self, ended_by_itself: bool) -> str | None:
-        """The loop's abort reason, or its exception raised here; an abandoned loop: the supervisor's trip."""
-        if not ended_by_itself:
-            trip = self.run.supervisor.trip
-            return (trip.message if trip else "run loop abandoned") + "; the run loop was stuck and abandoned"
-        if self._exc is not None:
-            raise self._exc
-        return self._abort_reason
-
-    def stop_and_wait(self, grace_s: float) -> None:
-        self.run._stop_loop.set()
-        if not self._done.wait(grace_s):
-            self.abandon()
-
-    def abandon(self) -> None:
-        self._abandoned.set()
-        for link in self._raw:
-            interrupt = getattr(link, "interrupt", None)
-            if interrupt is not None:
-                try:
-                    interrupt()
-                except Exception:
-                    pass
-
-
 class _Run:
     def __init__(self, scenario, cfg, seed, drive, load, identity, load_name, recorder, safe_stop, rerun_mode,
                  rerun_url, progress, warn):
@@ -363,7 +282,7 @@ class _Run:
         error: str | None = None
         interrupted = False
         self.supervisor.start()
-        loop = _LoopThread(self)
+        loop = LoopThread(self)
         try:
             loop.start()
             abort_reason = loop.result(self._supervise(loop))
@@ -393,7 +312,7 @@ class _Run:
                     pass  # the record is written; a failing viewer or thread must not lose the result
             _close_quietly(self.drive, self.load)
 
-    def _supervise(self, loop: "_LoopThread") -> bool:
+    def _supervise(self, loop: LoopThread) -> bool:
         """Wait for the run loop; True when it ended by itself. Once the supervisor has tripped (a limit, the
         wall-clock bound), the loop gets STUCK_GRACE_S to notice; a loop stuck in a call past that is abandoned:
         its links are interrupted, its further calls refused, and the safe stop runs from here."""
@@ -460,7 +379,6 @@ class _Run:
 
     def _loop(self) -> str | None:
         duration = float(self.scenario.duration_s)
-        period = self.sync_period_s
         injections = list(self.scenario.injections)
         applied: list[dict] = []
         t_drive = 0.0
@@ -656,39 +574,18 @@ class _Run:
         needed = {name for spec in self.scenario.criteria for name in signals_of(spec)} | set(PLOT_SIGNALS)
         columns = self.recorder.read_back(needed)
         t = columns.pop(TIME_COLUMN)
-        duration = float(self.scenario.duration_s)
-        in_test = t <= duration + 1e-9
         row_period = self._row_period_s()
         # live samples of a drive without a clock are stamped on receipt in real time: they jitter, allow for it
         tolerance = 1.9 if self.realtime and self.data_source == "pdo" else 1.5
-        holes = time_axis(t[in_test], row_period, tolerance)
-        self.recorder.note("time_axis", holes)
-        try:
-            results = evaluate(self.scenario.criteria, t[in_test], {k: v[in_test] for k, v in columns.items()},
-                               measured=self.measured, row_period_s=row_period, tolerance=tolerance)
-        except Exception as exc:
-            results = []
-            if error is None:
-                error = f"criteria evaluation failed: {type(exc).__name__}: {exc}"
-        if error is not None:
-            verdict = "error"
-            reason = error
-        else:
-            verdict = judge(results, aborted=abort_reason is not None, holes=holes)
-            reason = abort_reason or (incomplete_reason(results, holes) if verdict == "incomplete" else None)
-        if stop_errors:
-            reason = "; ".join(filter(None, [reason, "safe stop incomplete: " + "; ".join(stop_errors)]))
-            if verdict in ("pass", "incomplete"):
-                verdict = "error"
+        judged = judge_run(self.scenario, t, columns, measured=self.measured, row_period_s=row_period,
+                           tolerance=tolerance, abort_reason=abort_reason, error=error, stop_errors=stop_errors)
+        self.recorder.note("time_axis", judged.time_axis)
+        verdict, reason, results, error = judged.verdict, judged.reason, judged.results, judged.error
         try:
             if len(t):
                 write_summary_png(self.recorder.run_dir / "summary.png", t, columns,
                                   title=f"{self.scenario.name} - {verdict}")
         except Exception as exc:
             self.recorder.note("summary_png_error", f"{type(exc).__name__}: {exc}")
-        record_path = self.recorder.finish(verdict, results, reason)
-        record_file = Path(record_path)
-        if record_file.is_dir():
-            record_file = record_file / "record.json"
-        record = json.loads(record_file.read_text())
+        record = self.recorder.finish(verdict, results, reason)
         return RunResult(self.recorder.run_dir, verdict, record, results, interrupted, error)

@@ -229,7 +229,9 @@ class RunRecorder:
 
     # --- at the end --------------------------------------------------------------------------------------
 
-    def finish(self, verdict: str, criteria: list[CriterionResult], abort_reason: str | None) -> Path:
+    def finish(self, verdict: str, criteria: list[CriterionResult], abort_reason: str | None) -> dict[str, Any]:
+        """Close the journal, write telemetry.parquet, junit.xml and the final record.json; the record as written
+        (JSON-safe: what record.json holds)."""
         if verdict not in VERDICTS:
             raise ValueError(f"verdict must be one of {VERDICTS}, got {verdict!r}")
         self._stop.set()
@@ -251,7 +253,7 @@ class RunRecorder:
             journal = self.run_dir / JOURNAL
             if journal.exists():
                 journal.unlink()
-        return self.run_dir
+            return json.loads(json.dumps(json_safe(self.record)))
 
     # --- internals ---------------------------------------------------------------------------------------
 

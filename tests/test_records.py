@@ -53,10 +53,11 @@ def test_record_lifecycle_parquet_and_junit(tmp_path):
     rec.append({"t_s": np.array([1.0]), "vdc_v": np.array([540.0])})      # other columns NaN
     criteria = [result("ok", 0.5, 1.0, True), result("bad", 2.0, 1.0, False),
                 result("gap", math.inf, 1.0, False, "eq. 15b offset")]
-    run_dir = rec.finish("fail", criteria, None)
-    assert run_dir == rec.run_dir
+    returned = rec.finish("fail", criteria, None)
+    run_dir = rec.run_dir
 
     record, cols, complete = load_run(run_dir)
+    assert returned == record                      # finish() returns exactly what record.json holds
     assert complete and record["verdict"] == "fail" and record["complete"] is True
     assert record["drive"]["firmware_version"] == "1.2.3" and record["drive"]["identity"]["device_name"] == "sim"
     assert record["data_source"] == "trace" and record["ended_utc"] >= record["started_utc"]

@@ -79,7 +79,8 @@ def make_run(tmp_path: Path, kind: str, name: str, pos_err: float, flux_err: flo
     cols["i_sy_a"] = np.full_like(t, i_sy)
     recorder.append(cols)
     results = evaluate(scenario.criteria, t, cols)
-    return recorder.finish(verdict(results, aborted=False), results, None)
+    recorder.finish(verdict(results, aborted=False), results, None)
+    return recorder.run_dir
 
 
 def table_rows(md: str, section: str) -> dict[str, list[str]]:

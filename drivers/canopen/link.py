@@ -34,7 +34,7 @@ from canopen import objectdictionary
 from canopen.emcy import EmcyError
 from canopen.sdo import SdoAbortedError
 
-from drivers import cia402, extension
+from drivers import cia402
 from drivers.api import DriveIdentity, DriveStatus, LinkError, LinkSettings, LiveSample
 from drivers.canopen import objects as o
 from drivers.canopen import pdo as pdos

@@ -212,7 +212,7 @@ def check_section(section: dict, has_object: Callable[[int], bool], is_extension
     if isinstance(unit, str) and unit:
         try:
             parsed = parse_velocity_unit(unit)
-        except UnitError as exc:
+        except UnitError:
             pass                                # config_keys reports it
         else:
             if parsed.needs_encoder and not has_object(o.POSITION_ENCODER_RESOLUTION) \

@@ -1,0 +1,45 @@
+"""The verdict of a finished run: the time axis checked, the criteria evaluated on the in-test rows, the outcome
+decided — error > aborted > fail > incomplete > pass — and an incomplete safe stop never leaving a pass."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from bench.criteria import CriterionResult, evaluate, incomplete_reason, time_axis, verdict as decide
+
+
+@dataclass(frozen=True)
+class Judged:
+    verdict: str
+    reason: str | None
+    results: list[CriterionResult]
+    time_axis: dict[str, Any]
+    error: str | None
+
+
+def judge_run(scenario, t: np.ndarray, columns: dict[str, np.ndarray], *, measured: frozenset[str] | None,
+              row_period_s: float | None, tolerance: float, abort_reason: str | None, error: str | None,
+              stop_errors: list[str]) -> Judged:
+    """`t` and `columns` are the whole record (rows after duration_s, the stop, are not judged)."""
+    in_test = t <= float(scenario.duration_s) + 1e-9
+    holes = time_axis(t[in_test], row_period_s, tolerance)
+    try:
+        results = evaluate(scenario.criteria, t[in_test], {k: v[in_test] for k, v in columns.items()},
+                           measured=measured, row_period_s=row_period_s, tolerance=tolerance)
+    except Exception as exc:
+        results = []
+        if error is None:
+            error = f"criteria evaluation failed: {type(exc).__name__}: {exc}"
+    if error is not None:
+        verdict, reason = "error", error
+    else:
+        verdict = decide(results, aborted=abort_reason is not None, holes=holes)
+        reason = abort_reason or (incomplete_reason(results, holes) if verdict == "incomplete" else None)
+    if stop_errors:
+        reason = "; ".join(filter(None, [reason, "safe stop incomplete: " + "; ".join(stop_errors)]))
+        if verdict in ("pass", "incomplete"):
+            verdict = "error"
+    return Judged(verdict, reason, results, holes, error)
