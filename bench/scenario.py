@@ -12,16 +12,14 @@ import hashlib
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from bench.benchconfig import drive_description, load_bench_config, read_toml_with_bytes, resolve_path
-from bench.criteria import KINDS, CriterionSpec
+from bench.criteria import CriterionSpec, parse_criteria
 from bench.errors import InputError, Problems, find_repo_root
 from drivers import parameters
 from drivers.api import LoadMode
 from drivers.load_map import read_load_map
 from drivers.parameters import Capability, Parameter
-from drivers.signals import SIGNAL_NAMES
 
 SCHEMA_VERSION = 1
 GRAVITY_M_S2 = 9.80665
@@ -128,7 +126,6 @@ _LOAD_KEYS = {
 }
 _LIMIT_KEYS = ("overspeed_mech_rad_s", "overspeed_rpm", "overcurrent_a", "max_duration_s",
                "pos_err_max_elec_rad", "vdc_max_v")
-_CRITERION_KEYS = ("name", "kind", "signal", "window_s", "limit", "known_gap")
 
 
 MAX_DURATION_S = 86_400.0      # 24 h of drive time: beyond that a number is a typo, not a test
@@ -171,7 +168,7 @@ def load_scenario(path: str | Path, bench: str | Path | None = None) -> Scenario
     offered = drive_desc.offered_parameters() if drive_desc else None
     injections = _injections(p, _array_of_tables(p, raw, "injection"), dur, kind, offered, bench_cfg, bench_path)
     limits = _limits(p, raw, duration, speed)
-    criteria = _criteria(p, _array_of_tables(p, raw, "criteria"), dur)
+    criteria = parse_criteria(p, _array_of_tables(p, raw, "criteria"), dur)
     p.raise_if_any()
 
     return Scenario(path=path.resolve(), sha256=sha256, schema_version=version, name=name,
@@ -439,100 +436,3 @@ def _limits(p: Problems, raw: dict, duration: float | None, speed: tuple[SpeedSe
     return Limits(overspeed, overcurrent, max_dur, pos, vdc)
 
 
-def _criteria(p: Problems, items: list[tuple[str, dict]], duration: float) -> tuple[CriterionSpec, ...]:
-    out = []
-    names: set[str] = set()
-    for where, item in items:
-        name = p.string(item, "name", where)
-        if name is not None:
-            if name in names:
-                p.add(f"{where}.name", f"duplicate criterion name {name!r}")
-            names.add(name)
-        kind_name = p.string(item, "kind", where, choices=tuple(KINDS))
-        signal = p.string(item, "signal", where)
-        if signal is not None and signal not in SIGNAL_NAMES:
-            p.add(f"{where}.signal", f"unknown signal {signal!r} (signals: {', '.join(SIGNAL_NAMES)})")
-            signal = None
-        window = _window(p, item, where, duration)
-        limit = p.number(item, "limit", where, min_value=0.0)
-        known_gap = p.string(item, "known_gap", where, required=False)
-        if known_gap is not None and not known_gap.strip():
-            p.add(f"{where}.known_gap", "give the reason for the known gap")
-        params = None
-        if kind_name is not None:
-            params = _criterion_params(p, item, where, kind_name, window)
-        if None in (name, kind_name, signal, window, limit, params):
-            continue
-        out.append(CriterionSpec(name, kind_name, signal, window, limit, params, known_gap))
-    return tuple(out)
-
-
-def _window(p: Problems, item: dict, where: str, duration: float) -> tuple[float, float] | None:
-    field_ = f"{where}.window_s"
-    if "window_s" not in item:
-        p.add(field_, "missing (give [start_s, end_s])")
-        return None
-    w = item["window_s"]
-    if (not isinstance(w, list) or len(w) != 2
-            or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in w)):
-        p.add(field_, f"must be [start_s, end_s], two numbers, got {w!r}")
-        return None
-    a, b = float(w[0]), float(w[1])
-    if not (math.isfinite(a) and math.isfinite(b)):
-        p.add(field_, f"must be finite, got {w!r}")
-    elif a < 0:
-        p.add(field_, f"starts at a negative time {a:g} s")
-    elif b <= a:
-        p.add(field_, f"end {b:g} s must be after start {a:g} s")
-    elif b > duration:
-        p.add(field_, f"ends at {b:g} s, after the end of the run (duration_s = {duration:g})")
-    else:
-        return a, b
-    return None
-
-
-def _criterion_params(p: Problems, item: dict, where: str, kind_name: str,
-                      window: tuple[float, float] | None) -> dict[str, Any] | None:
-    kind = KINDS[kind_name]
-    given = {k: v for k, v in item.items() if k not in _CRITERION_KEYS}
-    ok = True
-    for key in given:
-        if key not in kind.params:
-            allowed = ", ".join(sorted(kind.params)) or "none"
-            p.add(f"{where}.{key}", f"unknown key for kind {kind_name!r} (its parameters: {allowed})")
-            ok = False
-    params: dict[str, Any] = {}
-    for key, spec in kind.params.items():
-        if key not in given:
-            if spec.required:
-                p.add(f"{where}.{key}", f"missing (required by kind {kind_name!r})")
-                ok = False
-            continue
-        if spec.type == "signal":
-            v = p.string(given, key, where)
-            if v is not None and v not in SIGNAL_NAMES:
-                p.add(f"{where}.{key}", f"unknown signal {v!r}")
-                v = None
-        elif spec.type == "bool":
-            v = p.boolean(given, key, where)
-        else:
-            v = p.number(given, key, where)
-            if v is not None and (key.startswith(("band_", "base_", "smooth_")) and v <= 0):
-                p.add(f"{where}.{key}", f"must be > 0, got {v:g}")
-                v = None
-        if v is None:
-            ok = False
-        params[key] = v
-    for group in kind.exclusive:
-        present = [k for k in group if k in given]
-        if len(present) > 1:
-            p.add(f"{where}.{present[1]}", f"give only one of {', '.join(group)}")
-            ok = False
-    if kind.one_of and sum(k in given for k in kind.one_of) != 1:
-        p.add(where, f"kind {kind_name!r} needs exactly one of {', '.join(kind.one_of)}")
-        ok = False
-    after = params.get("after_s")
-    if after is not None and window is not None and not (window[0] <= after < window[1]):
-        p.add(f"{where}.after_s", f"{after:g} s is outside the window [{window[0]:g}, {window[1]:g}] s")
-        ok = False
-    return params if ok else None
