@@ -14,12 +14,16 @@ import sys
 import threading
 from pathlib import Path
 
+from bench.errors import InputError
 from drivers.toml_file import TomlFileError, read_toml_file
 
 
 
-class ServeError(Exception):
-    """Bad config: one line naming file, field and reason."""
+class ServeError(InputError):
+    """Bad config: one line naming file, field and reason (the bench's input-error family)."""
+
+    def __init__(self, message: str):
+        super().__init__([message])
 
 
 def _endpoint(path: Path, serve: dict, key: str) -> tuple[str, int] | None:
