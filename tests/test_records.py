@@ -119,6 +119,27 @@ def test_bad_appends_and_verdicts_are_refused(tmp_path):
     assert "extra_probe" in cols
 
 
+def test_journal_is_flushed_by_drive_time_too(tmp_path):
+    """A simulator in lockstep runs many times faster than the wall clock: with a wall interval far away, rows are
+    still on disk once they span flush_drive_s of drive time (what a SIGKILL can lose is bounded in drive time)."""
+    from bench.records import _read_journal
+
+    rec = RunRecorder(tmp_path, SCENARIO, 1, BENCH, flush_interval_s=3600, flush_drive_s=0.25)
+
+    def on_disk() -> int:
+        journal = rec.run_dir / "telemetry.arrows"
+        return sum(b.num_rows for b in _read_journal(journal)[1]) if journal.exists() else 0
+
+    rec.append(block(0))                      # t = 0 .. 0.099 s: the first block is written at once
+    first = on_disk()
+    rec.append(block(1))                      # up to 0.199 s: less than 0.25 s since the last flush
+    assert on_disk() == first
+    rec.append(block(2))
+    rec.append(block(3))                      # up to 0.399 s: 0.3 s of drive time since the last flush
+    assert on_disk() == 400
+    rec.finish("pass", [], None)
+
+
 def test_read_back_while_running(tmp_path):
     rec = RunRecorder(tmp_path, SCENARIO, 1, BENCH, flush_interval_s=3600)
     assert rec.read_back()["t_s"].size == 0
