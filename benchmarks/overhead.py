@@ -31,6 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import bench.orchestrator as orch  # noqa: E402
+import bench.verdict as verdict_mod  # noqa: E402
 from bench.orchestrator import run_scenario  # noqa: E402
 
 DEFAULT_SCENARIO = REPO / "scenarios/examples/pmsm-rs-step.toml"
@@ -43,15 +44,15 @@ def inprocess_available() -> bool:
 @contextlib.contextmanager
 def instrumentation_off():
     """Baseline: the run loop as is, minus recording, Rerun, evaluation and plot."""
-    saved = (orch._Run._append, orch.RerunStream, orch.evaluate, orch.write_summary_png)
+    saved = (orch._Run._append, orch.RerunStream, verdict_mod.evaluate, orch.write_summary_png)
     orch._Run._append = lambda self, block: None
     orch.RerunStream = lambda mode, path, **kw: saved[1]("off", None)
-    orch.evaluate = lambda specs, t, cols: []
+    verdict_mod.evaluate = lambda *a, **kw: []
     orch.write_summary_png = lambda *a, **kw: None
     try:
         yield
     finally:
-        orch._Run._append, orch.RerunStream, orch.evaluate, orch.write_summary_png = saved
+        orch._Run._append, orch.RerunStream, verdict_mod.evaluate, orch.write_summary_png = saved
 
 
 class Timed:
@@ -66,11 +67,11 @@ class Timed:
         targets = {
             "record.append": (orch.RunRecorder, "append"),
             "record.finish": (orch.RunRecorder, "finish"),
-            "record.memory": (orch._Collected, "add"),
+            "record.read_back": (orch.RunRecorder, "read_back"),
             "rerun.open": (orch.RerunStream, "__init__"),
             "rerun.log": (orch.RerunStream, "log_columns"),
             "rerun.close": (orch.RerunStream, "close"),
-            "evaluate": (orch, "evaluate"),
+            "evaluate": (verdict_mod, "evaluate"),
             "plot": (orch, "write_summary_png"),
         }
         for label, (owner, name) in targets.items():
