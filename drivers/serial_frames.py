@@ -56,6 +56,7 @@ class ErrorCode(enum.IntEnum):
     NOT_ALLOWED = 4
     UNKNOWN_PARAMETER = 5
     VERSION = 6
+    BUSY = 7                 # the line (or the rig) is held by another bench: connect later
 
 
 # Live sample (SAMPLE and SYNC replies): step u64, statusword u16, error_code u16, mask u32,

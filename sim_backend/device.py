@@ -61,6 +61,24 @@ class SimulatedDevice:
     def time_s(self) -> float:
         return self.step_count * self.model.control_period_s
 
+    def restart(self, model: DriveModel) -> None:
+        """A new bench session on a served rig: the drive as after power-up — a fresh model (the rig's seed: the same
+        telemetry for the same scenario), power stage off, no injection or fault acting, an empty recorder, the load
+        machine off, the comm-loss watchdogs off until the new bench configures them. The front ends' wiring stays."""
+        with self.lock:
+            self.model = model
+            self.trace.clear()
+            self.device = Cia402Device()
+            self.mode_of_operation = Mode.PROFILE_VELOCITY
+            self.target_speed_mech_rad_s = 0.0
+            self.load = LoadMachineRegisters()
+            self.pending_emcy.clear()
+            self.latest = np.zeros(len(SIGNAL_NAMES))
+            self.faults.clear_injections()
+            self.master_watchdog.arm(0.0)
+            self.load_watchdog.arm(0.0)
+            self._apply_outputs()
+
     def write_controlword(self, word: int) -> None:
         with self.lock:
             self.faults.log(ControlwordWritten(word))

@@ -83,6 +83,14 @@ class FaultState:
         self.rng = np.random.default_rng(self.seed)
         self._lock = threading.Lock()
 
+    def clear_injections(self) -> None:
+        """No fault acting (a new bench session); the wiring (kill_load, wrapped) and the logs stay."""
+        with self._lock:
+            self.drop_rate = self.corrupt_rate = self.delay_s = 0.0
+            self.heartbeat_stopped = self.overcurrent = self.estimator_frozen = False
+            self.drive_dead = self.load_dead = self.bus_error = False
+            self.rng = np.random.default_rng(self.seed)
+
     def reseed(self, seed: int) -> None:
         with self._lock:
             self.seed = seed

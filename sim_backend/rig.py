@@ -56,6 +56,7 @@ class RigSpec:
     modbus_tcp: tuple[str, int] = (LOOPBACK, 0)
     wire_faults: bool = False
     drive: DriveSpec | None = None                 # a third-party drive from a vendor EDS; None: drivebench's
+    exclusive: bool = False                        # served: one bench at a time, each from a restarted drive
 
 
 @dataclass
@@ -66,6 +67,7 @@ class Rig:
     node: Any = None                               # SimCanopenNode
     endpoints: dict[str, str] = field(default_factory=dict)    # front end -> URL / channel / path, for people
     overrides: dict[str, dict] = field(default_factory=dict)   # bench config [drive]/[load] endpoint keys
+    sessions: Any = None                           # BenchSessions of a served rig (spec.exclusive)
 
 
 @contextlib.contextmanager
@@ -76,6 +78,9 @@ def build(spec: RigSpec, device: SimulatedDevice | None = None) -> Iterator[Rig]
     device.faults.reseed(spec.seed)
     device.faults.wrapped = spec.wire_faults
     rig = Rig(spec, device)
+    if spec.exclusive:
+        from sim_backend.sessions import BenchSessions
+        rig.sessions = BenchSessions(lambda: device.restart(make_model(spec.motor, spec.seed)))
     with contextlib.ExitStack() as stack:
         stack.callback(device.stop_watchdogs)
         if spec.eds is not None:
@@ -113,7 +118,7 @@ def _canopen(stack: contextlib.ExitStack, rig: Rig) -> None:
     rig.endpoints["canopen"] = f"virtual:{rig.channel} node={spec.node_id}"
     if spec.socketcand is not None:
         from sim_backend.socketcand_server import SocketcandServer
-        server = SocketcandServer(rig.channel, *spec.socketcand)
+        server = SocketcandServer(rig.channel, *spec.socketcand, sessions=rig.sessions)
         stack.callback(server.stop)
         rig.endpoints["canopen"] = f"{server.url} node={spec.node_id}"
 
@@ -122,7 +127,8 @@ def _serial(stack: contextlib.ExitStack, rig: Rig) -> None:
     from sim_backend.serial_server import start_serial_pty, start_serial_tcp
 
     spec = rig.spec
-    server = start_serial_pty(rig.device) if spec.serial == "pty" else start_serial_tcp(rig.device, *spec.serial_tcp)
+    server = (start_serial_pty(rig.device) if spec.serial == "pty"
+              else start_serial_tcp(rig.device, *spec.serial_tcp, sessions=rig.sessions))
     stack.callback(server.stop)
     port = server.serial_port
     if spec.wire_faults and spec.serial == "tcp":

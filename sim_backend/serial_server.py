@@ -1,20 +1,23 @@
 """The simulated drive's serial protocol server (docs/serial-protocol.md), over TCP or a pty.
 
-One thread per server; it serves one client at a time, like a point-to-point serial line (over TCP a new
-client takes the line over from the previous one). The protocol handler (SerialProtocolHandler) is
+One thread per server; it serves one client at a time, like a point-to-point serial line (over TCP a second
+client is answered ERROR BUSY and closed while the first holds the line). The protocol handler (SerialProtocolHandler) is
 transport-free so tests can feed it frames directly. sim_backend.rig puts these servers in front of a device.
 """
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 import select
 import socket
 import struct
 import threading
+import time
 import tty
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -31,6 +34,11 @@ from sim_backend.trace import TRIGGER_IMMEDIATE, TRIGGER_ON_ENABLE
 MAX_SYNC_STEPS = 1_000_000
 ALL_SIGNALS = (1 << len(SIGNAL_NAMES)) - 1
 WRITE_TIMEOUT_S = 5.0
+MAX_REQUEST_PAYLOAD = 1024 # the largest request (PARAM_WRITE_NAME) is under 100 bytes: a longer LEN is line noise
+IDLE_TIMEOUT_S = 60.0      # a client that sends nothing for this long gives the line up
+MAX_REFUSING = 8           # newcomers being answered BUSY at once
+REFUSE_WAIT_S = 1.0        # how long a refused newcomer has to send its first request
+ACCEPT_BACKOFF_S = (0.05, 1.0)
 STALE_FRAME_S = 0.2        # a partial frame with no new byte for this long is resynchronised past
 
 
@@ -223,7 +231,7 @@ class _Session:
     """Decoder + handler for one connection; counts what it threw away."""
 
     def __init__(self, device: SimulatedDevice, stats: dict[str, int]):
-        self.decoder = FrameDecoder()
+        self.decoder = FrameDecoder(MAX_REQUEST_PAYLOAD)
         self.handler = SerialProtocolHandler(device)
         self.stats = stats
 
@@ -282,43 +290,111 @@ class _ServerBase:
 
 
 class SerialTcpServer(_ServerBase):
-    """Serial protocol over TCP (pyserial URL socket://host:port)."""
+    """Serial protocol over TCP (pyserial URL socket://host:port). One client holds the line; a second one gets an
+    ERROR BUSY reply to its first request and is closed (a client that connected for 0.2 s used to take the line
+    from a running bench). With `sessions` (a served rig) the line is also refused while a bench holds the rig over
+    another front end, and an admitted client finds the drive restarted."""
 
-    def __init__(self, device: SimulatedDevice, host: str, port: int):
+    def __init__(self, device: SimulatedDevice, host: str, port: int, sessions: Any = None):
         super().__init__(device)
+        self.sessions = sessions
+        self.stats.update(refused_busy=0, accept_errors=0, idle_dropped=0)
         self._listener = socket.create_server((host, port))
         self.host = host
         self.port = self._listener.getsockname()[1]
         self.url = f"socket://{host}:{self.port}"
         self.serial_port = self.url          # what a serial link opens: [drive] port
+        self._refusing = threading.BoundedSemaphore(MAX_REFUSING)
         self._thread.start()
 
     def _run(self) -> None:
         conn: socket.socket | None = None
+        backoff = ACCEPT_BACKOFF_S[0]
         while not self._stopping.is_set():
             if conn is None:
                 ready, _, _ = select.select([self._listener, self._wake_r], [], [])
                 if self._wake_r in ready:
                     return
-                conn = self._accept()
-            conn = self._serve(conn)
+                conn, backoff = self._accept(backoff)
+                if conn is None:
+                    continue
+                who = f"serial client {conn.getpeername()[0]}:{conn.getpeername()[1]}"
+                holder = self.sessions.open(who) if self.sessions is not None else None
+                if holder is not None:
+                    self._refuse(conn, f"the rig is held by another bench ({holder}); one bench at a time")
+                    conn = None
+                    continue
+            try:
+                conn = self._serve(conn)
+            finally:
+                if self.sessions is not None:
+                    self.sessions.close(who)
+            if conn is not None:             # never: _serve returns None when its client leaves
+                conn.close()
+                conn = None
 
-    def _accept(self) -> socket.socket:
-        conn, _ = self._listener.accept()
+    def _accept(self, backoff: float) -> tuple[socket.socket | None, float]:
+        try:
+            conn, _ = self._listener.accept()
+        except OSError as exc:              # EMFILE/ENFILE: out of descriptors; wait and accept again later
+            self.stats["accept_errors"] += 1
+            if exc.errno in (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM):
+                self._stopping.wait(backoff)
+                return None, min(backoff * 2, ACCEPT_BACKOFF_S[1])
+            return None, backoff
         conn.settimeout(WRITE_TIMEOUT_S)
         self.stats["sessions"] += 1
-        return conn
+        return conn, ACCEPT_BACKOFF_S[0]
 
-    def _serve(self, conn: socket.socket) -> socket.socket | None:
-        """Serve one client until it leaves (None) or a new client takes the line over (its socket)."""
+    def _refuse(self, conn: socket.socket, reason: str) -> None:
+        """Answer the newcomer's first request with ERROR BUSY (so its link reports why), then close it; on a thread
+        of its own, at most MAX_REFUSING at once (beyond that a newcomer is closed at once)."""
+        self.stats["refused_busy"] += 1
+        if not self._refusing.acquire(blocking=False):
+            conn.close()
+            return
+
+        def answer() -> None:
+            try:
+                decoder = FrameDecoder(MAX_REQUEST_PAYLOAD)
+                deadline = time.monotonic() + REFUSE_WAIT_S
+                conn.settimeout(0.1)
+                while time.monotonic() < deadline:
+                    try:
+                        data = conn.recv(4096)
+                    except socket.timeout:
+                        continue
+                    if not data:
+                        return
+                    frames = decoder.feed(data)
+                    if frames:
+                        f = frames[0]
+                        conn.sendall(encode_frame(f.seq, Cmd.ERROR | RESPONSE_FLAG,
+                                                  error_payload(f.cmd, ErrorCode.BUSY, reason)))
+                        return
+            except OSError:
+                pass
+            finally:
+                conn.close()
+                self._refusing.release()
+
+        threading.Thread(target=answer, name="serial-refuse", daemon=True).start()
+
+    def _serve(self, conn: socket.socket) -> None:
+        """Serve one client until it leaves, stays silent for IDLE_TIMEOUT_S, or the server stops."""
         session = _Session(self.device, self.stats)
+        last_byte = time.monotonic()
         with conn:
             while True:
-                ready, _, _ = select.select([conn, self._listener, self._wake_r], [], [], session.idle_timeout)
+                timeout = session.idle_timeout or IDLE_TIMEOUT_S
+                ready, _, _ = select.select([conn, self._listener, self._wake_r], [], [], timeout)
                 if self._wake_r in ready:
                     return None
-                if self._listener in ready:          # like re-plugging a serial cable: the newcomer wins
-                    return self._accept()
+                if self._listener in ready:          # a second client while the line is held: refused
+                    newcomer, _ = self._accept(ACCEPT_BACKOFF_S[0])
+                    if newcomer is not None:
+                        self._refuse(newcomer, "the serial line is held by another client; one bench at a time")
+                    continue
                 if conn in ready:
                     try:
                         data = conn.recv(65536)
@@ -326,6 +402,10 @@ class SerialTcpServer(_ServerBase):
                         return None
                     if not data:
                         return None
+                    last_byte = time.monotonic()
+                elif time.monotonic() - last_byte >= IDLE_TIMEOUT_S:
+                    self.stats["idle_dropped"] += 1  # a half-open or forgotten client must not hold the line
+                    return None
                 else:
                     data = b""                       # quiet inside a frame
                 reply = session.feed(data)
@@ -385,8 +465,9 @@ class SerialPtyServer(_ServerBase):
                 pass
 
 
-def start_serial_tcp(device: SimulatedDevice, host: str = "127.0.0.1", port: int = 0) -> SerialTcpServer:
-    return SerialTcpServer(device, host, port)
+def start_serial_tcp(device: SimulatedDevice, host: str = "127.0.0.1", port: int = 0,
+                     sessions: Any = None) -> SerialTcpServer:
+    return SerialTcpServer(device, host, port, sessions)
 
 
 def start_serial_pty(device: SimulatedDevice) -> SerialPtyServer:

@@ -4,6 +4,8 @@ One drive model (from [simulator] motor) behind three front ends that share it:
   canopen   socketcand on [simulator.serve] canopen_socketcand (node [drive] node_id, EDS [drive] eds)
   serial    TCP on serial_tcp
   modbus    Modbus TCP on modbus_tcp (the load machine)
+one_bench = true (default): one bench at a time over the drive's front ends, each finding the drive restarted
+(sim_backend/sessions.py); false lets a second master in (a monitor in a test, diagnostics).
 Prints one line per endpoint, runs until SIGINT/SIGTERM, then stops everything and returns 0.
 """
 
@@ -84,7 +86,10 @@ def load_serve_config(config_path: str | Path) -> dict:
         "modbus": _endpoint(path, serve, "modbus_tcp"),
         "wire_faults": bool((cfg.get("bench") or {}).get("wire_faults", False)),
         "drive": _drive_spec(path, sim),
+        "one_bench": serve.get("one_bench", True),
     }
+    if not isinstance(out["one_bench"], bool):
+        raise ServeError(f"{path}: simulator.serve.one_bench: must be true or false, got {out['one_bench']!r}")
     if not toy and not out["motor"].exists():
         raise ServeError(f"{path}: simulator.motor: file not found: {sim['motor']!r}")
     if not out["eds"].exists():
@@ -106,7 +111,7 @@ def rig_spec(cfg: dict) -> "RigSpec":
                    node_id=cfg["node_id"], socketcand=cfg["socketcand"],
                    serial="tcp" if cfg["serial"] else None, serial_tcp=cfg["serial"] or ("127.0.0.1", 0),
                    modbus="tcp" if cfg["modbus"] else None, modbus_tcp=cfg["modbus"] or ("127.0.0.1", 0),
-                   wire_faults=cfg["wire_faults"])
+                   wire_faults=cfg["wire_faults"], exclusive=cfg["one_bench"])
 
 
 def serve(cfg: dict, stop: threading.Event, out=sys.stdout) -> None:

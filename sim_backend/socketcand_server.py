@@ -12,17 +12,24 @@ socketcand bound to a CAN interface with loopback of own frames off).
 
 from __future__ import annotations
 
+import errno
 import logging
+import queue
 import select
 import socket
 import threading
 import time
+from typing import Any
 
 import can
 
 log = logging.getLogger(__name__)
 
-HANDSHAKE_TIMEOUT_S = 10.0
+HANDSHAKE_TIMEOUT_S = 5.0
+MAX_COMMAND_BYTES = 1024   # the longest command python-can sends is ~40 bytes; more without '>' is not socketcand
+MAX_QUEUED_FRAMES = 10_000 # frames waiting for a client that does not read: beyond, the client is dropped
+SEND_TIMEOUT_S = 2.0       # a send to a client that stopped reading: the client is dropped, the bus goes on
+ACCEPT_BACKOFF_S = (0.05, 1.0)   # out of file descriptors: wait, then accept again (a later client must get in)
 FORWARD_HOLD_S = 0.05   # after "< ok >" to rawmode: python-can's client reads that reply with one recv(), so
                         # frames must not share its TCP segment
 
@@ -44,22 +51,50 @@ def parse_send(command: str) -> can.Message:
     return can.Message(arbitration_id=can_id, data=data, is_extended_id=len(parts[1]) > 3)
 
 
+class _DroppingQueue(queue.Queue):
+    """A client's receive queue that never blocks the bus: with MAX_QUEUED_FRAMES waiting, a frame is dropped and
+    the client marked (its forwarder then drops it). python-can's own queue is unbounded: a client that never reads
+    grew the server without limit."""
+
+    def __init__(self, maxsize: int):
+        super().__init__(maxsize)
+        self.overflowed = False
+
+    def put(self, item, block: bool = True, timeout: float | None = None) -> None:
+        with self.mutex:
+            if self._qsize() >= self.maxsize:
+                self.overflowed = True
+                return
+            self._put(item)
+            self.unfinished_tasks += 1
+            self.not_empty.notify()
+
+
 class _Client:
     def __init__(self, server: "SocketcandServer", conn: socket.socket, addr):
         self.server, self.conn, self.addr = server, conn, addr
         self.bus: can.BusABC | None = None
         self.closed = threading.Event()
         self.frames_in = self.frames_out = 0
+        self.who = f"socketcand client {addr[0]}:{addr[1]}"
+        self.session_open = False
+        conn.settimeout(SEND_TIMEOUT_S)      # recv only after select; a send that blocks this long drops the client
         self.thread = threading.Thread(target=self._run, name=f"socketcand-{addr[1]}", daemon=True)
         self.thread.start()
 
     def _send_text(self, text: str) -> None:
         self.conn.sendall(text.encode("ascii"))
 
+    def _too_long(self, buf: bytearray) -> bool:
+        if b">" not in buf and len(buf) > MAX_COMMAND_BYTES:
+            self.server.count("dropped_long_line")
+            return True
+        return False
+
     def _read_command(self, buf: bytearray, deadline: float) -> str | None:
         while b">" not in buf:
             remaining = deadline - time.monotonic()
-            if remaining <= 0 or self.closed.is_set():
+            if remaining <= 0 or self.closed.is_set() or self._too_long(buf):
                 return None
             ready, _, _ = select.select([self.conn], [], [], min(remaining, 0.2))
             if ready:
@@ -92,6 +127,9 @@ class _Client:
                 return
             from sim_backend.canopen.virtual_bus import FastVirtualBus
             self.bus = FastVirtualBus(channel=self.server.channel, receive_own_messages=False)
+            bounded = _DroppingQueue(MAX_QUEUED_FRAMES)
+            self.bus.channel[self.bus.channel.index(self.bus.queue)] = bounded
+            self.bus.queue = bounded
             self._send_text("< ok >")
             forwarder = threading.Thread(target=self._forward, name=f"socketcand-fwd-{self.addr[1]}", daemon=True)
             forwarder.start()
@@ -109,6 +147,8 @@ class _Client:
                 command = buf[start:end].decode("ascii", "replace") if 0 <= start < end else ""
                 del buf[:end]
                 if command.startswith("< send "):
+                    if not self._admitted():
+                        return
                     try:
                         self.bus.send(parse_send(command))
                         self.frames_in += 1
@@ -116,12 +156,28 @@ class _Client:
                         log.warning("socketcand client %s: %s", self.addr, exc)
                 elif command:
                     log.info("socketcand client %s: ignored %r", self.addr, command)
+            if self._too_long(buf):
+                return
             ready, _, _ = select.select([self.conn], [], [], 0.2)
             if ready:
                 chunk = self.conn.recv(65536)
                 if not chunk:
                     return
                 buf += chunk
+
+    def _admitted(self) -> bool:
+        """A served rig admits one bench at a time: a client becomes the bench with the first frame it sends (a
+        listener that only receives, like candump, is never gated); a second sender is refused and closed."""
+        sessions = self.server.sessions
+        if sessions is None or self.session_open:
+            return True
+        holder = sessions.open(self.who)
+        if holder is None:
+            self.session_open = True
+            return True
+        self.server.count("refused_busy")
+        self._send_text(f"< error rig busy: another bench ({holder}) is connected; one bench at a time >")
+        return False
 
     def _forward(self) -> None:
         time.sleep(FORWARD_HOLD_S)
@@ -130,6 +186,11 @@ class _Client:
                 msg = self.bus.recv(0.2)
                 if msg is None:
                     continue
+                if self.bus.queue.overflowed:
+                    self.server.count("dropped_slow_client")
+                    log.warning("socketcand client %s: %d frames queued, not reading: dropped", self.addr,
+                                MAX_QUEUED_FRAMES)
+                    return
                 lines = [format_frame(msg)]
                 while len(lines) < 256:          # batch what is queued into one send
                     more = self.bus.recv(0)
@@ -138,6 +199,9 @@ class _Client:
                     lines.append(format_frame(more))
                 self._send_text("".join(lines))
                 self.frames_out += len(lines)
+        except socket.timeout:
+            self.server.count("dropped_slow_client")       # it stopped reading for SEND_TIMEOUT_S
+            log.warning("socketcand client %s: not reading for %.1f s: dropped", self.addr, SEND_TIMEOUT_S)
         except (OSError, can.CanError) as exc:
             if not self.closed.is_set():
                 log.info("socketcand client %s: %s", self.addr, exc)
@@ -154,14 +218,20 @@ class _Client:
             pass
         if self.bus is not None:
             self.bus.shutdown()
+        if self.session_open:
+            self.server.sessions.close(self.who)
         self.server._forget(self)
 
 
 class SocketcandServer:
     """Serves one CAN bus (a python-can `virtual` channel) as `can_name` on host:port."""
 
-    def __init__(self, channel: str, host: str = "127.0.0.1", port: int = 0, can_name: str = "can0"):
+    def __init__(self, channel: str, host: str = "127.0.0.1", port: int = 0, can_name: str = "can0",
+                 sessions: Any = None):
         self.channel, self.can_name = channel, can_name
+        self.sessions = sessions            # BenchSessions: one bench at a time (a served rig), None: a plain bus
+        self.stats: dict[str, int] = {"accepted": 0, "dropped_long_line": 0, "dropped_slow_client": 0,
+                                      "accept_errors": 0, "refused_busy": 0}
         self._listener = socket.create_server((host, port))
         self.host, self.port = host, self._listener.getsockname()[1]
         self.url = f"socketcand://{host}:{self.port}/{can_name}"
@@ -171,17 +241,31 @@ class SocketcandServer:
         self._thread = threading.Thread(target=self._accept_loop, name="socketcand-accept", daemon=True)
         self._thread.start()
 
+    def count(self, what: str) -> None:
+        with self._lock:
+            self.stats[what] = self.stats.get(what, 0) + 1
+
     def _accept_loop(self) -> None:
+        backoff = ACCEPT_BACKOFF_S[0]
         while not self._stopping.is_set():
             ready, _, _ = select.select([self._listener], [], [], 0.2)
             if not ready or self._stopping.is_set():
                 continue
             try:
                 conn, addr = self._listener.accept()
-            except OSError:
-                return
-            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            except OSError as exc:
+                if self._stopping.is_set():
+                    return
+                self.count("accept_errors")     # EMFILE/ENFILE: out of descriptors; a client that left at once
+                if exc.errno in (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM):
+                    log.warning("socketcand: accept failed (%s); retrying in %.2f s", exc, backoff)
+                    self._stopping.wait(backoff)
+                    backoff = min(backoff * 2, ACCEPT_BACKOFF_S[1])
+                continue
+            backoff = ACCEPT_BACKOFF_S[0]
             with self._lock:        # held while the client starts, so its _forget() comes after this
+                self.stats["accepted"] += 1
                 self._clients.append(_Client(self, conn, addr))
 
     def _forget(self, client: _Client) -> None:
@@ -211,5 +295,6 @@ class SocketcandServer:
         self.stop()
 
 
-def start_socketcand(channel: str, host: str = "127.0.0.1", port: int = 0, can_name: str = "can0") -> SocketcandServer:
-    return SocketcandServer(channel, host, port, can_name)
+def start_socketcand(channel: str, host: str = "127.0.0.1", port: int = 0, can_name: str = "can0",
+                     sessions: Any = None) -> SocketcandServer:
+    return SocketcandServer(channel, host, port, can_name, sessions)

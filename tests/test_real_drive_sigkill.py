@@ -33,6 +33,7 @@ rated_torque_nm = 3.9
 [simulator.serve]
 canopen_socketcand = "127.0.0.1:0"
 modbus_tcp = "127.0.0.1:0"
+one_bench = false                 # the test's monitor is a second master (SDO reads of the drive's state)
 [drive]
 node_id = 1
 eds = "{EDS}"

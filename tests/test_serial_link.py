@@ -107,11 +107,13 @@ def test_fault_shows_in_status_and_is_reset_at_enable(served):
     status = link.status()
     assert status.fault and status.state == "FAULT" and status.emcy == [(0x2310, "overcurrent")]
     assert link.status().emcy == []                    # EMCY codes are reported once
+    link.close()                                       # one client holds the line at a time
     strict = make_link(url, fault_reset="never")
     strict.open()
     with pytest.raises(LinkError, match=r"drive is in FAULT \(overcurrent\) and the fault-reset policy is 'never'"):
         strict.enable_velocity_mode()
     strict.close()
+    link = make_link(url)
     link.open()
     link.enable_velocity_mode()                        # fault_reset = "once": rising edge of bit 7, then enable
     assert link.status().state == "OPERATION ENABLED" and device.model.fault_code() == 0

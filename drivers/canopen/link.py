@@ -133,7 +133,13 @@ class CanopenDriveLink:
         self.network.subscribe(o.HEARTBEAT + self.node_id, self._on_heartbeat)
         self.network.subscribe(o.EMCY + self.node_id, self._on_emcy)
 
-        vendor, product, revision, serial = (sdo.read(o.IDENTITY, k) for k in (1, 2, 3, 4))
+        try:
+            vendor, product, revision, serial = (sdo.read(o.IDENTITY, k) for k in (1, 2, 3, 4))
+        except LinkError as exc:
+            if kwargs["interface"] == "socketcand":
+                raise LinkError(f"{exc} (a served simulator admits one bench at a time: is another bench "
+                                f"connected?)") from None
+            raise
         name, version = (self._optional_text(index) for index in (o.DEVICE_NAME, o.SOFTWARE_VERSION))
         try:
             self.profile = resolve(self.profile_config, vendor, product, sdo.read_standard, sdo.has)
