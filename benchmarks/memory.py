@@ -23,18 +23,9 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
 
-SCENARIO = """schema_version = 1
-name = "memory-long-realtime"
-bench = "{bench}"
-duration_s = {duration}
-seed = 1
-{steps}
-[limits]
-overspeed_mech_rad_s = 60.0
-overcurrent_a = 10.0
-max_duration_s = {max_duration}
-"""
+from realtime import SCENARIO  # noqa: E402  (the same step profile, longer)
 
 
 def rss_mb() -> float:
