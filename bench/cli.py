@@ -509,11 +509,6 @@ def _add_plugin_commands() -> None:
 
 _add_plugin_commands()
 
-from bench.service.commands import serve, submit, token  # noqa: E402  (service commands; web stack loaded lazily)
-
-for _command in (serve, submit, token):
-    cli.add_command(_command)
-
 
 def main(argv: list[str] | None = None) -> int:
     try:
