@@ -158,7 +158,10 @@ def pg_url(tmp_path_factory):
     if bindir is None:
         pytest.skip("PostgreSQL server binaries not installed (Debian: apt-get install postgresql)")
     pytest.importorskip("psycopg", reason="psycopg not installed (pip install 'drivebench[service]')")
-    folder = tmp_path_factory.mktemp("pg")
+    import tempfile
+
+    # not under pytest's tmp dir: as root that is private to root, and the postgres user must reach it
+    folder = Path(tempfile.mkdtemp(prefix="drivebench-pg-"))
     data = folder / "data"
     as_user: list[str] = []
     if os.geteuid() == 0:      # PostgreSQL refuses to run as root: use the package's postgres user
@@ -187,6 +190,7 @@ def pg_url(tmp_path_factory):
         yield f"postgresql+psycopg://postgres@127.0.0.1:{port}/postgres"
     finally:
         run(str(bindir / "pg_ctl"), "-D", str(data), "-m", "immediate", "-w", "-t", "30", "stop")
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def fresh_pg_database(url: str, name: str) -> str:
