@@ -2,7 +2,6 @@
 
 DRIVEBENCH_PARENT_PID: die with the service. Linux delivers SIGTERM when the service goes (also by SIGKILL), and
 SIGTERM is the run's one safe-stop path, so an orphaned run stops the drive and closes its record.
-DRIVEBENCH_NICE: lower the priority of a simulated run so the API stays responsive while runs fill the cores.
 DRIVEBENCH_PROGRESS=jsonl: progress as `{"progress_s": t, "duration_s": T}` lines on stderr.
 """
 
@@ -29,12 +28,6 @@ def apply_service_settings() -> None:
             pass
         if os.getppid() != int(parent):     # the service died before prctl took effect
             os.kill(os.getpid(), signal.SIGTERM)
-    nice = os.environ.get("DRIVEBENCH_NICE")
-    if nice:
-        try:
-            os.nice(int(nice))
-        except (OSError, ValueError):
-            pass
 
 
 def progress_reporter() -> Callable[[float, float], None] | None:

@@ -126,7 +126,7 @@ class Service:
             "progress_s": run.progress_s, "scenario_duration_s": run.scenario_duration_s, "reason": run.reason,
             "abort_requested_by": run.abort_requested_by, "aborted_by": run.aborted_by, "drive": run.drive,
             "firmware_version": run.firmware_version, "revision": run.revision,
-            "software": run.software,
+            "software": run.software, "host": run.host, "pid": run.pid,
         }
 
     def get_run(self, run_id: int) -> Run:
