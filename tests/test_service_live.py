@@ -37,7 +37,7 @@ def test_live_runs_stream_to_the_services_rerun_server_and_keep_their_rrd(tmp_pa
         record = client.request("GET", run["record_url"])
         assert record["rerun"]["mode"] == "connect"
         assert record["rerun"]["url"] == f"rerun+http://127.0.0.1:{grpc_port}/proxy"
-        assert any("run.rrd" in str(sink) for sink in record["rerun"]["sinks"])
+        assert record["rerun"]["sinks"] == ["file", "viewer"]      # tee: run.rrd and the live server
         rrd = urllib.request.Request(f"http://127.0.0.1:{port}/api/runs/{run_id}/files/run.rrd",
                                      headers={"Authorization": f"Bearer {tokens.viewer}"})
         with urllib.request.urlopen(rrd, timeout=10) as response:
