@@ -150,7 +150,8 @@ while True:
         long_id, short_id = (int(n) for n in re.findall(r": run (\d+) queued", long_run.stdout))
         from bench.service.db import Run, open_database
         db = open_database(service.db.url)
-        wait_until(lambda: db.sessions().get(Run, long_id).state == "running", 30, 0.1, "the long run to start")
+        wait_until(lambda: (r := db.sessions().get(Run, long_id)).state == "running" and r.pid, 30, 0.1,
+                   "the long run to start")
         with db.session() as s:
             child_pid = s.get(Run, long_id).pid
         time.sleep(1.0)

@@ -12,8 +12,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
 
-from sqlalchemy import (JSON, Boolean, Float, ForeignKey, Integer, String, Text, create_engine, event, inspect,
-                        update)
+from sqlalchemy import (JSON, BigInteger, Boolean, Float, ForeignKey, Integer, String, Text, create_engine, event,
+                        inspect, update)
 from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
 
@@ -70,7 +70,7 @@ class Run(Base):
     scenario_file: Mapped[str] = mapped_column(Text)       # the file the run process reads
     scenario_name: Mapped[str | None] = mapped_column(String(300), index=True)
     scenario_sha256: Mapped[str | None] = mapped_column(String(64))
-    seed: Mapped[int | None] = mapped_column(Integer)
+    seed: Mapped[int | None] = mapped_column(BigInteger)     # seeds go up to 2**63 - 1
     owner: Mapped[str] = mapped_column(String(200))
     owner_token_id: Mapped[int | None] = mapped_column(Integer)
     submitted_ts: Mapped[float] = mapped_column(Float, default=now)

@@ -370,7 +370,7 @@ class Runner:
             run = s.get(Run, child.run_id)
             index_record(s, run, record, run_dir)
             verdict = (record or {}).get("verdict")
-            if run.abort_requested_by:
+            if run.abort_requested_by and (child.term_sent is not None or verdict not in VERDICT_STATE):
                 run.state = "aborted"
                 run.aborted_by = run.abort_requested_by
                 run.reason = f"aborted by {run.abort_requested_by}" + (

@@ -2,8 +2,12 @@
 (function () {
   const proto = location.protocol === "https:" ? "wss:" : "ws:";
   let socket;
+  // a run's page asks for that run: the first event is its current state, so a change between rendering the page
+  // and opening the socket is not missed
+  const runState = document.getElementById("run-state");
+  const query = runState ? "?run=" + runState.dataset.runState : "";
   function connect() {
-    socket = new WebSocket(proto + "//" + location.host + "/api/events");
+    socket = new WebSocket(proto + "//" + location.host + "/api/events" + query);
     socket.onmessage = function (message) {
       const event = JSON.parse(message.data);
       if (event.type === "progress") {

@@ -36,7 +36,7 @@ def upgrade() -> None:
     sa.Column('scenario_file', sa.Text(), nullable=False),
     sa.Column('scenario_name', sa.String(length=300), nullable=True),
     sa.Column('scenario_sha256', sa.String(length=64), nullable=True),
-    sa.Column('seed', sa.Integer(), nullable=True),
+    sa.Column('seed', sa.BigInteger(), nullable=True),
     sa.Column('owner', sa.String(length=200), nullable=False),
     sa.Column('owner_token_id', sa.Integer(), nullable=True),
     sa.Column('submitted_ts', sa.Float(), nullable=False),
