@@ -95,7 +95,8 @@ def test_an_operator_runs_a_scenario_and_reads_its_record_in_the_browser(served,
     page.click("#submit-form button[type=submit]")
     page.wait_for_url("**/runs/2")
     page.locator("#run-state", has_text="running").wait_for()
-    page.wait_for_function("document.querySelector('#run-progress') && document.querySelector('#run-progress').value > 0.2")
+    page.wait_for_function("document.querySelector('#run-progress') "
+                           "&& document.querySelector('#run-progress').value > 0.2")
     page.on("dialog", lambda dialog: dialog.accept())
     page.click("#abort")
     page.locator("#run-state", has_text="aborted").wait_for()
