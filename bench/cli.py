@@ -176,6 +176,8 @@ def run(scenarios, bench_path, rerun_mode, rerun_url, out_root, seed, as_json) -
         rerun_url = scenarios.pop(0)
     if not scenarios:
         raise click.UsageError("no SCENARIO given")
+    from bench.service.child import apply_service_settings
+    apply_service_settings()
     sys.exit(run_many(scenarios, bench_path, out_root, seed, rerun_mode, rerun_url, as_json))
 
 
@@ -233,7 +235,10 @@ class _progress:
 
     def __enter__(self):
         from bench.scenario import load_scenario
+        from bench.service.child import progress_reporter
 
+        if (service_progress := progress_reporter()) is not None:   # a run started by `drivebench serve`
+            return service_progress
         duration = load_scenario(self.path).duration_s
         if duration < PROGRESS_MIN_DURATION_S or not err_console.is_terminal:
             return None

@@ -126,7 +126,9 @@ class RerunStream:
         import rerun as rr
 
         self._rr = rr
-        self._rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_name)
+        # a run started by `drivebench serve` is the recording named after its run id
+        recording_id = os.environ.get("DRIVEBENCH_RECORDING_ID") or recording_name
+        self._rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
         sinks: list = []
         if rrd_path is not None:
             sinks.append(rr.FileSink(str(rrd_path)))

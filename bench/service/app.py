@@ -1,0 +1,305 @@
+"""The HTTP + websocket API (FastAPI: OpenAPI at /openapi.json built from the pydantic models, websockets and
+Starlette's test client included; served by uvicorn).
+
+Every request but GET /api/health and the login page carries a token (`Authorization: Bearer`, or the UI's
+cookie); AuthMiddleware answers 401 before any route runs, so a new endpoint cannot forget it. Roles are checked
+per endpoint (403).
+"""
+
+from __future__ import annotations
+
+import asyncio
+from contextlib import asynccontextmanager
+from http.cookies import SimpleCookie
+from typing import Any
+
+import anyio
+from fastapi import Body, Depends, FastAPI, Request, WebSocket, WebSocketDisconnect
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, JSONResponse
+from pydantic import BaseModel, Field
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from bench.service.auth import COOKIE, ROLES, Principal, bearer, create_token
+from bench.service.core import MEDIA, Service, ServiceSettings
+from bench.service.errors import ApiError, bad_input
+from bench.service.leases import extend, lease_dict, release, reserve, active_leases
+from bench.service.queue import Submission, submit
+
+PUBLIC = {("GET", "/api/health"), ("GET", "/login"), ("POST", "/login")}
+
+
+class AuthMiddleware:
+    """Resolves the token of every HTTP and websocket request to a Principal in scope["state"]["principal"]."""
+
+    def __init__(self, app, service_getter):
+        self.app = app
+        self.service_getter = service_getter
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] not in ("http", "websocket"):
+            return await self.app(scope, receive, send)
+        method = scope.get("method", "GET")
+        if (method, scope["path"]) in PUBLIC or (method == "HEAD" and ("GET", scope["path"]) in PUBLIC):
+            return await self.app(scope, receive, send)
+        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
+        token = bearer(headers.get("authorization"))
+        if token is None and "cookie" in headers:
+            jar = SimpleCookie()
+            try:
+                jar.load(headers["cookie"])
+            except Exception:
+                jar = SimpleCookie()
+            token = jar[COOKIE].value if COOKIE in jar else None
+        service: Service = self.service_getter()
+        principal = await anyio.to_thread.run_sync(service.tokens.lookup, token) if token else None
+        if principal is None:
+            return await self._deny(scope, receive, send, "a valid token is needed (Authorization: Bearer TOKEN)"
+                                    if token is None else "unknown or revoked token")
+        scope.setdefault("state", {})["principal"] = principal
+        return await self.app(scope, receive, send)
+
+    async def _deny(self, scope, receive, send, message: str):
+        if scope["type"] == "websocket":
+            await receive()          # websocket.connect
+            if "websocket.http.response" in scope.get("extensions", {}):
+                response = JSONResponse({"detail": message}, status_code=401)
+                await send({"type": "websocket.http.response.start", "status": 401,
+                            "headers": response.raw_headers})
+                await send({"type": "websocket.http.response.body", "body": response.body})
+            else:
+                await send({"type": "websocket.close", "code": 4401, "reason": "unauthorized"})
+            return
+        if scope["path"].startswith("/api/") or scope["path"] == "/openapi.json":
+            response = JSONResponse({"detail": message}, status_code=401, headers={"WWW-Authenticate": "Bearer"})
+        else:
+            from fastapi.responses import RedirectResponse
+            response = RedirectResponse("/login", status_code=303)
+        await response(scope, receive, send)
+
+
+def principal(request: Request) -> Principal:
+    return request.scope["state"]["principal"]
+
+
+def role(needed: str):
+    def check(request: Request) -> Principal:
+        who = principal(request)
+        if not who.at_least(needed):
+            raise ApiError(403, f"{who.role} token {who.name!r}: this needs the {needed} role")
+        return who
+    check.__name__ = f"role_{needed}"
+    return check
+
+
+viewer, operator, admin = role("viewer"), role("operator"), role("admin")
+
+
+# --- request bodies ----------------------------------------------------------------------------------------
+
+class RunSubmit(BaseModel):
+    scenario: str | None = Field(None, description="a scenario path under the service's scenario root")
+    scenario_toml: str | None = Field(None, description="the scenario file's text")
+    filename: str | None = Field(None, description="how error lines name scenario_toml")
+    rig: str | None = None
+    tag: str | None = None
+    seed: int | None = None
+
+
+class LeaseRequest(BaseModel):
+    ttl_s: float = Field(..., description="seconds until the lease expires unless extended")
+    reason: str | None = ""
+
+
+class ExtendRequest(BaseModel):
+    ttl_s: float | None = None
+
+
+class RigPatch(BaseModel):
+    enabled: bool
+
+
+class TokenRequest(BaseModel):
+    name: str = Field(..., min_length=1, max_length=200)
+    role: str
+
+
+def _validation_lines(exc: RequestValidationError) -> list[str]:
+    lines = []
+    for err in exc.errors():
+        loc = [str(x) for x in err.get("loc", ())]
+        where = ".".join(loc[1:]) if loc and loc[0] in ("body", "query", "path") else ".".join(loc)
+        lines.append(f"request: {where or '(body)'}: {err.get('msg', 'invalid')}")
+    return lines
+
+
+def create_app(settings: ServiceSettings | None = None, service: Service | None = None) -> FastAPI:
+    holder: dict[str, Service] = {}
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        svc = service or Service(settings)
+        holder["service"] = svc
+        app.state.service = svc
+        svc.events.bind(asyncio.get_running_loop())
+        svc.start()
+        try:
+            yield
+        finally:
+            await anyio.to_thread.run_sync(svc.stop)
+
+    app = FastAPI(title="drivebench bench service", version="1", lifespan=lifespan, docs_url=None,
+                  redoc_url=None, openapi_url="/openapi.json")
+    app.add_middleware(AuthMiddleware, service_getter=lambda: holder["service"])
+
+    def svc() -> Service:
+        return holder["service"]
+
+    @app.exception_handler(ApiError)
+    async def api_error(request: Request, exc: ApiError):
+        return JSONResponse({"detail": exc.detail}, status_code=exc.status)
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(request: Request, exc: RequestValidationError):
+        return JSONResponse({"detail": _validation_lines(exc)}, status_code=422)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException):
+        return JSONResponse({"detail": exc.detail}, status_code=exc.status_code, headers=exc.headers)
+
+    # -- health, rigs, leases ------------------------------------------------------------------------------
+
+    @app.get("/api/health")
+    def health() -> dict:
+        return {"status": "ok", "database": "sqlite" if svc().db.is_sqlite else "postgresql"}
+
+    @app.get("/api/rigs")
+    def rigs(who: Principal = Depends(viewer)) -> list[dict]:
+        return svc().rigs()
+
+    @app.get("/api/rigs/{name}")
+    def rig(name: str, who: Principal = Depends(viewer)) -> dict:
+        return svc().rig(name)
+
+    @app.patch("/api/rigs/{name}")
+    def patch_rig(name: str, body: RigPatch, who: Principal = Depends(admin)) -> dict:
+        return svc().set_rig_enabled(name, body.enabled)
+
+    @app.post("/api/rigs/{name}/lease", status_code=201)
+    def lease(name: str, body: LeaseRequest, who: Principal = Depends(operator)) -> dict:
+        held = reserve(svc().db, name, who, body.ttl_s, body.reason)
+        return {"id": held.id, "expires_utc": lease_dict(held)["expires_utc"], "rig": name, "holder": who.name}
+
+    @app.get("/api/leases")
+    def leases(who: Principal = Depends(viewer)) -> list[dict]:
+        with svc().db.session() as s:
+            return [lease_dict(l) for l in active_leases(s)]
+
+    @app.post("/api/leases/{lease_id}/extend")
+    def extend_lease(lease_id: int, body: ExtendRequest | None = Body(None),
+                     who: Principal = Depends(operator)) -> dict:
+        held = extend(svc().db, lease_id, who, body.ttl_s if body else None)
+        return {"id": held.id, "expires_utc": lease_dict(held)["expires_utc"]}
+
+    @app.delete("/api/leases/{lease_id}")
+    def delete_lease(lease_id: int, who: Principal = Depends(operator)) -> dict:
+        held = release(svc().db, lease_id, who)
+        return {"id": held.id, "released": True, "released_by": held.released_by}
+
+    # -- runs ------------------------------------------------------------------------------------------------
+
+    @app.post("/api/runs", status_code=201)
+    def submit_run(body: RunSubmit, who: Principal = Depends(operator)) -> dict:
+        s = svc()
+        run = submit(s.db, who, Submission(**body.model_dump()), s.settings.scenario_root, s.settings.data_dir)
+        s.runner.wake()
+        return {"id": run.id, "state": run.state, "url": f"/runs/{run.id}"}
+
+    @app.get("/api/runs")
+    def list_runs(rig: str | None = None, state: str | None = None, scenario: str | None = None,
+                  verdict: str | None = None, revision: str | None = None, owner: str | None = None,
+                  limit: int = 100, who: Principal = Depends(viewer)) -> list[dict]:
+        s = svc()
+        return [s.run_dict(r) for r in s.list_runs(rig, state, scenario, verdict, revision, owner, limit)]
+
+    @app.get("/api/runs/{run_id}")
+    def get_run(run_id: int, who: Principal = Depends(viewer)) -> dict:
+        return svc().run_dict(svc().get_run(run_id))
+
+    @app.post("/api/runs/{run_id}/abort")
+    def abort_run(run_id: int, who: Principal = Depends(operator)) -> dict:
+        run = svc().abort(run_id, who)
+        return {"id": run.id, "state": run.state, "abort_requested_by": run.abort_requested_by}
+
+    @app.get("/api/runs/{run_id}/files/{name}")
+    def run_file(run_id: int, name: str, who: Principal = Depends(viewer)):
+        path = svc().run_file(run_id, name)
+        return FileResponse(path, media_type=MEDIA.get(path.suffix, "application/octet-stream"), filename=name)
+
+    @app.get("/api/trend")
+    def trend(criterion: str, scenario: str | None = None, limit: int = 500,
+              who: Principal = Depends(viewer)) -> list[dict]:
+        if not 1 <= limit <= 5000:
+            raise bad_input([f"request: limit: must be in [1, 5000], got {limit}"])
+        return svc().trend(criterion, scenario, limit)
+
+    # -- tokens ----------------------------------------------------------------------------------------------
+
+    @app.post("/api/tokens", status_code=201)
+    def new_token(body: TokenRequest, who: Principal = Depends(admin)) -> dict:
+        if body.role not in ROLES:
+            raise bad_input([f"request: role: must be one of {', '.join(ROLES)}, got {body.role!r}"])
+        token_id, token = create_token(svc().db, body.name, body.role)
+        return {"id": token_id, "name": body.name, "role": body.role, "token": token}
+
+    @app.get("/api/tokens")
+    def tokens(who: Principal = Depends(admin)) -> list[dict]:
+        return svc().tokens_list()
+
+    @app.delete("/api/tokens/{token_id}")
+    def revoke(token_id: int, who: Principal = Depends(admin)) -> dict:
+        svc().revoke_token(token_id)
+        return {"id": token_id, "revoked": True}
+
+    # -- events ----------------------------------------------------------------------------------------------
+
+    @app.websocket("/api/events")
+    async def events(websocket: WebSocket, run: int | None = None):
+        """Run events as JSON: {"type": "run", "id", "state", "verdict", ...} on every state change and
+        {"type": "progress", "id", "progress_s", "duration_s"} while a run runs. ?run=ID: one run only."""
+        s = svc()
+        queue = s.events.subscribe()
+        await websocket.accept()
+
+        async def pump():
+            if run is not None:
+                current = await anyio.to_thread.run_sync(lambda: s.run_dict(s.get_run(run)))
+                await websocket.send_json({"type": "run", "id": current["id"], "state": current["state"],
+                                           "verdict": current["verdict"], "rig": current["rig"],
+                                           "progress_s": current["progress_s"], "reason": current["reason"],
+                                           "duration_s": current["scenario_duration_s"]})
+            while True:
+                event: dict[str, Any] = await queue.get()
+                if run is None or event.get("id") == run:
+                    await websocket.send_json(event)
+
+        async def watch():
+            while (await websocket.receive())["type"] != "websocket.disconnect":
+                pass
+
+        tasks = {asyncio.create_task(pump()), asyncio.create_task(watch())}
+        try:
+            done, pending = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+            for task in pending:
+                task.cancel()
+            for task in done:
+                if isinstance(task.exception(), ApiError):
+                    await websocket.close(code=4404, reason=str(task.exception()))
+        except (WebSocketDisconnect, RuntimeError):
+            pass
+        finally:
+            s.events.unsubscribe(queue)
+
+    from bench.service.ui import add_ui
+    add_ui(app, svc)
+    return app

@@ -1,0 +1,200 @@
+"""`drivebench serve`, `drivebench token`, `drivebench submit` (the web stack is imported inside the commands, so
+`drivebench run` does not pay for it)."""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import click
+
+from bench.errors import InputError
+
+EXIT_PASS, EXIT_FAIL, EXIT_ERROR = 0, 1, 2
+DEFAULT_DATA = "runs/service"
+
+
+def _data_option(fn):
+    fn = click.option("--data", "data_dir", type=click.Path(file_okay=False), default=DEFAULT_DATA,
+                      show_default=True, help="Service data: the embedded database, run directories.")(fn)
+    return click.option("--db", "db_url", envvar="DRIVEBENCH_DB",
+                        help="Database URL (default: SQLite in --data; postgresql://user@host/db to share one).")(fn)
+
+
+def _bad(lines: list[str]) -> None:
+    for line in lines:
+        click.echo(line, err=True)
+    sys.exit(EXIT_ERROR)
+
+
+def _open_db(db_url: str | None, data_dir: str):
+    from bench.service.db import default_url, open_database
+
+    Path(data_dir).mkdir(parents=True, exist_ok=True)
+    try:
+        return open_database(db_url or default_url(Path(data_dir)))
+    except Exception as exc:   # a wrong URL, an unreachable server: one line, no traceback
+        _bad([f"{db_url or data_dir}: (database): cannot open: {type(exc).__name__}: {str(exc).splitlines()[0]}"])
+
+
+@click.command()
+@_data_option
+@click.option("--host", default="127.0.0.1", show_default=True, help="Listen address (only loopback unless told).")
+@click.option("--port", type=int, default=8750, show_default=True)
+@click.option("--rigs", "rigs_path", type=click.Path(dir_okay=False), help="Rigs file [default: config/rigs.toml].")
+@click.option("--scenarios", "scenario_root", type=click.Path(file_okay=False),
+              help="Scenario root: submitted paths must lie under it [default: scenarios/].")
+@click.option("--lease-ttl", "lease_ttl_s", type=float, default=10.0, show_default=True,
+              help="Seconds a run's lease lives unless the service extends it.")
+@click.option("--max-parallel", type=int, help="Run processes at once on this host [default: CPU count].")
+@click.option("--live/--no-live", default=False, show_default=True,
+              help="Serve Rerun's gRPC server and web viewer (from the rerun-sdk wheel); runs stream to it.")
+@click.option("--live-grpc-port", type=int, default=9876, show_default=True)
+@click.option("--live-web-port", type=int, default=9090, show_default=True)
+@click.option("--ssl-keyfile", type=click.Path(dir_okay=False), help="TLS key (uvicorn); with --ssl-certfile.")
+@click.option("--ssl-certfile", type=click.Path(dir_okay=False), help="TLS certificate chain (uvicorn).")
+@click.option("--host-id", help="Names this instance's runs when several share a database [default: host name].")
+def serve(db_url, data_dir, host, port, rigs_path, scenario_root, lease_ttl_s, max_parallel, live, live_grpc_port,
+          live_web_port, ssl_keyfile, ssl_certfile, host_id) -> None:
+    """The bench service: HTTP API (OpenAPI at /openapi.json), run queue, leased rigs, web UI on HOST:PORT."""
+    try:
+        import uvicorn
+
+        from bench.service.app import create_app
+        from bench.service.core import Service, ServiceSettings
+    except ImportError as exc:
+        _bad([f"drivebench serve: (install): {exc.name} is missing: pip install 'drivebench[service]'"])
+    settings = ServiceSettings(data_dir=Path(data_dir), db_url=db_url, rigs_path=Path(rigs_path) if rigs_path else None,
+                               scenario_root=Path(scenario_root) if scenario_root else None, lease_ttl_s=lease_ttl_s,
+                               max_parallel=max_parallel, host_id=host_id)
+    if live:
+        from bench.service.live import start_live
+        settings.live_grpc_url, settings.live_viewer_url = start_live(live_grpc_port, live_web_port)
+    try:
+        service = Service(settings)
+    except InputError as exc:
+        _bad(exc.problems)
+    except Exception as exc:
+        _bad([f"{db_url or data_dir}: (database): cannot open: {type(exc).__name__}: {str(exc).splitlines()[0]}"])
+    click.echo(f"drivebench serve: http{'s' if ssl_certfile else ''}://{host}:{port}/ "
+               f"({'SQLite in ' + str(settings.data_dir) if service.db.is_sqlite else 'PostgreSQL'}, "
+               f"{len(settings.rigs)} rigs)", err=True)
+    uvicorn.run(create_app(service=service), host=host, port=port, log_level="warning", ssl_keyfile=ssl_keyfile,
+                ssl_certfile=ssl_certfile, timeout_graceful_shutdown=5)
+
+
+@click.group()
+def token() -> None:
+    """API tokens of the bench service (stored hashed; shown once)."""
+
+
+@token.command("create")
+@click.option("--role", type=click.Choice(["viewer", "operator", "admin"]), required=True)
+@click.option("--name", required=True, help="Who or what uses it (shown as the holder of leases and runs).")
+@_data_option
+def token_create(role, name, db_url, data_dir) -> None:
+    """Make a token and print it once on stdout (only its SHA-256 is stored)."""
+    from bench.service.auth import create_token
+
+    db = _open_db(db_url, data_dir)
+    token_id, value = create_token(db, name, role)
+    db.dispose()
+    click.echo(f"token {token_id} for {name} ({role}): shown once, keep it (e.g. in DRIVEBENCH_TOKEN)", err=True)
+    click.echo(value)
+
+
+@token.command("list")
+@_data_option
+def token_list(db_url, data_dir) -> None:
+    """Tokens by id, name and role (never the token)."""
+    from sqlalchemy import select
+
+    from bench.service.db import Token, iso
+
+    db = _open_db(db_url, data_dir)
+    with db.session() as s:
+        for t in s.execute(select(Token).order_by(Token.id)).scalars():
+            click.echo(f"{t.id}\t{t.name}\t{t.role}\t{iso(t.created_ts)}\t{'revoked' if t.revoked else 'active'}")
+    db.dispose()
+
+
+@token.command("revoke")
+@click.argument("token_id", type=int)
+@_data_option
+def token_revoke(token_id, db_url, data_dir) -> None:
+    from bench.service.db import Token
+
+    db = _open_db(db_url, data_dir)
+    with db.session() as s:
+        row = s.get(Token, token_id)
+        if row is None:
+            _bad([f"token {token_id}: not found"])
+        row.revoked = True
+    db.dispose()
+    click.echo(f"token {token_id} revoked", err=True)
+
+
+@click.command()
+@click.argument("scenarios", nargs=-1, required=True)
+@click.option("--server", required=True, envvar="DRIVEBENCH_SERVER", help="The service's URL.")
+@click.option("--token", "token_value", envvar="DRIVEBENCH_TOKEN", help="API token [env DRIVEBENCH_TOKEN].")
+@click.option("--rig", help="Run on this rig.")
+@click.option("--tag", help="Run on any rig with this tag.")
+@click.option("--seed", type=int, help="Override the scenarios' seed.")
+@click.option("--wait", is_flag=True, help="Wait for the verdicts; exit like `drivebench run`.")
+@click.option("--timeout", "timeout_s", type=float, default=3600.0, show_default=True, help="--wait at most this long.")
+@click.option("--junit", "junit_path", type=click.Path(dir_okay=False), help="With --wait: write JUnit XML here.")
+def submit(scenarios, server, token_value, rig, tag, seed, wait, timeout_s, junit_path) -> None:
+    """Queue SCENARIOs on the bench service; with --wait, exit 0 if all passed, 1 if one failed or aborted,
+    2 on bad input or an error. A local file is sent as its text; another path names a file under the service's
+    scenario root."""
+    from bench.cli import criteria_table, make_console, verdict_exit_code
+    from bench.service.client import Client, ClientError, write_junit
+
+    if not token_value:
+        _bad(["submit: --token: missing (or set DRIVEBENCH_TOKEN)"])
+    if (rig is None) == (tag is None):
+        _bad(["submit: --rig: give exactly one of --rig NAME or --tag TAG"])
+    if junit_path and not wait:
+        _bad(["submit: --junit: needs --wait (the verdicts are written when the runs end)"])
+    client = Client(server, token_value)
+    submitted: list[int] = []
+    problems: list[str] = []
+    for scenario in scenarios:
+        try:
+            answer = client.submit(scenario, rig, tag, seed)
+        except ClientError as exc:
+            problems.extend(exc.lines)
+            continue
+        submitted.append(answer["id"])
+        click.echo(f"{scenario}: run {answer['id']} {answer['state']} {client.url('runs/%d' % answer['id'])}")
+    if problems:
+        for line in problems:
+            click.echo(line, err=True)
+        if submitted:
+            click.echo(f"submitted {len(submitted)} of {len(scenarios)} runs", err=True)
+        sys.exit(EXIT_ERROR)
+    if not wait:
+        sys.exit(EXIT_PASS)
+    console = make_console()
+    try:
+        runs = client.wait(submitted, timeout_s, on_change=lambda r: click.echo(
+            f"run {r['id']}: {r['state']}" + (f" on {r['rig']}" if r.get("rig") else ""), err=True))
+    except ClientError as exc:
+        _bad(exc.lines)
+    verdicts = []
+    for run_id in submitted:
+        run = runs[run_id]
+        state = run["state"]
+        verdict = {"pass": "pass", "fail": "fail", "aborted": "aborted", "cancelled": "aborted"}.get(state, "error")
+        verdicts.append(verdict)
+        console.print(criteria_table(f"{run.get('scenario_name') or run['scenario']}: {run.get('verdict') or state} "
+                                     f"({client.url('runs/%d' % run_id)})", run.get("criteria") or []))
+        if run.get("reason"):
+            console.print(f"  reason: {run['reason']}")
+    if junit_path:
+        write_junit(Path(junit_path), [runs[i] for i in submitted], server)
+    if len(verdicts) > 1:
+        console.print(f"{sum(v == 'pass' for v in verdicts)}/{len(verdicts)} passed")
+    sys.exit(verdict_exit_code(verdicts))

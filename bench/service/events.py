@@ -1,0 +1,47 @@
+"""Run events (state, progress) from the runner thread to websocket subscribers on the event loop."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+
+QUEUE_LIMIT = 1000    # a subscriber that does not read loses events rather than growing without bound
+
+
+class EventHub:
+    def __init__(self) -> None:
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._subscribers: set[asyncio.Queue] = set()
+        self._lock = threading.Lock()
+
+    def bind(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._loop = loop
+
+    def subscribe(self) -> asyncio.Queue:
+        queue: asyncio.Queue = asyncio.Queue(QUEUE_LIMIT)
+        with self._lock:
+            self._subscribers.add(queue)
+        return queue
+
+    def unsubscribe(self, queue: asyncio.Queue) -> None:
+        with self._lock:
+            self._subscribers.discard(queue)
+
+    def publish(self, event: dict) -> None:
+        """Thread-safe; a no-op before the loop is bound or after it closed."""
+        loop = self._loop
+        if loop is None or loop.is_closed():
+            return
+        try:
+            loop.call_soon_threadsafe(self._fan_out, event)
+        except RuntimeError:      # the loop closed in between
+            pass
+
+    def _fan_out(self, event: dict) -> None:
+        with self._lock:
+            subscribers = list(self._subscribers)
+        for queue in subscribers:
+            try:
+                queue.put_nowait(event)
+            except asyncio.QueueFull:
+                pass

@@ -1,0 +1,33 @@
+// Live updates: run states and progress from the service's websocket (/api/events, cookie auth).
+(function () {
+  const proto = location.protocol === "https:" ? "wss:" : "ws:";
+  let socket;
+  // a run's page asks for that run: the first event is its current state, so a change between rendering the page
+  // and opening the socket is not missed
+  const runState = document.getElementById("run-state");
+  const query = runState ? "?run=" + runState.dataset.runState : "";
+  function connect() {
+    socket = new WebSocket(proto + "//" + location.host + "/api/events" + query);
+    socket.onmessage = function (message) {
+      const event = JSON.parse(message.data);
+      if (event.type === "progress") {
+        document.querySelectorAll('[data-run-progress="' + event.id + '"]').forEach(function (bar) {
+          if (event.duration_s) bar.max = event.duration_s;
+          bar.value = event.progress_s;
+        });
+      } else if (event.type === "run") {
+        let changed = false;
+        document.querySelectorAll('[data-run-state="' + event.id + '"]').forEach(function (el) {
+          if (el.textContent !== event.state) { changed = true; el.textContent = event.state; el.className = "state state-" + event.state; }
+        });
+        // a run that finished or started: reload to show its verdict table, the queue and the rigs
+        if (changed || (location.pathname === "/" && !document.querySelector('[data-run="' + event.id + '"]'))) {
+          clearTimeout(window.__reload);
+          window.__reload = setTimeout(function () { location.reload(); }, 300);
+        }
+      }
+    };
+    socket.onclose = function () { setTimeout(connect, 2000); };
+  }
+  connect();
+})();

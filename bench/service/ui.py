@@ -1,0 +1,230 @@
+"""Web pages for lab engineers: server-rendered Jinja templates, a few lines of plain JavaScript for live updates
+(no Node build step, nothing from the internet). The login page sets the token as an HttpOnly SameSite=Strict
+cookie, so a page of another site cannot make the browser post a form with it."""
+
+from __future__ import annotations
+
+import io
+import urllib.parse
+from pathlib import Path
+from typing import Callable
+
+from fastapi import FastAPI, Form, Request
+from fastapi.responses import HTMLResponse, RedirectResponse, Response
+from fastapi.templating import Jinja2Templates
+
+from bench.service.auth import COOKIE, Principal
+from bench.service.core import RUN_FILES, Service
+from bench.service.db import FINAL_STATES, STATES, iso
+from bench.service.errors import ApiError
+from bench.service.leases import release, reserve
+from bench.service.queue import Submission, submit
+
+HERE = Path(__file__).resolve().parent
+templates = Jinja2Templates(directory=str(HERE / "templates"))
+templates.env.globals.update(iso=iso, FINAL_STATES=FINAL_STATES, STATES=STATES)
+
+
+def _fmt(value) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_fmt(v) for v in value) + "]"
+    return str(value)
+
+
+templates.env.filters["fmt"] = _fmt
+
+
+def add_ui(app: FastAPI, svc: Callable[[], Service]) -> None:
+    def who(request: Request) -> Principal:
+        return request.scope["state"]["principal"]
+
+    def page(request: Request, name: str, **context) -> HTMLResponse:
+        return templates.TemplateResponse(request, name, {"me": who(request), "live": svc().settings.live_viewer_url,
+                                                          **context})
+
+    def error(request: Request, exc: ApiError) -> HTMLResponse:
+        lines = exc.detail if isinstance(exc.detail, list) else [exc.detail]
+        response = page(request, "error.html", status=exc.status, lines=lines)
+        response.status_code = exc.status
+        return response
+
+    @app.get("/login", response_class=HTMLResponse)
+    def login_page(request: Request, failed: int = 0):
+        return templates.TemplateResponse(request, "login.html", {"failed": bool(failed), "me": None})
+
+    @app.post("/login")
+    def login(token: str = Form(...)):
+        if svc().tokens.lookup(token.strip()) is None:
+            return RedirectResponse("/login?failed=1", status_code=303)
+        response = RedirectResponse("/", status_code=303)
+        response.set_cookie(COOKIE, token.strip(), httponly=True, samesite="strict", max_age=30 * 24 * 3600)
+        return response
+
+    @app.get("/logout")
+    def logout():
+        response = RedirectResponse("/login", status_code=303)
+        response.delete_cookie(COOKIE)
+        return response
+
+    @app.get("/", response_class=HTMLResponse)
+    def index(request: Request):
+        s = svc()
+        return page(request, "index.html", rigs=s.rigs(), queue=list(reversed(s.list_runs(active=True, limit=200))),
+                    recent=[r for r in s.list_runs(limit=15) if r.state in FINAL_STATES],
+                    tags=sorted({t for r in s.rigs() for t in r["tags"]}))
+
+    @app.get("/runs/{run_id}", response_class=HTMLResponse)
+    def run_page(request: Request, run_id: int):
+        s = svc()
+        try:
+            run = s.get_run(run_id)
+            files = []
+            for name in RUN_FILES:
+                try:
+                    s.run_file(run_id, name)
+                    files.append(name)
+                except ApiError:
+                    pass
+        except ApiError as exc:
+            return error(request, exc)
+        return page(request, "run.html", run=run, r=s.run_dict(run), files=files)
+
+    @app.get("/runs/{run_id}/live", response_class=HTMLResponse)
+    def live_page(request: Request, run_id: int):
+        s = svc()
+        try:
+            run = s.get_run(run_id)
+        except ApiError as exc:
+            return error(request, exc)
+        viewer = None
+        if s.settings.live_viewer_url and s.settings.live_grpc_url:
+            viewer = f"{s.settings.live_viewer_url}/?url={urllib.parse.quote(s.settings.live_grpc_url, safe='')}"
+        return page(request, "live.html", run=run, viewer=viewer)
+
+    @app.post("/ui/runs")
+    def ui_submit(request: Request, scenario: str = Form(...), target: str = Form(...), seed: str = Form("")):
+        kind, _, value = target.partition(":")
+        try:
+            if not who(request).at_least("operator"):
+                raise ApiError(403, f"{who(request).role} token: submitting needs the operator role")
+            seed_value = int(seed) if seed.strip() else None
+            run = submit(svc().db, who(request), Submission(scenario=scenario, rig=value if kind == "rig" else None,
+                                                             tag=value if kind == "tag" else None, seed=seed_value),
+                         svc().settings.scenario_root, svc().settings.data_dir)
+        except ApiError as exc:
+            return error(request, exc)
+        except ValueError:
+            return error(request, ApiError(422, [f"request: seed: must be an integer, got {seed!r}"]))
+        svc().runner.wake()
+        return RedirectResponse(f"/runs/{run.id}", status_code=303)
+
+    @app.post("/ui/runs/{run_id}/abort")
+    def ui_abort(request: Request, run_id: int):
+        try:
+            if not who(request).at_least("operator"):
+                raise ApiError(403, f"{who(request).role} token: aborting needs the operator role")
+            svc().abort(run_id, who(request))
+        except ApiError as exc:
+            return error(request, exc)
+        return RedirectResponse(f"/runs/{run_id}", status_code=303)
+
+    @app.get("/history", response_class=HTMLResponse)
+    def history(request: Request, rig: str = "", state: str = "", scenario: str = "", verdict: str = "",
+                revision: str = "", owner: str = "", limit: int = 200):
+        s = svc()
+        try:
+            runs = s.list_runs(rig or None, state or None, scenario or None, verdict or None, revision or None,
+                               owner or None, limit)
+        except ApiError as exc:
+            return error(request, exc)
+        return page(request, "history.html", runs=runs, rigs=[r["name"] for r in s.rigs()],
+                    scenarios=s.scenario_names(),
+                    filters={"rig": rig, "state": state, "scenario": scenario, "verdict": verdict,
+                             "revision": revision, "owner": owner})
+
+    @app.get("/trend", response_class=HTMLResponse)
+    def trend_page(request: Request, scenario: str = "", criterion: str = ""):
+        s = svc()
+        points = s.trend(criterion, scenario or None) if criterion else []
+        query = urllib.parse.urlencode({"scenario": scenario, "criterion": criterion})
+        return page(request, "trend.html", scenarios=s.scenario_names(), scenario=scenario,
+                    criteria=s.criterion_names(scenario or None), criterion=criterion, points=points, query=query)
+
+    @app.get("/trend.png")
+    def trend_png(scenario: str = "", criterion: str = ""):
+        points = svc().trend(criterion, scenario or None) if criterion else []
+        return Response(_trend_png(points, criterion, scenario), media_type="image/png")
+
+    @app.get("/rigs/{name}", response_class=HTMLResponse)
+    def rig_page(request: Request, name: str):
+        s = svc()
+        try:
+            rig = s.rig(name)
+        except ApiError as exc:
+            return error(request, exc)
+        return page(request, "rig.html", rig=rig, runs=s.list_runs(rig=name, limit=20))
+
+    @app.post("/ui/rigs/{name}/reserve")
+    def ui_reserve(request: Request, name: str, hours: float = Form(...), reason: str = Form("")):
+        try:
+            if not who(request).at_least("operator"):
+                raise ApiError(403, f"{who(request).role} token: reserving needs the operator role")
+            reserve(svc().db, name, who(request), hours * 3600.0, reason)
+        except ApiError as exc:
+            return error(request, exc)
+        return RedirectResponse(f"/rigs/{name}", status_code=303)
+
+    @app.post("/ui/leases/{lease_id}/release")
+    def ui_release(request: Request, lease_id: int):
+        try:
+            if not who(request).at_least("operator"):
+                raise ApiError(403, f"{who(request).role} token: releasing needs the operator role")
+            lease = release(svc().db, lease_id, who(request))
+        except ApiError as exc:
+            return error(request, exc)
+        svc().runner.wake()
+        return RedirectResponse(f"/rigs/{lease.rig}", status_code=303)
+
+    @app.get("/static/app.js")
+    def app_js():
+        return Response((HERE / "static" / "app.js").read_text(encoding="utf-8"), media_type="text/javascript")
+
+
+def _trend_png(points: list[dict], criterion: str, scenario: str) -> bytes:
+    """The criterion's value per run (x: run id), coloured by software revision, with its limit."""
+    import matplotlib
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9, 3.6), dpi=100)
+    ax = fig.add_subplot()
+    if not points:
+        ax.text(0.5, 0.5, "no runs with this criterion yet" if criterion else "choose a criterion",
+                ha="center", va="center", transform=ax.transAxes)
+    else:
+        revisions = list(dict.fromkeys((p["revision"] or "unknown")[:10] for p in points))
+        cmap = matplotlib.colormaps["tab10"]
+        for i, rev in enumerate(revisions):
+            chosen = [p for p in points if (p["revision"] or "unknown")[:10] == rev and p["value"] is not None]
+            ax.plot([p["run_id"] for p in chosen], [p["value"] for p in chosen], "o", color=cmap(i % 10),
+                    label=f"rev {rev}")
+            failed = [p for p in chosen if not p["passed"]]
+            ax.plot([p["run_id"] for p in failed], [p["value"] for p in failed], "x", color="red", ms=10)
+        ax.plot([p["run_id"] for p in points], [p["value"] for p in points], "-", color="0.7", lw=0.8, zorder=0)
+        limits = [(p["run_id"], p["limit"]) for p in points if p["limit"] is not None]
+        if limits:
+            ax.step([x for x, _ in limits], [y for _, y in limits], where="mid", color="red", lw=1, ls="--",
+                    label="limit")
+        ax.set_xlabel("run id")
+        ax.set_ylabel("value")
+        ax.legend(loc="best", fontsize=8)
+        ax.grid(alpha=0.3)
+    ax.set_title(f"{criterion}" + (f" ({scenario})" if scenario else ""), fontsize=9)
+    fig.tight_layout()
+    out = io.BytesIO()
+    fig.savefig(out, format="png")
+    return out.getvalue()

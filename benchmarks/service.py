@@ -1,0 +1,251 @@
+"""The bench service under load: the paper suite (scenarios/pmsm + scenarios/spim) submitted REPEAT times to four
+simulated rigs of one `drivebench serve`, while a poller measures API latency; then submit-to-start on an idle rig
+and how soon a rig is free after its lease holder is SIGKILLed (a CI job holding a real rig, a run process).
+
+Baseline from the same run: each suite scenario once through `drivebench run` directly, one after the other; the
+ideal makespan is their sum times REPEAT divided by the parallel run processes, and the service's makespan is
+printed as a ratio of it.
+Last line: `RESULT runs=... lost=... stuck=... runs_per_min=... api_p99_ms=... submit_to_start_ms=...
+lease_free_s=...`.
+Usage: python benchmarks/service.py [--repeat 1] [--full (= --repeat 10: 100 runs)] [--parallel 2] [--ttl 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench.service.client import Client, FINAL  # noqa: E402
+
+RIGS = """
+[[rig]]
+name = "pmsm-sim-1"
+bench = "{root}/config/benches/sim-pmsm.toml"
+tags = ["pmsm", "paper"]
+max_concurrent = 2
+
+[[rig]]
+name = "pmsm-sim-2"
+bench = "{root}/config/benches/sim-pmsm.toml"
+tags = ["pmsm", "paper"]
+max_concurrent = 2
+
+[[rig]]
+name = "spim-sim-1"
+bench = "{root}/config/benches/sim-spim.toml"
+tags = ["spim", "paper"]
+max_concurrent = 2
+
+[[rig]]
+name = "spim-sim-2"
+bench = "{root}/config/benches/sim-spim.toml"
+tags = ["spim", "paper"]
+max_concurrent = 2
+
+[[rig]]
+name = "real-rig"
+bench = "{root}/config/benches/sim-pmsm.toml"
+tags = ["lease-test"]
+simulated = false
+"""
+
+
+def suite() -> list[Path]:
+    return sorted((ROOT / "scenarios" / "pmsm").glob("*.toml")) + sorted((ROOT / "scenarios" / "spim").glob("*.toml"))
+
+
+def baseline(scenarios: list[Path], out: Path) -> dict[str, float]:
+    walls = {}
+    for path in scenarios:
+        t0 = time.monotonic()
+        subprocess.run([sys.executable, "-m", "bench", "run", str(path), "--out", str(out)], cwd=ROOT,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=600)
+        walls[path.stem] = time.monotonic() - t0
+        print(f"  baseline {path.relative_to(ROOT)}: {walls[path.stem]:.1f} s")
+    return walls
+
+
+def start_service(work: Path, port: int, parallel: int, ttl: float) -> tuple[subprocess.Popen, dict[str, str]]:
+    (work / "rigs.toml").write_text(RIGS.format(root=ROOT))
+    tokens = {}
+    for role in ("operator", "viewer", "admin"):
+        made = subprocess.run([sys.executable, "-m", "bench", "token", "create", "--role", role, "--name",
+                               f"bench-{role}", "--data", str(work / "data")], cwd=ROOT, capture_output=True,
+                              text=True, timeout=60, check=True)
+        tokens[role] = made.stdout.strip()
+    log = open(work / "serve.log", "ab")
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "serve", "--data", str(work / "data"), "--port", str(port),
+                             "--rigs", str(work / "rigs.toml"), "--max-parallel", str(parallel), "--lease-ttl",
+                             str(ttl)], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    client = Client(f"http://127.0.0.1:{port}", tokens["viewer"], timeout_s=5)
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            client.request("GET", "/api/health")
+            break
+        except Exception:
+            if time.monotonic() > deadline or proc.poll() is not None:
+                raise SystemExit(f"drivebench serve did not start; see {work / 'serve.log'}")
+            time.sleep(0.2)
+    return proc, tokens
+
+
+class Poller(threading.Thread):
+    """GET /api/rigs, /api/runs?limit=20 and one run, every 50 ms, timing each request."""
+
+    def __init__(self, client: Client):
+        super().__init__(daemon=True)
+        self.client = client
+        self.latencies_ms: list[float] = []
+        self.slowest: list[tuple[float, str, float]] = []
+        self.errors = 0
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        paths = ["/api/rigs", "/api/runs?limit=20", "/api/runs/1", "/api/leases"]
+        i = 0
+        while not self.stop.wait(0.05):
+            t0 = time.perf_counter()
+            try:
+                self.client.request("GET", paths[i % len(paths)])
+                self.latencies_ms.append((time.perf_counter() - t0) * 1000)
+                self.slowest = sorted([*self.slowest, (self.latencies_ms[-1], paths[i % len(paths)],
+                                                       time.monotonic())], reverse=True)[:5]
+            except Exception:
+                self.errors += 1
+            i += 1
+
+
+def p99(values: list[float]) -> float:
+    return statistics.quantiles(values, n=100)[98] if len(values) >= 100 else max(values, default=float("nan"))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeat", type=int, default=1, help="suite submissions (10 = the issue's 100 runs)")
+    parser.add_argument("--full", action="store_true", help="--repeat 10")
+    parser.add_argument("--parallel", type=int, default=os.cpu_count() or 2, help="run processes at once")
+    parser.add_argument("--ttl", type=float, default=2.0, help="lease TTL of the service [s]")
+    parser.add_argument("--port", type=int, default=8790)
+    parser.add_argument("--no-baseline", action="store_true")
+    args = parser.parse_args()
+    repeat = 10 if args.full else args.repeat
+    scenarios = suite()
+    work = Path(tempfile.mkdtemp(prefix="drivebench-service-bench-"))
+    print(f"{len(scenarios)} suite scenarios x {repeat} = {len(scenarios) * repeat} runs, {args.parallel} run "
+          f"processes at once, four simulated rigs; work dir {work}")
+    walls = {} if args.no_baseline else baseline(scenarios, work / "baseline")
+
+    server, tokens = start_service(work, args.port, args.parallel, args.ttl)
+    url = f"http://127.0.0.1:{args.port}"
+    operator, viewer = Client(url, tokens["operator"]), Client(url, tokens["viewer"], timeout_s=5)
+    poller = Poller(viewer)
+    try:
+        poller.start()
+        t0 = time.monotonic()
+        ids = []
+        for _ in range(repeat):
+            for path in scenarios:
+                ids.append(operator.request("POST", "/api/runs", {"scenario": str(path.relative_to(ROOT)),
+                                                                  "tag": "paper"})["id"])
+        submitted = time.monotonic() - t0
+        timeout = 600 + 120 * len(ids)
+        runs = {}
+        while time.monotonic() - t0 < timeout:
+            listed = viewer.request("GET", f"/api/runs?limit=1000")
+            runs = {r["id"]: r for r in listed if r["id"] in ids}
+            if len(runs) == len(ids) and all(r["state"] in FINAL for r in runs.values()):
+                break
+            time.sleep(1.0)
+        makespan = time.monotonic() - t0
+        poller.stop.set()
+        poller.join(timeout=10)
+        lost = len(set(ids) - set(runs))
+        stuck = sum(r["state"] not in FINAL for r in runs.values())
+        states = {}
+        for r in runs.values():
+            states[r["state"]] = states.get(r["state"], 0) + 1
+        finished = len(runs) - stuck
+        runs_per_min = finished / (makespan / 60)
+        print(f"submitted {len(ids)} runs in {submitted:.2f} s; all final after {makespan:.1f} s: {states}; "
+              f"{runs_per_min:.2f} runs/min")
+        api_p99 = p99(poller.latencies_ms)
+        print("  slowest: " + ", ".join(f"{ms:.0f} ms {path} at +{at - t0:.1f} s" for ms, path, at in poller.slowest))
+        print(f"API under load: {len(poller.latencies_ms)} requests, median "
+              f"{statistics.median(poller.latencies_ms):.1f} ms, p99 {api_p99:.1f} ms, {poller.errors} errors")
+        if walls:
+            ideal = sum(walls.values()) * repeat / args.parallel
+            print(f"baseline: the suite through drivebench run directly, {sum(walls.values()):.1f} s serial; "
+                  f"ideal makespan {ideal:.1f} s on {args.parallel} processes; service/ideal = {makespan / ideal:.2f}")
+
+        # submit-to-start on an idle rig (server-side times: submitted_utc -> started_utc)
+        import datetime as dt
+
+        def ts(value):
+            return dt.datetime.fromisoformat(value.replace("Z", "+00:00")).timestamp()
+
+        starts = []
+        for _ in range(3):
+            run_id = operator.request("POST", "/api/runs", {"scenario": "scenarios/pmsm/fig08-20rads-rs-step.toml",
+                                                            "rig": "pmsm-sim-1"})["id"]
+            done = operator.wait([run_id], 120, poll_s=0.2)[run_id]
+            starts.append((ts(done["started_utc"]) - ts(done["submitted_utc"])) * 1000)
+        submit_to_start = max(starts)
+        print(f"submit to start on an idle rig: {', '.join(f'{s:.0f}' for s in starts)} ms")
+
+        # lease freed after its holder is SIGKILLed: a CI job holding the real rig, then a run process on it
+        holder = subprocess.Popen([sys.executable, "-c", f"""
+import time
+from bench.service.client import Client
+c = Client("{url}", "{tokens['operator']}")
+lease = c.request("POST", "/api/rigs/real-rig/lease", {{"ttl_s": {args.ttl}, "reason": "ci job"}})
+while True:
+    time.sleep({args.ttl / 4})
+    c.request("POST", f"/api/leases/{{lease['id']}}/extend", {{"ttl_s": {args.ttl}}})
+"""], cwd=ROOT)
+        while viewer.request("GET", "/api/rigs/real-rig")["state"] != "reserved":
+            time.sleep(0.05)
+        time.sleep(1.0)
+        holder.kill()
+        t_kill = time.monotonic()
+        while viewer.request("GET", "/api/rigs/real-rig")["state"] != "free":
+            time.sleep(0.02)
+        free_ci = time.monotonic() - t_kill
+        holder.wait(timeout=10)
+        run_id = operator.request("POST", "/api/runs", {"scenario": "scenarios/pmsm/fig09-crane-lift-lower.toml",
+                                                        "rig": "real-rig"})["id"]
+        while (run := viewer.request("GET", f"/api/runs/{run_id}"))["state"] != "running" or not run["progress_s"]:
+            time.sleep(0.05)
+        os.kill(run["pid"], signal.SIGKILL)
+        t_kill = time.monotonic()
+        while viewer.request("GET", "/api/rigs/real-rig")["state"] != "free":
+            time.sleep(0.02)
+        free_run = time.monotonic() - t_kill
+        print(f"rig free after its holder was SIGKILLed (TTL {args.ttl:g} s): CI job {free_ci:.2f} s, "
+              f"run process {free_run:.2f} s")
+        lease_free = max(free_ci, free_run)
+    finally:
+        server.send_signal(signal.SIGTERM)
+        try:
+            server.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            server.kill()
+    print(f"RESULT runs={len(ids)} lost={lost} stuck={stuck} runs_per_min={runs_per_min:.2f} "
+          f"api_p99_ms={api_p99:.1f} submit_to_start_ms={submit_to_start:.0f} lease_free_s={lease_free:.2f}")
+    ok = lost == 0 and stuck == 0 and api_p99 <= 50 and submit_to_start <= 1000 and lease_free <= args.ttl + 1
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

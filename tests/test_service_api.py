@@ -1,0 +1,248 @@
+"""The bench service's API contract and security, on the embedded SQLite database with the run queue off (no run
+processes): tokens, roles, status codes, scenario root, leases."""
+
+from __future__ import annotations
+
+import re
+import time
+
+import pytest
+
+pytest.importorskip("fastapi", reason="the [service] extra is not installed")
+
+from fastapi.routing import APIRoute  # noqa: E402
+from starlette.routing import WebSocketRoute  # noqa: E402
+from starlette.testclient import WebSocketDenialResponse  # noqa: E402
+
+from tests.service_fixtures import REPO, SCENARIOS, SHORT, Tokens, client_for, make_settings  # noqa: E402
+
+H = Tokens.header
+CONTRACT_RUN_KEYS = {"id", "state", "verdict", "rig", "scenario", "criteria", "record_url", "live_url"}
+PARAMS = {"name": "sim-a", "run_id": "1", "lease_id": "1", "token_id": "1"}
+
+
+@pytest.fixture
+def api(tmp_path):
+    with client_for(make_settings(tmp_path, run_queue=False)) as client:
+        yield client
+
+
+def _routes(app):
+    for route in app.routes:
+        if isinstance(route, APIRoute):
+            for method in route.methods - {"HEAD"}:
+                yield method, route.path
+        elif isinstance(route, WebSocketRoute):
+            yield "WS", route.path
+
+
+def _fill(path: str) -> str:
+    path = path.replace("/files/{name}", "/files/record.json")
+    return re.sub(r"\{(\w+)\}", lambda m: PARAMS[m.group(1)], path)
+
+
+def _call(client, method, path, headers=None):
+    body = {} if method in ("POST", "PATCH", "PUT") else None
+    return client.request(method, _fill(path), json=body, headers=headers or {}, follow_redirects=False)
+
+
+def test_health_needs_no_token(api):
+    assert api.get("/api/health").json()["status"] == "ok"
+
+
+def test_every_endpoint_but_health_and_login_refuses_a_request_without_a_valid_token(api):
+    routes = list(_routes(api.app))
+    assert len(routes) > 25
+    checked = 0
+    for method, path in routes:
+        if (method, path) in (("GET", "/api/health"), ("GET", "/login"), ("POST", "/login")):
+            continue
+        for headers in ({}, H("dbt_not-a-token"), {"Authorization": "Basic YWRhOmFkYQ=="}):
+            if method == "WS":
+                with pytest.raises(WebSocketDenialResponse) as denied:
+                    with api.websocket_connect(_fill(path), headers=headers):
+                        pass
+                assert denied.value.status_code == 401, path
+                continue
+            response = _call(api, method, path, headers)
+            if path.startswith("/api/") or path == "/openapi.json":
+                assert response.status_code == 401, (method, path, response.status_code)
+                assert response.headers["www-authenticate"] == "Bearer"
+            else:   # a page: the browser goes to the login page
+                assert response.status_code == 303 and response.headers["location"] == "/login", (method, path)
+            checked += 1
+    assert checked >= 3 * 25
+
+
+MUTATING = [(m, p) for m, p in (("POST", "/api/runs"), ("POST", "/api/runs/{run_id}/abort"),
+                                 ("POST", "/api/rigs/{name}/lease"), ("POST", "/api/leases/{lease_id}/extend"),
+                                 ("DELETE", "/api/leases/{lease_id}"), ("PATCH", "/api/rigs/{name}"),
+                                 ("POST", "/api/tokens"), ("DELETE", "/api/tokens/{token_id}"))]
+
+
+def test_a_viewer_gets_403_on_every_mutating_endpoint(api):
+    api_mutating = {(m, p) for m, p in _routes(api.app) if m in ("POST", "PATCH", "PUT", "DELETE")
+                    and p.startswith("/api/")}
+    assert api_mutating == set(MUTATING)          # a new mutating endpoint must be added to this test
+    for method, path in MUTATING:
+        response = _call(api, method, path, H(api.tokens.viewer))
+        assert response.status_code == 403, (method, path, response.status_code, response.text)
+    for path in ("/ui/runs/1/abort", "/ui/rigs/sim-a/reserve", "/ui/leases/1/release"):
+        response = api.post(path, data={"hours": "1", "reason": "x"}, headers=H(api.tokens.viewer))
+        assert response.status_code == 403, path
+
+
+def test_operator_may_not_do_admin_things(api):
+    op = H(api.tokens.operator)
+    assert api.post("/api/tokens", json={"name": "x", "role": "admin"}, headers=op).status_code == 403
+    assert api.get("/api/tokens", headers=op).status_code == 403
+    assert api.patch("/api/rigs/sim-a", json={"enabled": False}, headers=op).status_code == 403
+
+
+def test_tokens_are_stored_hashed_and_shown_once(api, tmp_path):
+    from bench.service.auth import hash_token
+
+    created = api.post("/api/tokens", json={"name": "ci", "role": "operator"}, headers=H(api.tokens.admin))
+    assert created.status_code == 201
+    token = created.json()["token"]
+    assert api.get("/api/rigs", headers=H(token)).status_code == 200
+    listed = api.get("/api/tokens", headers=H(api.tokens.admin)).text
+    assert token not in listed and hash_token(token) not in listed
+    api.service.db.engine.dispose()
+    stored = b"".join(p.read_bytes() for p in (tmp_path / "data").glob("drivebench.sqlite*"))
+    for value in (token, api.tokens.admin, api.tokens.viewer):
+        assert value.encode() not in stored
+        assert hash_token(value).encode() in stored
+    revoked = api.delete(f"/api/tokens/{created.json()['id']}", headers=H(api.tokens.admin))
+    assert revoked.status_code == 200
+    assert api.get("/api/rigs", headers=H(token)).status_code == 401
+
+
+def test_rigs_contract(api):
+    rigs = api.get("/api/rigs", headers=H(api.tokens.viewer)).json()
+    assert [r["name"] for r in rigs] == ["real-a", "sim-a", "spim-a"]
+    for rig in rigs:
+        assert {"name", "tags", "state", "lease"} <= rig.keys()
+        assert rig["state"] == "free" and rig["lease"] is None
+    assert "simulated" in rigs[1]["tags"] and "real" in rigs[0]["tags"]
+    assert api.get("/api/rigs/nope", headers=H(api.tokens.viewer)).status_code == 404
+    assert "paths" in api.get("/openapi.json", headers=H(api.tokens.viewer)).json()
+
+
+def test_submit_get_list_and_cancel_a_run(api):
+    op, op2, adm = H(api.tokens.operator), H(api.tokens.operator2), H(api.tokens.admin)
+    created = api.post("/api/runs", json={"scenario": f"service/{SHORT}", "rig": "sim-a", "seed": 7}, headers=op)
+    assert created.status_code == 201, created.text
+    assert created.json()["state"] == "queued" and set(created.json()) >= {"id", "state"}
+    run_id = created.json()["id"]
+    run = api.get(f"/api/runs/{run_id}", headers=H(api.tokens.viewer)).json()
+    assert CONTRACT_RUN_KEYS <= run.keys()
+    assert (run["state"], run["rig"], run["seed"], run["owner"]) == ("queued", "sim-a", 7, "olga")
+    also = api.post("/api/runs", json={"scenario": SHORT, "tag": "pmsm"}, headers=op2).json()["id"]
+    listed = api.get("/api/runs", params={"rig": "sim-a", "state": "queued", "limit": 10}, headers=op).json()
+    assert [r["id"] for r in listed] == [run_id]
+    assert len(api.get("/api/runs", params={"limit": 1}, headers=op).json()) == 1
+    assert api.get("/api/runs", params={"state": "flying"}, headers=op).status_code == 422
+    assert api.get("/api/runs/999", headers=op).status_code == 404
+    assert api.post("/api/runs/999/abort", headers=op).status_code == 404
+    assert api.post(f"/api/runs/{also}/abort", headers=op).status_code == 403      # not olga's run
+    cancelled = api.post(f"/api/runs/{run_id}/abort", headers=op)
+    assert cancelled.status_code == 200 and cancelled.json()["state"] == "cancelled"
+    assert api.post(f"/api/runs/{run_id}/abort", headers=op).status_code == 409    # already final
+    assert api.post(f"/api/runs/{also}/abort", headers=adm).json()["state"] == "cancelled"
+    assert api.get(f"/api/runs/{also}", headers=op).json()["reason"] == "cancelled by ada before it started"
+
+
+@pytest.mark.parametrize("path", ["../../etc/passwd", "/etc/passwd", "service/../../../pyproject.toml",
+                                  "service/../../../scenarios/pmsm/fig08-20rads-rs-step.toml", "link-out.toml"])
+def test_scenario_paths_outside_the_scenario_root_are_refused(api, path, tmp_path):
+    link = SCENARIOS / "link-out.toml"
+    try:
+        if path == "link-out.toml":
+            link.symlink_to(REPO / "scenarios" / "pmsm" / "fig08-20rads-rs-step.toml")
+        response = api.post("/api/runs", json={"scenario": path, "rig": "sim-a"}, headers=H(api.tokens.operator))
+    finally:
+        link.unlink(missing_ok=True)
+    assert response.status_code == 422
+    assert response.json()["detail"] == [f"request: scenario: {path}: outside the scenario root (give a path under "
+                                         f"service/ or send scenario_toml)"]
+
+
+def test_bad_scenarios_give_the_clis_lines(api):
+    from bench.errors import InputError
+    from bench.orchestrator import prepare
+
+    op = H(api.tokens.operator)
+    with pytest.raises(InputError) as cli:
+        prepare(SCENARIOS / "bad.toml", REPO / "config/benches/sim-pmsm.toml")
+    expected = [line.replace(str(SCENARIOS / "bad.toml"), "service/bad.toml") for line in cli.value.problems]
+    response = api.post("/api/runs", json={"scenario": "service/bad.toml", "rig": "sim-a"}, headers=op)
+    assert response.status_code == 422 and response.json()["detail"] == expected
+    inline = api.post("/api/runs", json={"scenario_toml": (SCENARIOS / "bad.toml").read_text(), "rig": "sim-a",
+                                         "filename": "ci/bad.toml"}, headers=op)
+    assert inline.json()["detail"] == [line.replace("service/bad.toml", "ci/bad.toml") for line in expected]
+    assert all(re.match(r"^[^:]+: [^:]+: .+", line) for line in expected)
+    for body, line in ((({"rig": "sim-a"}), "request: scenario: give exactly one of"),
+                       ({"scenario": SHORT}, "request: rig: give exactly one of"),
+                       ({"scenario": SHORT, "rig": "nope"}, "request: rig: no rig named 'nope'"),
+                       ({"scenario": SHORT, "tag": "nope"}, "request: tag: no rig has tag 'nope'"),
+                       ({"scenario": SHORT, "rig": "sim-a", "seed": "x"}, "request: seed: "),
+                       ({"scenario": "missing.toml", "rig": "sim-a"}, "missing.toml: (file): not found")):
+        response = api.post("/api/runs", json=body, headers=op)
+        assert response.status_code == 422, body
+        assert response.json()["detail"][0].startswith(line), response.json()
+
+
+def test_a_tag_keeps_only_the_rigs_of_the_scenarios_drive_kind(api):
+    spim = (REPO / "scenarios/spim/fig06-1500rpm-load-step.toml").read_text()
+    op = H(api.tokens.operator)
+    assert api.post("/api/runs", json={"scenario_toml": spim, "tag": "pmsm"}, headers=op).status_code == 422
+    run_id = api.post("/api/runs", json={"scenario_toml": spim, "tag": "simulated"}, headers=op).json()["id"]
+    with api.service.db.session() as s:
+        from bench.service.db import Run
+        assert s.get(Run, run_id).candidates == ["spim-a"]
+
+
+def test_leases_on_a_real_rig(api):
+    olga, oscar, ada = H(api.tokens.operator), H(api.tokens.operator2), H(api.tokens.admin)
+    held = api.post("/api/rigs/real-a/lease", json={"ttl_s": 60, "reason": "wiring the encoder"}, headers=olga)
+    assert held.status_code == 201 and set(held.json()) >= {"id", "expires_utc"}
+    lease_id = held.json()["id"]
+    rig = api.get("/api/rigs/real-a", headers=oscar).json()
+    assert rig["state"] == "reserved" and rig["lease"]["holder"] == "olga"
+    assert rig["lease"]["reason"] == "wiring the encoder"
+    refused = api.post("/api/rigs/real-a/lease", json={"ttl_s": 60}, headers=oscar)
+    assert refused.status_code == 409 and "leased by olga" in refused.json()["detail"]
+    submitted = api.post("/api/runs", json={"scenario": SHORT, "rig": "real-a"}, headers=oscar)
+    assert submitted.status_code == 409
+    assert api.post("/api/runs", json={"scenario": SHORT, "rig": "real-a"}, headers=olga).status_code == 201
+    assert api.post("/api/rigs/nope/lease", json={"ttl_s": 5}, headers=olga).status_code == 404
+    assert api.post("/api/rigs/real-a/lease", json={"ttl_s": -1}, headers=olga).status_code == 422
+    assert api.post(f"/api/leases/{lease_id}/extend", json={"ttl_s": 120}, headers=oscar).status_code == 403
+    extended = api.post(f"/api/leases/{lease_id}/extend", json={"ttl_s": 120}, headers=olga)
+    assert extended.status_code == 200 and extended.json()["expires_utc"] > held.json()["expires_utc"]
+    assert api.delete(f"/api/leases/{lease_id}", headers=oscar).status_code == 403
+    broken = api.delete(f"/api/leases/{lease_id}", headers=ada)                      # an admin breaks it
+    assert broken.status_code == 200 and broken.json()["released_by"] == "ada"
+    assert api.get("/api/rigs/real-a", headers=oscar).json()["state"] == "free"
+    assert api.post("/api/rigs/real-a/lease", json={"ttl_s": 60}, headers=oscar).status_code == 201
+    assert api.delete("/api/leases/999", headers=ada).status_code == 404
+    # a simulated rig is shared: a person's lease there blocks nobody
+    assert api.post("/api/rigs/sim-a/lease", json={"ttl_s": 60}, headers=olga).status_code == 201
+    assert api.post("/api/rigs/sim-a/lease", json={"ttl_s": 60}, headers=oscar).status_code == 201
+
+
+def test_a_lease_that_is_not_extended_expires(api):
+    olga, oscar = H(api.tokens.operator), H(api.tokens.operator2)
+    lease_id = api.post("/api/rigs/real-a/lease", json={"ttl_s": 0.4}, headers=olga).json()["id"]
+    assert api.post("/api/rigs/real-a/lease", json={"ttl_s": 1}, headers=oscar).status_code == 409
+    time.sleep(0.5)
+    assert api.get("/api/rigs/real-a", headers=oscar).json()["state"] == "free"
+    assert api.post(f"/api/leases/{lease_id}/extend", headers=olga).status_code == 409
+    assert api.post("/api/rigs/real-a/lease", json={"ttl_s": 1}, headers=oscar).status_code == 201
+
+
+def test_validation_errors_are_lines(api):
+    response = api.post("/api/rigs/real-a/lease", json={"reason": "x"}, headers=H(api.tokens.operator))
+    assert response.status_code == 422
+    assert response.json()["detail"] == ["request: ttl_s: Field required"]

@@ -1,0 +1,147 @@
+"""The web UI in a real browser: Debian's chromium driven by Playwright (the system browser, nothing downloaded).
+Log in with a token, see the rigs, submit a run, watch it finish on its page (websocket), open the record, abort a
+run, reserve and release a rig, filter the history, plot a criterion's trend."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+
+import pytest
+
+pytest.importorskip("fastapi", reason="the [service] extra is not installed")
+sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install playwright)")
+
+from tests.service_fixtures import (LONG, SHORT, free_port, make_settings, make_tokens, serve_process,  # noqa: E402
+                                    stop_process)
+
+CHROMIUM = next((p for p in (os.environ.get("DRIVEBENCH_CHROMIUM"), shutil.which("chromium"),
+                             shutil.which("chromium-browser"), shutil.which("google-chrome")) if p), None)
+pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no Chromium installed (Debian: apt-get install chromium)")
+TIMEOUT_MS = 60_000
+
+
+@pytest.fixture
+def served(tmp_path):
+    from bench.service.core import Service
+
+    service = Service(make_settings(tmp_path))
+    tokens = make_tokens(service.db)
+    service.db.dispose()
+    port = free_port()
+    server = serve_process(tmp_path, port, "--lease-ttl", "3")
+    try:
+        yield f"http://127.0.0.1:{port}", tokens
+    finally:
+        stop_process(server)
+
+
+@pytest.fixture
+def page():
+    with sync_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, headless=True,
+                                    args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"])
+        try:
+            context = browser.new_context()
+            context.set_default_timeout(TIMEOUT_MS)
+            yield context.new_page()
+        finally:
+            browser.close()
+
+
+def login(page, url, token):
+    page.goto(url + "/")
+    assert page.url.endswith("/login")                         # no cookie: the login page
+    page.fill("#token", "dbt_wrong")
+    page.click("button[type=submit]")
+    assert page.locator("#login-failed").is_visible()
+    page.fill("#token", token)
+    page.click("button[type=submit]")
+    page.wait_for_url(url + "/")
+
+
+def test_an_operator_runs_a_scenario_and_reads_its_record_in_the_browser(served, page):
+    url, tokens = served
+    login(page, url, tokens.operator)
+    rigs = page.locator("#rigs tr[data-rig]")
+    assert rigs.count() == 3
+    assert page.locator('#rigs tr[data-rig="sim-a"]').inner_text().count("free") == 1
+
+    page.fill("#submit-form input[name=scenario]", SHORT)
+    page.select_option("#submit-form select[name=target]", "rig:sim-a")
+    page.click("#submit-form button[type=submit]")
+    page.wait_for_url("**/runs/1")
+    # the page follows the run over the websocket and reloads with the verdict table when it ends
+    page.locator("#run-state", has_text="pass").wait_for()
+    page.locator("#criteria").wait_for()
+    assert "stable: position error within pi/4" in page.locator("#criteria").inner_text()
+    assert page.locator("#verdict").inner_text() == "pass"
+    page.wait_for_function("document.querySelector('#summary').naturalWidth > 100")
+    downloads = page.locator("#downloads").inner_text()
+    for name in ("record.json", "summary.png", "run.rrd", "junit.xml"):
+        assert name in downloads
+    with page.expect_download() as download:
+        page.click("#downloads a:text('record.json')")
+    assert b'"verdict": "pass"' in open(download.value.path(), "rb").read()
+
+    page.goto(url + "/runs/1/live")
+    assert page.locator("#rrd-link").get_attribute("href") == "/api/runs/1/files/run.rrd"
+
+    # a long run on the real rig, aborted from its page
+    page.goto(url + "/")
+    page.fill("#submit-form input[name=scenario]", LONG)
+    page.select_option("#submit-form select[name=target]", "rig:real-a")
+    page.click("#submit-form button[type=submit]")
+    page.wait_for_url("**/runs/2")
+    page.locator("#run-state", has_text="running").wait_for()
+    page.wait_for_function("document.querySelector('#run-progress') "
+                           "&& document.querySelector('#run-progress').value > 0.2")
+    page.on("dialog", lambda dialog: dialog.accept())
+    page.click("#abort")
+    page.locator("#run-state", has_text="aborted").wait_for()
+    page.locator("#aborted-by", has_text="olga").wait_for()
+
+    # history: filter by state
+    page.goto(url + "/history?state=aborted")
+    rows = page.locator("#history tr[data-run]")
+    assert rows.count() == 1 and "service-long" in rows.first.inner_text()
+    page.select_option("#filters select[name=state]", "pass")
+    page.click("#filters button[type=submit]")
+    page.wait_for_url("**state=pass**")
+    assert page.locator("#history tr[data-run]").count() == 1
+
+    # trend of a criterion over runs
+    page.goto(url + "/trend?scenario=service-short&criterion=stable%3A+position+error+within+pi%2F4")
+    page.wait_for_function("document.querySelector('#trend-plot').naturalWidth > 100")
+    assert page.locator("#trend-points tr").count() == 2          # header + run 1
+
+
+def test_reservations_are_visible_and_an_admin_breaks_them(served, page):
+    url, tokens = served
+    login(page, url, tokens.operator)
+    page.goto(url + "/rigs/real-a")
+    page.fill("#reserve-form input[name=reason]", "replacing the encoder")
+    page.click("#reserve-form button[type=submit]")
+    page.locator("#rig-state", has_text="reserved").wait_for()
+    page.goto(url + "/")
+    row = page.locator('#rigs tr[data-rig="real-a"]')
+    assert "olga" in row.inner_text() and "replacing the encoder" in row.inner_text()
+
+    page.context.clear_cookies()
+    login(page, url, tokens.operator2)
+    page.goto(url + "/rigs/real-a")
+    assert page.locator("#leases button").count() == 0          # not oscar's to release
+    page.context.clear_cookies()
+    login(page, url, tokens.admin)
+    page.goto(url + "/rigs/real-a")
+    page.click("#leases button:text('break')")
+    page.locator("#rig-state", has_text="free").wait_for()
+
+    page.context.clear_cookies()
+    login(page, url, tokens.viewer)
+    assert page.locator("#submit-form").count() == 0            # a viewer sees no submit form
+    started = time.monotonic()
+    page.goto(url + "/logout")
+    page.goto(url + "/history")
+    assert page.url.endswith("/login") and time.monotonic() - started < 30
