@@ -184,7 +184,7 @@ def block_upload(network: canopen.Network, node_id: int, index: int, subindex: i
                 if time.monotonic() >= deadline:
                     raise fail(f"not finished within its deadline ({len(chunks)} sub-blocks received)")
                 raise fail(f"block segments stopped arriving (timeout {timeout_s} s)")
-            abort = next((f for f in frames if len(f) == 8 and f[0] == o.SDO_ABORT), None)
+            abort = find_abort(frames)
             if abort is not None:
                 raise aborted(abort)
             ackseq, last, data = accept_segments(frames)
@@ -220,6 +220,15 @@ def block_upload(network: canopen.Network, node_id: int, index: int, subindex: i
         return data
     finally:
         network.subscribers[rx] = saved
+
+
+def find_abort(frames: list[bytearray]) -> bytearray | None:
+    """An SDO abort among a sub-block's frames (0x80 is never a segment: sequence numbers start at 1)."""
+    if len(frames) > 16 and all(len(f) == 8 for f in frames):
+        heads = np.frombuffer(b"".join(frames), dtype=np.uint8)[::8]
+        hits = np.flatnonzero(heads == o.SDO_ABORT)
+        return frames[int(hits[0])] if hits.size else None
+    return next((f for f in frames if len(f) == 8 and f[0] == o.SDO_ABORT), None)
 
 
 def accept_segments(frames: list[bytearray]) -> tuple[int, bool, bytes]:
