@@ -11,6 +11,7 @@ The recorder keeps at most one flush interval of rows in memory; finish() stream
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime as dt
 import json
@@ -141,6 +142,8 @@ class RunRecorder:
             "criteria": [],
             "telemetry": {"rows": 0, "t_first_s": None, "t_last_s": None},
         }
+        self.write_errors: list[str] = []
+        self.lost_rows = 0
         self._lock = threading.Lock()
         self._pending: dict[str, list[np.ndarray | None]] = {}   # per column, one entry per appended block
         self._pending_sizes: list[int] = []
@@ -212,8 +215,11 @@ class RunRecorder:
         never recorded comes back as NaN."""
         with self._lock:
             self._flush_locked()
-            if self._journal_file is not None:
-                self._journal_file.flush()
+            if self._journal_file is not None and not self.write_errors:
+                try:
+                    self._journal_file.flush()
+                except OSError as exc:
+                    self._write_failed("telemetry.arrows", exc)
             schema = self._schema or _empty_schema()
         names = list(schema.names) if signals is None else [TIME_COLUMN, *dict.fromkeys(signals)]
         kept = [n for n in names if n in schema.names]
@@ -239,17 +245,24 @@ class RunRecorder:
         with self._lock:
             self._flush_locked()
             self._closed = True
-            if self._writer is not None:
-                self._writer.close()
-                self._journal_file.flush()
-                os.fsync(self._journal_file.fileno())
-                self._journal_file.close()
-            self._write_parquet()
             results = [c.to_dict() if hasattr(c, "to_dict") else dict(c) for c in criteria]
             self.record.update(verdict=verdict, criteria=results, abort_reason=abort_reason,
                                ended_utc=utc_now(), complete=True)
-            write_junit(self.run_dir / JUNIT, self.record)
+            try:
+                if self._writer is not None:
+                    self._writer.close()
+                    self._journal_file.flush()
+                    os.fsync(self._journal_file.fileno())
+                    self._journal_file.close()
+                if not self.write_errors:
+                    self._write_parquet()
+                    write_junit(self.run_dir / JUNIT, self.record)
+            except OSError as exc:
+                self._write_failed("telemetry", exc)
+            if self.write_errors:
+                self.record.update(complete=False)   # the journal keeps what was written: show recovers it
             self._write_record()
+            self.raise_write_errors()
             journal = self.run_dir / JOURNAL
             if journal.exists():
                 journal.unlink()
@@ -274,11 +287,21 @@ class RunRecorder:
                 parts = [np.full(size, np.nan) if p is None else p for p, size in zip(parts, self._pending_sizes)]
             arrays.append(pa.array(np.concatenate(parts) if len(parts) > 1 else parts[0], type=pa.float64()))
         batch = pa.RecordBatch.from_arrays(arrays, schema=self._schema)
-        if self._writer is None:
-            self._journal_file = open(self.run_dir / JOURNAL, "wb")
-            self._writer = pa.ipc.new_stream(self._journal_file, self._schema)
-        self._writer.write_batch(batch)
-        self._journal_file.flush()
+        try:
+            if self.write_errors:
+                raise OSError("an earlier write failed")
+            if self._writer is None:
+                self._journal_file = open(self.run_dir / JOURNAL, "wb")
+                self._writer = pa.ipc.new_stream(self._journal_file, self._schema)
+            self._writer.write_batch(batch)
+            self._journal_file.flush()
+        except OSError as exc:                 # the disk is full: the run goes on to its safe stop, rows are lost
+            self._write_failed("telemetry.arrows", exc)
+            self.lost_rows += n
+            for parts in self._pending.values():
+                parts.clear()
+            self._pending_sizes.clear()
+            return
         t = arrays[0]
         self._t_flushed = float(t[n - 1].as_py())
         tel = self.record["telemetry"]
@@ -309,7 +332,24 @@ class RunRecorder:
         os.replace(tmp, self.run_dir / PARQUET)
 
     def _write_record(self) -> None:
-        write_json_atomic(self.run_dir / RECORD, self.record)
+        """A full disk or a vanished directory must not end a run with the drive enabled: the error is kept (the
+        record in memory stays current) and reported once the run is over (finish raises it)."""
+        try:
+            write_json_atomic(self.run_dir / RECORD, self.record)
+        except OSError as exc:
+            self._write_failed("record.json", exc)
+
+    def _write_failed(self, what: str, exc: OSError) -> None:
+        if not self.write_errors:
+            self.write_errors.append(f"{what}: {exc.strerror or exc}")
+        with contextlib.suppress(OSError):
+            (self.run_dir / (RECORD + ".tmp")).unlink(missing_ok=True)
+
+    def raise_write_errors(self) -> None:
+        if self.write_errors:
+            raise InputError([f"{self.run_dir}: --out: cannot write the run record ({self.write_errors[0]}); "
+                              f"{self._rows} rows were journaled before that, {self.lost_rows} after it lost; the "
+                              f"run's safe stop was done"])
 
 
 def _empty_schema() -> pa.Schema:

@@ -106,3 +106,27 @@ def test_simulator_endpoints_only_on_the_loopback(tmp_path):
                           capture_output=True, text=True, timeout=60, cwd=REPO)
     assert proc.returncode == 2 and "0.0.0.0 is not a loopback address" in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def test_a_disk_that_fills_up_mid_run_is_one_line_after_the_safe_stop(tmp_path):
+    """Files stop growing at 150 kB (RLIMIT_FSIZE, the way a full disk looks to the writer): the run goes on to its
+    safe stop, the journal keeps what was written before, and the bench says so in one line (exit 2)."""
+    code = (
+        "import resource, signal, sys\n"
+        "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (150_000, resource.RLIM_INFINITY))\n"
+        "from bench.cli import main\n"
+        f"sys.exit(main(['run', {str(FIG08)!r}, '--out', {str(tmp_path / 'runs')!r}, '--rerun', 'off']))\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO,
+                          env={**os.environ, "DRIVEBENCH_DEBUG": ""})
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr and len(lines) == 1, proc.stderr
+    assert "--out: cannot write the run record" in lines[0] and "safe stop was done" in lines[0]
+    run_dir = next((tmp_path / "runs").iterdir())
+    from bench.records import load_run
+
+    record, columns, complete = load_run(run_dir)
+    assert not complete and 0 < len(columns["t_s"])           # what reached the disk is recoverable
+    assert record["safe_stop"]["steps"] and not record["safe_stop"]["errors"]
