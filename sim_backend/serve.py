@@ -53,13 +53,13 @@ def _loopback(host: str) -> bool:
 
 
 def _resolve(path: Path, value: str) -> Path:
-    p = Path(value)
-    if p.is_absolute():
-        return p
-    for base in (path.parent, *path.parents):
-        if (base / "pyproject.toml").exists() and (base / p).exists():
-            return base / p
-    return path.parent / p
+    """The bench's own path rule (absolute, else from the repository root, else next to the config); a file that
+    is not found comes back as named next to the config, for the error message."""
+    from bench.benchconfig import resolve_path
+    from bench.errors import find_repo_root
+
+    found = resolve_path(str(value), find_repo_root(path), also=path.parent)
+    return found if found is not None else path.parent / value
 
 
 def load_serve_config(config_path: str | Path) -> dict:
