@@ -26,7 +26,7 @@ from bench.links import make_links, started_services
 from bench.records import RunRecorder
 from bench.rerun_view import RerunStream
 from bench.scenario import load_scenario
-from bench.summary_plot import PLOT_SIGNALS, write_summary_png
+from bench.summary_plot import BUCKETS as PLOT_BUCKETS, PLOT_SIGNALS, write_summary_png
 from bench.supervisor import SafeStop, Supervisor, UnitCheck, check_status
 from bench.run_thread import LoopThread
 from bench.telemetry import TelemetryWorker
@@ -570,20 +570,28 @@ class _Run:
             if error is None and abort_reason is None:
                 error = f"final trace upload failed: {exc}"
             self._record_live_tail()
-        # read back from the run's journal what the verdict and the plot need: no copy of the run in memory
-        needed = {name for spec in self.scenario.criteria for name in signals_of(spec)} | set(PLOT_SIGNALS)
-        columns = self.recorder.read_back(needed)
+        # read back from the run's journal only what the verdict and the plot need: memory does not grow with the
+        # run's length (the time axis: 8 bytes a row; the criteria: their windows; the plot: an envelope)
+        duration = float(self.scenario.duration_s)
+        t_axis = self.recorder.read_back([], t_max=duration + 1e-9)[TIME_COLUMN]
+        specs = self.scenario.criteria
+        first = min((s.window_s[0] - float(s.params.get("smooth_s") or 0.0) for s in specs), default=0.0) - 1.0
+        needed = {name for spec in specs for name in signals_of(spec)}
+        columns = self.recorder.read_back(needed, t_min=first, t_max=duration + 1e-9)
         t = columns.pop(TIME_COLUMN)
         row_period = self._row_period_s()
         # live samples of a drive without a clock are stamped on receipt in real time: they jitter, allow for it
         tolerance = 1.9 if self.realtime and self.data_source == "pdo" else 1.5
         judged = judge_run(self.scenario, t, columns, measured=self.measured, row_period_s=row_period,
-                           tolerance=tolerance, abort_reason=abort_reason, error=error, stop_errors=stop_errors)
+                           tolerance=tolerance, abort_reason=abort_reason, error=error, stop_errors=stop_errors,
+                           t_axis=t_axis)
+        del columns, t_axis, t
         self.recorder.note("time_axis", judged.time_axis)
         verdict, reason, results, error = judged.verdict, judged.reason, judged.results, judged.error
         try:
-            if len(t):
-                write_summary_png(self.recorder.run_dir / "summary.png", t, columns,
+            t_env, envelope = self.recorder.read_back_envelope(PLOT_SIGNALS, PLOT_BUCKETS)
+            if len(t_env):
+                write_summary_png(self.recorder.run_dir / "summary.png", t_env, envelope,
                                   title=f"{self.scenario.name} - {verdict}")
         except Exception as exc:
             self.recorder.note("summary_png_error", f"{type(exc).__name__}: {exc}")

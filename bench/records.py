@@ -209,10 +209,60 @@ class RunRecorder:
         with self._lock:
             self._flush_locked()
 
-    def read_back(self, signals: Iterable[str] | None = None) -> dict[str, np.ndarray]:
-        """Every row appended so far (t_s + the given signal columns, default all), read back from the journal after
-        a flush. Lets the caller evaluate criteria without keeping its own copy of the run in memory; a signal
-        never recorded comes back as NaN."""
+    def read_back(self, signals: Iterable[str] | None = None, t_min: float = -math.inf,
+                  t_max: float = math.inf) -> dict[str, np.ndarray]:
+        """The rows appended so far with t_min <= t_s <= t_max (t_s + the given signal columns, default all), read
+        back from the journal after a flush, one batch at a time: the caller evaluates criteria without keeping
+        its own copy of the run, and only the rows it needs are ever in memory. A signal never recorded comes back
+        as NaN."""
+        schema = self._flushed_schema()
+        names = list(schema.names) if signals is None else [TIME_COLUMN, *dict.fromkeys(signals)]
+        kept = [n for n in names if n in schema.names]
+        parts: dict[str, list[np.ndarray]] = {n: [] for n in kept}
+        rows = 0
+        for batch in self._journal_batches():
+            t = batch.column(0).to_numpy(zero_copy_only=False)
+            mask = (t >= t_min) & (t <= t_max)
+            if not mask.any():
+                continue
+            every = bool(mask.all())
+            rows += int(mask.sum())
+            for n in kept:
+                values = batch.column(schema.get_field_index(n)).to_numpy(zero_copy_only=False)
+                parts[n].append(values if every else values[mask])
+        return {n: (np.concatenate(parts[n]) if parts[n] else np.zeros(0)) if n in parts else np.full(rows, np.nan)
+                for n in names}
+
+    def read_back_envelope(self, signals: Iterable[str], buckets: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """For a plot of the whole run in bounded memory: per time bucket the minimum and maximum of each signal
+        (t repeated, values min, max interleaved), computed batch by batch from the journal."""
+        schema = self._flushed_schema()
+        t0, t1 = self.record["telemetry"]["t_first_s"], self.record["telemetry"]["t_last_s"]
+        names = [n for n in dict.fromkeys(signals) if n in schema.names]
+        if t0 is None or t1 is None:
+            return np.zeros(0), {}
+        span = max(t1 - t0, 1e-12)
+        lo = {n: np.full(buckets, np.inf) for n in names}
+        hi = {n: np.full(buckets, -np.inf) for n in names}
+        for batch in self._journal_batches():
+            t = batch.column(0).to_numpy(zero_copy_only=False)
+            idx = np.clip(((t - t0) / span * buckets).astype(np.int64), 0, buckets - 1)
+            for n in names:
+                v = batch.column(schema.get_field_index(n)).to_numpy(zero_copy_only=False)
+                ok = np.isfinite(v)
+                np.minimum.at(lo[n], idx[ok], v[ok])
+                np.maximum.at(hi[n], idx[ok], v[ok])
+        edges = t0 + span * np.arange(buckets) / buckets
+        t_env = np.repeat(edges, 2)
+        columns = {}
+        for n in names:
+            y = np.empty(2 * buckets)
+            y[0::2], y[1::2] = lo[n], hi[n]
+            y[~np.isfinite(y)] = np.nan
+            columns[n] = y
+        return t_env, columns
+
+    def _flushed_schema(self) -> pa.Schema:
         with self._lock:
             self._flush_locked()
             if self._journal_file is not None and not self.write_errors:
@@ -220,18 +270,11 @@ class RunRecorder:
                     self._journal_file.flush()
                 except OSError as exc:
                     self._write_failed("telemetry.arrows", exc)
-            schema = self._schema or _empty_schema()
-        names = list(schema.names) if signals is None else [TIME_COLUMN, *dict.fromkeys(signals)]
-        kept = [n for n in names if n in schema.names]
+            return self._schema or _empty_schema()
+
+    def _journal_batches(self):
         journal = self.run_dir / JOURNAL
-        parts: dict[str, list[np.ndarray]] = {n: [] for n in kept}
-        rows = 0
-        for batch in (_read_journal(journal)[1] if journal.exists() else ()):
-            rows += batch.num_rows
-            for n in kept:
-                parts[n].append(batch.column(schema.get_field_index(n)).to_numpy(zero_copy_only=False))
-        return {n: (np.concatenate(parts[n]) if parts[n] else np.zeros(0)) if n in parts else np.full(rows, np.nan)
-                for n in names}
+        return _read_journal(journal)[1] if journal.exists() else ()
 
     # --- at the end --------------------------------------------------------------------------------------
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Mapping
 
@@ -26,8 +27,10 @@ def envelope(t: np.ndarray, y: np.ndarray, buckets: int = BUCKETS) -> tuple[np.n
     m = n * buckets
     tb = t[:m].reshape(buckets, n)
     yb = y[:m].reshape(buckets, n)
-    lo = np.nanmin(yb, axis=1) if np.isnan(yb).any() else yb.min(axis=1)
-    hi = np.nanmax(yb, axis=1) if np.isnan(yb).any() else yb.max(axis=1)
+    with warnings.catch_warnings():          # a bucket with no finite value stays NaN: a gap in the line
+        warnings.simplefilter("ignore", RuntimeWarning)
+        lo = np.nanmin(yb, axis=1) if np.isnan(yb).any() else yb.min(axis=1)
+        hi = np.nanmax(yb, axis=1) if np.isnan(yb).any() else yb.max(axis=1)
     tt = np.repeat(tb[:, 0], 2)
     yy = np.empty(2 * buckets)
     yy[0::2], yy[1::2] = lo, hi

@@ -38,6 +38,7 @@ def rss_mb() -> float:
 def main() -> int:
     parser = argparse.ArgumentParser()
     parser.add_argument("--duration", type=float, default=1200.0)
+    parser.add_argument("--rerun", default="save", choices=("save", "off"))
     args = parser.parse_args()
     from bench.orchestrator import run_scenario
 
@@ -62,7 +63,7 @@ def main() -> int:
                                             max_duration=args.duration * 2 + 60))
         thread = threading.Thread(target=sample, daemon=True)
         thread.start()
-        result = run_scenario(scenario, out_root=tmp / "runs", rerun_mode="save")
+        result = run_scenario(scenario, out_root=tmp / "runs", rerun_mode=args.rerun)
         stop.set()
         thread.join(5)
         end = rss_mb()
