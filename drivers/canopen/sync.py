@@ -25,7 +25,7 @@ def has_native_cyclic(bus: can.BusABC) -> bool:
 
 class SyncProducer:
     def __init__(self, send: Callable[[], None], period_s: float, on_error: Callable[[str], None],
-                 keep_times: int = 100_000):
+                 keep_times: int = 1_000):
         self._send = send
         self.period_s = period_s
         self._on_error = on_error
