@@ -1,0 +1,52 @@
+"""`drivebench campaign FILE`: registered through the drivebench.commands entry points (like `sim` and `serve`)."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import click
+
+EXIT_ACCEPTED, EXIT_NOT_ACCEPTED, EXIT_ERROR = 0, 1, 2
+
+
+@click.command("campaign")
+@click.argument("campaign_file", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--workers", type=click.IntRange(1, 64), default=2, show_default=True,
+              help="Local engine: worker processes (reused from point to point).")
+@click.option("--engine", type=click.Choice(["local", "ray"]), default="local", show_default=True)
+@click.option("--address", default=None, help="Ray: the cluster's address (default: start or join a local one).")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Results directory (default: campaigns/out/NAME). An existing one is resumed.")
+def campaign(campaign_file: Path, workers: int, engine: str, address: str | None, out_dir: Path | None) -> None:
+    """Run a campaign: scenarios x seeds x parameter axes, pass rates with their confidence intervals.
+
+    Exit 0 accepted, 1 not accepted (or a run errored), 2 bad input."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    from bench.campaign import load_campaign
+    from bench.campaign_run import run_campaign, write_results
+    from bench.cli import _fail
+
+    try:
+        camp = load_campaign(campaign_file)
+        out = out_dir or Path("campaigns") / "out" / camp.name
+        started = time.monotonic()
+        with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                      TextColumn("[green]{task.fields[passed]} pass[/] [red]{task.fields[other]} other[/]"),
+                      TimeElapsedColumn(), TimeRemainingColumn(), transient=True,
+                      disable=not sys.stderr.isatty()) as bar:
+            task = bar.add_task(camp.name, total=None, passed=0, other=0)
+
+            def progress(done: int, total: int, passed: int, other: int) -> None:
+                bar.update(task, completed=done, total=total, passed=passed, other=other)
+
+            rows = run_campaign(camp, out, workers=workers, engine=engine, address=address, progress=progress)
+        result = write_results(camp, out, rows)
+    except Exception as exc:
+        sys.exit(_fail(exc))
+    wall = time.monotonic() - started
+    click.echo(f"{camp.name}: {result['runs']} runs in {wall:.1f} s; "
+               f"{'accepted' if result['accepted'] else 'NOT accepted'}; report {out / 'report.md'}")
+    sys.exit(EXIT_ACCEPTED if result["accepted"] else EXIT_NOT_ACCEPTED)

@@ -1,0 +1,259 @@
+"""Running a campaign: points on a local process pool (workers reused: imports and the numba cache paid once per
+worker), or on a Ray cluster when installed; results appended as each point ends (a killed campaign resumes without
+redoing them), then results.parquet, report.md and pass_rates.png."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import time
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, Callable
+
+from bench.campaign import Campaign, Point, points, wilson_interval
+
+RESULTS_JSONL = "results.jsonl"
+RESULTS_PARQUET = "results.parquet"
+
+
+def run_point(point: dict[str, Any], out_root: str) -> dict[str, Any]:
+    """One point through the bench path of `drivebench run` (in a worker process). A row for results.parquet."""
+    from bench.errors import InputError
+    from bench.orchestrator import run_scenario
+    from drivers.api import LinkError
+
+    started = time.perf_counter()
+    row: dict[str, Any] = {"point_id": point["point_id"], "scenario": point["source"], "seed": point["seed"],
+                           "axes": json.dumps(point["axes"]), "worker_pid": os.getpid(), "host": socket.gethostname()}
+    try:
+        result = run_scenario(point["scenario"], out_root=out_root, seed=point["seed"], rerun_mode="off")
+    except (InputError, LinkError) as exc:
+        return {**row, "verdict": "error", "error": str(exc), "wall_s": time.perf_counter() - started,
+                "run_dir": None, "criteria": []}
+    record = result.record
+    return {**row, "verdict": result.verdict, "error": record.get("abort_reason"),
+            "wall_s": time.perf_counter() - started, "run_dir": str(result.run_dir),
+            "criteria": [{"name": c["name"], "value": c["value"], "limit": c["limit"],
+                          "status": c.get("status") or ("pass" if c["passed"] else "fail"),
+                          "known_gap": c.get("known_gap")} for c in record["criteria"]]}
+
+
+def _worker_init() -> None:
+    os.environ.setdefault("RUST_LOG", "off")       # no Rerun logs from workers (rerun is off anyway)
+
+
+def done_ids(out_dir: Path) -> dict[str, dict]:
+    path = out_dir / RESULTS_JSONL
+    rows: dict[str, dict] = {}
+    if path.exists():
+        for line in path.read_text().splitlines():
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError:
+                continue                                # a line cut by a kill: that point runs again
+            rows[row["point_id"]] = row
+    return rows
+
+
+def run_campaign(campaign: Campaign, out_dir: Path, workers: int = 2, engine: str = "local",
+                 address: str | None = None, progress: Callable[[int, int, int, int], None] | None = None
+                 ) -> list[dict]:
+    """Every point not yet in out_dir/results.jsonl; all rows (old and new) in point order."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    todo_all = points(campaign, out_dir)
+    finished = done_ids(out_dir)
+    todo = [p for p in todo_all if p.point_id not in finished]
+    runs_dir = str(out_dir / "runs")
+    counts = {"pass": sum(r["verdict"] == "pass" for r in finished.values()), "other": 0}
+    counts["other"] = len(finished) - counts["pass"]
+
+    def record(row: dict) -> None:
+        with open(out_dir / RESULTS_JSONL, "a") as f:
+            f.write(json.dumps(row, default=str) + "\n")
+        finished[row["point_id"]] = row
+        counts["pass" if row["verdict"] == "pass" else "other"] += 1
+        if progress is not None:
+            progress(len(finished), len(todo_all), counts["pass"], counts["other"])
+
+    if progress is not None:
+        progress(len(finished), len(todo_all), counts["pass"], counts["other"])
+    if engine == "ray":
+        _run_ray(todo, runs_dir, address, record)
+    else:
+        _run_local(todo, runs_dir, workers, record)
+    return [finished[p.point_id] for p in todo_all if p.point_id in finished]
+
+
+def _as_dict(point: Point) -> dict[str, Any]:
+    return {"point_id": point.point_id, "scenario": str(point.scenario), "source": str(point.source),
+            "seed": point.seed, "axes": [list(a) for a in point.axes]}
+
+
+def _run_local(todo: list[Point], runs_dir: str, workers: int, record: Callable[[dict], None]) -> None:
+    """A process pool; a worker that dies takes its points with it: they are retried once, then reported."""
+    import multiprocessing
+
+    attempts: dict[str, int] = {}
+    queue = list(todo)
+    while queue:
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=ctx, initializer=_worker_init) as pool:
+            running: dict[Future, Point] = {}
+            broken = False
+            while (queue or running) and not broken:
+                while queue and len(running) < 2 * max(1, workers):
+                    point = queue.pop(0)
+                    attempts[point.point_id] = attempts.get(point.point_id, 0) + 1
+                    running[pool.submit(run_point, _as_dict(point), runs_dir)] = point
+                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                for future in done:
+                    point = running.pop(future)
+                    try:
+                        record(future.result())
+                    except BrokenProcessPool:
+                        broken = True
+                        _retry_or_report(point, attempts, queue, record, "its worker process died")
+                    except Exception as exc:       # a bug in the bench: the point is an error, the campaign goes on
+                        record({"point_id": point.point_id, "scenario": str(point.source), "seed": point.seed,
+                                "axes": json.dumps([list(a) for a in point.axes]), "verdict": "error",
+                                "error": f"{type(exc).__name__}: {exc}", "wall_s": None, "run_dir": None,
+                                "criteria": [], "worker_pid": None, "host": socket.gethostname()})
+            for future, point in running.items():      # a broken pool: what was in flight
+                _retry_or_report(point, attempts, queue, record, "its worker process died")
+
+
+def _retry_or_report(point: Point, attempts: dict[str, int], queue: list[Point], record, why: str) -> None:
+    if attempts.get(point.point_id, 0) < 2:
+        queue.append(point)
+    else:
+        record({"point_id": point.point_id, "scenario": str(point.source), "seed": point.seed,
+                "axes": json.dumps([list(a) for a in point.axes]), "verdict": "error",
+                "error": f"{why} twice", "wall_s": None, "run_dir": None, "criteria": [], "worker_pid": None,
+                "host": None})
+
+
+def _run_ray(todo: list[Point], runs_dir: str, address: str | None, record: Callable[[dict], None]) -> None:
+    try:
+        import ray
+    except ImportError:
+        from bench.errors import InputError
+        raise InputError(["--engine ray: ray is not installed (pip install -e \".[ray]\")"]) from None
+    ray.init(address=address, ignore_reinit_error=True, log_to_driver=False)
+    remote = ray.remote(num_cpus=1)(run_point)
+    pending = {remote.remote(_as_dict(p), runs_dir): p for p in todo}
+    while pending:
+        done, _ = ray.wait(list(pending), num_returns=1)
+        for ref in done:
+            pending.pop(ref)
+            record(ray.get(ref))
+
+
+def summarize(campaign: Campaign, rows: list[dict]) -> list[dict]:
+    """Per scenario and criterion: runs judged, passes, the Wilson interval, accepted or not."""
+    acc = campaign.acceptance
+    table: dict[tuple[str, str], dict] = {}
+    for row in rows:
+        for c in row.get("criteria") or []:
+            entry = table.setdefault((row["scenario"], c["name"]), {"scenario": row["scenario"], "criterion": c["name"],
+                                                                    "runs": 0, "passes": 0, "not_judged": 0,
+                                                                    "known_gap": c.get("known_gap")})
+            if c["status"] == "not_judged":
+                entry["not_judged"] += 1
+                continue
+            entry["runs"] += 1
+            entry["passes"] += c["status"] == "pass"
+    out = []
+    for entry in table.values():
+        low, high = wilson_interval(entry["passes"], entry["runs"], acc.confidence)
+        if acc.rule == "every_run":
+            accepted = entry["runs"] > 0 and entry["passes"] == entry["runs"] and not entry["not_judged"]
+        else:
+            accepted = entry["runs"] > 0 and low >= acc.min_pass_rate and not entry["not_judged"]
+        out.append({**entry, "pass_rate": entry["passes"] / entry["runs"] if entry["runs"] else float("nan"),
+                    "wilson_low": low, "wilson_high": high, "accepted": accepted})
+    return out
+
+
+def write_results(campaign: Campaign, out_dir: Path, rows: list[dict]) -> dict[str, Any]:
+    """results.parquet (a row per run, a column per criterion value and status), report.md, pass_rates.png."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    names = sorted({c["name"] for r in rows for c in r.get("criteria") or []})
+    flat = []
+    for r in rows:
+        crit = {c["name"]: c for c in r.get("criteria") or []}
+        base = {k: r.get(k) for k in ("point_id", "scenario", "seed", "axes", "verdict", "error", "wall_s",
+                                      "run_dir", "worker_pid", "host")}
+        for n in names:
+            base[f"value:{n}"] = crit[n]["value"] if n in crit else None
+            base[f"status:{n}"] = crit[n]["status"] if n in crit else None
+        flat.append(base)
+    pq.write_table(pa.Table.from_pylist(flat), out_dir / RESULTS_PARQUET)
+    summary = summarize(campaign, rows)
+    accepted = bool(summary) and all(s["accepted"] or s["known_gap"] for s in summary) and not any(
+        r["verdict"] == "error" for r in rows)
+    _write_report(campaign, out_dir, rows, summary, accepted)
+    return {"runs": len(rows), "accepted": accepted, "summary": summary}
+
+
+def _write_report(campaign: Campaign, out_dir: Path, rows: list[dict], summary: list[dict], accepted: bool) -> None:
+    acc = campaign.acceptance
+    rule = ("every run passes" if acc.rule == "every_run" else
+            f"Wilson {acc.confidence:.0%} lower bound of the pass rate >= {acc.min_pass_rate:.0%}")
+    verdicts: dict[str, int] = {}
+    for r in rows:
+        verdicts[r["verdict"]] = verdicts.get(r["verdict"], 0) + 1
+    lines = [f"# Campaign {campaign.name}", "",
+             f"{len(rows)} runs ({', '.join(f'{v} {k}' for k, v in sorted(verdicts.items()))}); acceptance: {rule}; "
+             f"**{'accepted' if accepted else 'not accepted'}**.", "",
+             "| scenario | criterion | passes / judged | pass rate | interval | not judged | accepted |",
+             "|---|---|---|---|---|---|---|"]
+    for s in sorted(summary, key=lambda s: (s["scenario"], s["criterion"])):
+        gap = " (known gap)" if s["known_gap"] else ""
+        lines.append(f"| {Path(s['scenario']).stem} | {s['criterion']}{gap} | {s['passes']} / {s['runs']} | "
+                     f"{s['pass_rate']:.1%} | {s['wilson_low']:.1%} - {s['wilson_high']:.1%} | {s['not_judged']} | "
+                     f"{'yes' if s['accepted'] else 'no'} |")
+    worst = []
+    for r in rows:
+        for c in r.get("criteria") or []:
+            if c["value"] is not None and c["limit"]:
+                worst.append((c["value"] / c["limit"], r, c))
+    worst.sort(key=lambda w: -w[0])
+    lines += ["", "Worst runs (value / limit):", ""]
+    for ratio, r, c in worst[:10]:
+        lines.append(f"- {ratio:.3g}: {Path(r['scenario']).stem} seed {r['seed']} axes {r['axes']}: {c['name']} "
+                     f"({r['run_dir'] and Path(r['run_dir']).name})")
+    (out_dir / "report.md").write_text("\n".join(lines) + "\n")
+    _plot(summary, out_dir / "pass_rates.png")
+
+
+def _plot(summary: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    items = sorted((s for s in summary if s["runs"]), key=lambda s: (s["scenario"], s["criterion"]))
+    if not items:
+        return
+    fig = Figure(figsize=(10, max(2.0, 0.25 * len(items) + 1)))
+    ax = fig.subplots()
+    y = range(len(items))
+    rates = [s["pass_rate"] for s in items]
+    err = [[max(0.0, s["pass_rate"] - s["wilson_low"]) for s in items],
+           [max(0.0, s["wilson_high"] - s["pass_rate"]) for s in items]]
+    ax.errorbar(rates, list(y), xerr=err, fmt="o", capsize=3)
+    ax.set_yticks(list(y), [f"{Path(s['scenario']).stem}: {s['criterion']}"[:70] for s in items], fontsize=6)
+    ax.set_xlim(-0.02, 1.02)
+    ax.set_xlabel("pass rate (Wilson interval)")
+    fig.subplots_adjust(left=0.45, right=0.98)
+    fig.savefig(path, dpi=100)
+
+
+def campaign_json(result: dict[str, Any]) -> str:
+    return json.dumps({k: v for k, v in result.items()}, default=lambda o: asdict(o) if hasattr(o, "__dataclass_fields__") else str(o))

@@ -1,0 +1,101 @@
+"""Campaigns: files validated like scenarios, points run through the same bench path as `drivebench run` on a local
+pool of reused workers, results resumable, pass rates judged with the Wilson interval."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+from click.testing import CliRunner
+
+from bench.campaign import load_campaign, points, wilson_interval
+from bench.campaign_run import run_campaign, write_results
+from bench.cli import cli
+from bench.errors import InputError
+from bench.orchestrator import run_scenario
+
+REPO = Path(__file__).resolve().parents[1]
+RS_STEP = "scenarios/examples/pmsm-rs-step.toml"
+CRANE = "scenarios/examples/pmsm-crane.toml"
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "campaign.toml"
+    path.write_text(text)
+    return path
+
+
+def test_wilson_interval_known_values():
+    low, high = wilson_interval(20, 20, 0.95)
+    assert abs(low - 0.8389) < 1e-4 and high == 1.0
+    low, high = wilson_interval(0, 10, 0.95)
+    assert abs(low) < 1e-12 and abs(high - 0.2775) < 1e-4
+    low, high = wilson_interval(5, 10, 0.95)
+    assert abs(low - 0.2366) < 1e-4 and abs(high - 0.7634) < 1e-4
+
+
+@pytest.mark.parametrize("body, field, words", [
+    ('scenarios = ["nope.toml"]\nseeds = [1]', "scenarios[0]", "file not found"),
+    (f'scenarios = ["{RS_STEP}"]\nseeds = [1, 1]', "seeds", "listed twice"),
+    (f'scenarios = ["{RS_STEP}"]\nseeds = {{ from = -1, count = 3 }}', "seeds.from", ""),
+    (f'scenarios = ["{RS_STEP}"]\nseeds = [1]\n[[axis]]\nparameter = "plant_bogus"\nvalues = [1.0]',
+     "axis[0].parameter", "unknown parameter"),
+    (f'scenarios = ["{RS_STEP}"]\nseeds = [1]\n[[axis]]\nparameter = "plant_rs"\nlow = 0.8\nhigh = 1.2',
+     "sampling.points", "missing"),
+    (f'scenarios = ["{RS_STEP}"]\nseeds = [1]\n[acceptance]\nmin_pass_rate = 1.5', "acceptance.min_pass_rate", ""),
+])
+def test_bad_campaign_files_are_one_line_each(tmp_path, body, field, words):
+    path = write(tmp_path, "schema_version = 1\n" + body + "\n")
+    with pytest.raises(InputError) as exc:
+        load_campaign(path)
+    assert any(line.startswith(f"{path}: {field}: ") and words in line for line in exc.value.problems), \
+        exc.value.problems
+    result = CliRunner().invoke(cli, ["campaign", str(path), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+
+
+def test_axes_grid_and_latin_hypercube_points(tmp_path):
+    grid = load_campaign(write(tmp_path, f'schema_version = 1\nscenarios = ["{RS_STEP}"]\nseeds = [1, 2]\n'
+                                         '[[axis]]\nparameter = "plant_rs"\nvalues = [0.9, 1.1]\n'))
+    pts = points(grid, tmp_path / "out")
+    assert len(pts) == 4 and {p.axes for p in pts} == {(("plant_rs", 0.9),), (("plant_rs", 1.1),)}
+    derived = pts[0].scenario.read_text()
+    assert derived.rstrip().endswith('name = "plant_rs"\nvalue = 0.9') and 'at_s = 0.0' in derived
+    lhs = load_campaign(write(tmp_path, f'schema_version = 1\nscenarios = ["{RS_STEP}"]\nseeds = [1]\n'
+                                        '[[axis]]\nparameter = "plant_rs"\nlow = 0.8\nhigh = 1.2\n'
+                                        '[[axis]]\nparameter = "plant_ls"\nlow = 0.9\nhigh = 1.1\n'
+                                        '[sampling]\npoints = 5\nseed = 3\n'))
+    a = [p.axes for p in points(lhs, tmp_path / "a")]
+    b = [p.axes for p in points(lhs, tmp_path / "b")]
+    assert a == b and len(a) == 5                                # the same draw every time (seeded)
+    rs = sorted(v[0][1] for v in a)
+    assert all(0.8 <= x <= 1.2 for x in rs)
+    assert sorted(int((x - 0.8) / 0.4 * 5) for x in rs) == [0, 1, 2, 3, 4]   # one sample per stratum
+
+
+def test_a_campaign_runs_every_point_like_drivebench_run_and_resumes(tmp_path):
+    path = write(tmp_path, f'schema_version = 1\nname = "ci"\nscenarios = ["{RS_STEP}", "{CRANE}"]\n'
+                           'seeds = [1, 2, 3]\n[acceptance]\nrule = "every_run"\n')
+    camp = load_campaign(path)
+    out = tmp_path / "out"
+    rows = run_campaign(camp, out, workers=2)
+    summary = write_results(camp, out, rows)
+    table = pq.read_table(out / "results.parquet")
+    assert table.num_rows == 6 and sorted(table.column("seed").to_pylist()) == [1, 1, 2, 2, 3, 3]
+    assert len({r["worker_pid"] for r in rows}) <= 2                      # two reused workers for six points
+    # the same point through `drivebench run`'s path gives the same criterion values, bit for bit
+    direct = run_scenario(REPO / RS_STEP, out_root=tmp_path / "direct", seed=2, rerun_mode="off")
+    row = next(r for r in rows if r["scenario"].endswith("pmsm-rs-step.toml") and r["seed"] == 2)
+    assert [c["value"] for c in row["criteria"]] == [c["value"] for c in direct.record["criteria"]]
+    assert row["verdict"] == direct.verdict
+    assert (out / "report.md").read_text().startswith("# Campaign ci") and (out / "pass_rates.png").stat().st_size
+    assert summary["runs"] == 6
+    # a second call finds every point done: nothing runs again
+    lines = (out / "results.jsonl").read_text().splitlines()
+    run_dirs = sorted((out / "runs").iterdir())
+    rows_again = run_campaign(camp, out, workers=2)
+    assert len(rows_again) == 6 and (out / "results.jsonl").read_text().splitlines() == lines
+    assert sorted((out / "runs").iterdir()) == run_dirs
+    assert json.loads(lines[0])["point_id"] in {r["point_id"] for r in rows_again}
