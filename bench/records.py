@@ -39,7 +39,7 @@ JOURNAL = "telemetry.arrows"
 PARQUET = "telemetry.parquet"
 JUNIT = "junit.xml"
 from bench.criteria import VERDICTS  # noqa: E402  (pass fail incomplete aborted error)
-_ROW_GROUP_ROWS = 1 << 20
+_ROW_GROUP_ROWS = 1 << 16    # rows per Parquet row group: ~9 MB of a full record held at once when it is written
 
 
 def utc_now() -> str:
