@@ -248,6 +248,9 @@ STANDSTILL_MECH_RAD_S = 0.5  # below this the shaft counts as stopped (the safe 
 STOP_TIMEOUT_S = 5.0         # at most this long waiting for standstill after a quick stop
 
 
+LOCKSTEP_WALL_FACTOR = 6.0
+
+
 def wait_standstill(advance: Callable[[], None], speed: Callable[[], float | None], threshold_mech_rad_s: float,
                     timeout_s: float, max_advances: int | None = None) -> dict:
     """After a quick stop: let the drive brake until |speed| <= threshold, bounded in time, so the power stage goes off
@@ -259,7 +262,10 @@ def wait_standstill(advance: Callable[[], None], speed: Callable[[], float | Non
     started = time.monotonic()
     current = None
     advances = 0
-    while time.monotonic() - started < timeout_s and (max_advances is None or advances < max_advances):
+    # lockstep: drive time bounds the wait (max_advances); the wall clock only guards against a link that crawls,
+    # so a loaded bench PC (SYNC round trips of ms) still lets the drive brake for its full stop time
+    wall_s = timeout_s if max_advances is None else LOCKSTEP_WALL_FACTOR * timeout_s
+    while time.monotonic() - started < wall_s and (max_advances is None or advances < max_advances):
         advances += 1
         try:
             advance()

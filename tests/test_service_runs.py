@@ -154,8 +154,10 @@ while True:
         wait_until(lambda: (r := db.sessions().get(Run, long_id)).state == "running" and r.pid, 30, 0.1,
                    "the long run to start")
         with db.session() as s:
-            child_pid = s.get(Run, long_id).pid
-        time.sleep(1.0)
+            child_pid, out_dir = s.get(Run, long_id).pid, Path(s.get(Run, long_id).run_dir)
+        # the run process has its record (under load its imports alone can take seconds): now the service dies
+        wait_until(lambda: any(out_dir.glob("*/record.json")), 60, 0.1, "the long run's record")
+        time.sleep(0.5)
         server.kill()
         server.wait(timeout=10)
         killed = time.monotonic()
