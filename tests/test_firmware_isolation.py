@@ -88,3 +88,30 @@ def test_same_measurements_same_commands_whatever_the_plant():
     assert not np.allclose(cmd_a, cmd_b)              # a different plant changes what the firmware measures...
     _, cmd_b_replayed = closed_loop(4e-3, 1500, replay=meas_a)
     assert cmd_b_replayed.tobytes() == cmd_a.tobytes()  # ...but given plant A's measurements it acts as for A
+
+
+def test_the_firmware_never_reads_the_logging_row():
+    """The kernel's row holds the previous period's true values when firmware_step runs (it now poisons it with
+    NaN first): whatever the row holds, the firmware's state, commands and outputs are the same."""
+    drive = make_drive("config/motors/pmsm-paper.toml", seed=0, noise=False)
+    fp = drive.firmware_params.copy()
+    results = []
+    for fill in (0.0, 1e300, math.nan):
+        s = fw.new_state(fp[fw.F_FLUX])
+        s[fw.S_ENABLE_CMD], s[fw.S_SPEED_REF_CMD] = 1.0, 30.0
+        outputs = []
+        for k in range(400):
+            row = np.full(16, fill)
+            fw.firmware_step(s, fp, 0.3 * math.sin(k * 0.01), -0.2, 540.0, k * 1e-4, row)
+            outputs.append(row.copy())
+        written = np.array(outputs)[:, [i for i in range(16) if i not in (kn.C_SPEED_TRUE, kn.C_POS_ERR,
+                                                                          kn.C_FLUX_TRUE, kn.C_TORQUE_LOAD)]]
+        assert np.isfinite(written).all()            # every firmware column written every period
+        results.append((s.tobytes(), written.tobytes()))
+    assert results[0] == results[1] == results[2]
+
+
+def test_the_kernel_hands_the_firmware_a_poisoned_row():
+    source = inspect.getsource(kn.run_steps.py_func)
+    before_call = source.split("fw.firmware_step(")[0]
+    assert "row[c] = math.nan" in before_call.split("# --- firmware ---")[-1]

@@ -76,8 +76,11 @@ def run_steps(n: int, step0: int, x: np.ndarray, plant_p: np.ndarray, load_mode:
         ib_m = adc_sample(i_b, i_noise, n_b, i_lsb, inv_p[I_CURRENT_FULL_SCALE], True)
         vdc_m = adc_sample(vdc_true, v_noise, n_v, v_lsb, inv_p[I_VDC_FULL_SCALE], False)
 
-        # --- firmware ---
+        # --- firmware --- (the row still holds the last period's true values: poisoned, so the firmware cannot use
+        # them; it writes every firmware column itself, the reference sensor the four true ones below)
         t = (step0 + k) * period
+        for c in range(row.shape[0]):
+            row[c] = math.nan
         fw.firmware_step(fw_s, fw_p, ia_m, ib_m, vdc_m, t, row)
 
         # --- reference sensor at t_k (logging only) ---
