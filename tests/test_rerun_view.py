@@ -113,8 +113,16 @@ def test_viewer_reachable_on_closed_port():
     assert not viewer_reachable("rerun+http://127.0.0.1:9/proxy", timeout_s=0.5)
 
 
-def test_blueprint_builds():
-    assert default_blueprint() is not None
+def test_blueprint_shows_every_recorded_signal_once_and_the_flux_phasors():
+    from bench.rerun_view import PLOTS
+
+    views = default_blueprint().root_container.contents
+    shown = [entity for view in views[:-1] for entity in view.contents]
+    assert sorted(shown) == sorted(f"/{name}" for _, names in PLOTS for name in names)
+    assert views[-1].origin == "/flux_vector"
+    # a run that records only some signals gets views of those only (no empty plots)
+    few = default_blueprint(["speed_ref_mech_rad_s", "speed_est_mech_rad_s"]).root_container.contents
+    assert [v.contents for v in few[:-1]] == [["/speed_ref_mech_rad_s", "/speed_est_mech_rad_s"]]
 
 
 def test_bad_mode():

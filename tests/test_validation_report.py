@@ -163,5 +163,8 @@ def test_criteria_comments_and_firmware_deviations(tmp_path):
 
 @pytest.mark.parametrize("doc", sorted((ROOT / "docs").glob("firmware*.md")), ids=lambda p: p.name)
 def test_real_firmware_docs_yield_deviations(doc):
-    found = dict(firmware_deviations(doc.parent))
-    assert found.get(doc.name), f"{doc.name}: no deviations section found"
+    found = dict(firmware_deviations(doc.parent)).get(doc.name)
+    assert found, f"{doc.name}: no deviations section found"
+    # each item is one whole deviation: a bold title and its reason, no heading or list marker swallowed
+    assert all(item.startswith("**") and "**" in item[2:] and len(item) > 40 for item in found), found
+    assert not any(line.startswith(("#", "- ", "1.")) for item in found for line in item.splitlines())
