@@ -373,6 +373,7 @@ class RunRecorder:
             if pending or pending_rows == 0:
                 out.write_table(pa.Table.from_batches(pending, schema=schema))
         os.replace(tmp, self.run_dir / PARQUET)
+        pa.default_memory_pool().release_unused()    # the row groups' buffers: back to the OS, not kept by the pool
 
     def _write_record(self) -> None:
         """A full disk or a vanished directory must not end a run with the drive enabled: the error is kept (the
