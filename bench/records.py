@@ -229,7 +229,8 @@ class RunRecorder:
             rows += int(mask.sum())
             for n in kept:
                 values = batch.column(schema.get_field_index(n)).to_numpy(zero_copy_only=False)
-                parts[n].append(values if every else values[mask])
+                # a copy: a view would keep the whole batch (every column of the record) alive
+                parts[n].append(values.copy() if every else values[mask])
         return {n: (np.concatenate(parts[n]) if parts[n] else np.zeros(0)) if n in parts else np.full(rows, np.nan)
                 for n in names}
 
