@@ -226,29 +226,35 @@ def _run_connected(scenario, cfg, seed, drive, load, out_root, rerun_mode, rerun
     return run.execute()
 
 
+@dataclass(eq=False)
 class _Run:
-    def __init__(self, scenario, cfg, seed, drive, load, identity, load_name, recorder, safe_stop, rerun_mode,
-                 rerun_url, progress, warn):
-        self.scenario = scenario
-        self.cfg = cfg
-        self.seed = seed
-        self.drive = drive
-        self.load = load
-        self.identity = identity
-        self.recorder = recorder
-        self.safe_stop = safe_stop
-        self.progress = progress
+    """One run on connected links: the run loop's state, the supervisor side, the safe stop and the record."""
+    scenario: Any
+    cfg: dict[str, Any]
+    seed: int
+    drive: Any
+    load: Any
+    identity: Any
+    load_name: str | None
+    recorder: RunRecorder
+    safe_stop: SafeStop
+    rerun_mode: str
+    rerun_url: str | None
+    progress: Callable[[str], None] | None
+    warn: Callable[[str], None] | None
+
+    def __post_init__(self) -> None:
         self._t_recorded_last = -math.inf    # drive time of the last recorded row (the data is on disk only)
         self.live_buffer: list[LiveSample] = []
         self.telemetry = TelemetryWorker()
-        self.realtime = cfg["bench"]["timing"] == "realtime"
+        self.realtime = self.cfg["bench"]["timing"] == "realtime"
         self._live_lock = threading.Lock()        # live_buffer: the command thread adds, the worker prunes
-        self.supervisor = Supervisor(scenario.limits)
-        self.sync_period_s = float(cfg["drive"]["sync_period_s"])
-        self.data_source = "trace" if identity.has_trace_recorder else "pdo"
-        self.trace_signals = trace_signals_for(cfg, scenario)
-        self.reference = ReferenceConfig((cfg.get("reference") or {}).get("source"))
-        self.reference_signals = self.reference.signals(load is not None)
+        self.supervisor = Supervisor(self.scenario.limits)
+        self.sync_period_s = float(self.cfg["drive"]["sync_period_s"])
+        self.data_source = "trace" if self.identity.has_trace_recorder else "pdo"
+        self.trace_signals = trace_signals_for(self.cfg, self.scenario)
+        self.reference = ReferenceConfig((self.cfg.get("reference") or {}).get("source"))
+        self.reference_signals = self.reference.signals(self.load is not None)
         self.measured: frozenset[str] | None = None
         self.live_recorded: tuple[str, ...] = LIVE_SIGNALS
         # t_s in the record is drive time since this run's first SYNC; the drive clock counts from power-up
@@ -260,20 +266,22 @@ class _Run:
         self._started_wall = time.monotonic()
         self._stop_loop = threading.Event()        # the main thread asks the run loop to end (operator abort)
         try:
-            self.rerun = RerunStream(rerun_mode, recorder.run_dir / "run.rrd", url=rerun_url,
-                                     recording_name=recorder.run_dir.name,
+            self.rerun = RerunStream(self.rerun_mode, self.recorder.run_dir / "run.rrd", url=self.rerun_url,
+                                     recording_name=self.recorder.run_dir.name,
                                      recorded=self.trace_signals if self.data_source == "trace" else LIVE_SIGNALS,
-                                     **({"warn": warn} if warn is not None else {}))
+                                     **({"warn": self.warn} if self.warn is not None else {}))
         except Exception as exc:  # no view is better than no run
-            (warn or print)(f"rerun: cannot open the stream ({type(exc).__name__}: {exc}); no run.rrd")
+            (self.warn or print)(f"rerun: cannot open the stream ({type(exc).__name__}: {exc}); no run.rrd")
             self.rerun = RerunStream("off", None)
-        recorder.set_drive(asdict(identity))
-        recorder.note("load_machine", load_name if load is not None else "none: free shaft (no [load])")
-        recorder.note("reference", self.reference.as_record(load is not None))
-        recorder.note("bench", {"name": cfg["bench"]["name"], "path": cfg["_path"], "timing": cfg["bench"]["timing"]})
-        self._rerun_note = {"mode": rerun_mode, "url": rerun_url, "sinks": self.rerun.sinks}
+        self.recorder.set_drive(asdict(self.identity))
+        self.recorder.note("load_machine",
+                           self.load_name if self.load is not None else "none: free shaft (no [load])")
+        self.recorder.note("reference", self.reference.as_record(self.load is not None))
+        bench = self.cfg["bench"]
+        self.recorder.note("bench", {"name": bench["name"], "path": self.cfg["_path"], "timing": bench["timing"]})
+        self._rerun_note = {"mode": self.rerun_mode, "url": self.rerun_url, "sinks": self.rerun.sinks}
         self._rerun_stride: int | None = None
-        recorder.note("rerun", self._rerun_note)
+        self.recorder.note("rerun", self._rerun_note)
 
     # -- the run ------------------------------------------------------------------------------------------
 

@@ -49,9 +49,9 @@ FAULTS: dict[str, tuple[str, object, tuple[str, ...]]] = {
 
 CONSUMER_TIME_MS = 1000     # the drive's own reaction to a silent bench (0x1016 / serial WATCHDOG)
 # timeouts for a loaded 2-core machine (the repo's 0.5 s SDO timeout is meant for an idle host)
-CANOPEN_BENCH = """
+BENCH_HEAD = """
 [bench]
-name = "fault-canopen"
+name = "fault-{transport}"
 timing = "lockstep"
 plant_injections = true
 wire_faults = true
@@ -59,7 +59,20 @@ fault_reset = "once"
 
 [services]
 start = "sim_backend.rig:start"
+"""
+BENCH_TAIL = """
+[load]
+transport = "modbus-tcp"
+map = "config/load-machines/drivebench-sim.toml"
+host = "127.0.0.1"
+port = 0
+unit_id = 1
+timeout_s = 0.5
 
+[simulator]
+motor = "config/motors/pmsm-paper.toml"
+"""
+CANOPEN_BENCH = """
 [drive]
 transport = "canopen"
 interface = "virtual"
@@ -72,30 +85,9 @@ heartbeat_timeout_s = 1.0
 sdo_timeout_s = 1.5
 consumer_time_ms = {consumer_time_ms}
 trace_decimation = 1
-
-[load]
-transport = "modbus-tcp"
-map = "config/load-machines/drivebench-sim.toml"
-host = "127.0.0.1"
-port = 0
-unit_id = 1
-timeout_s = 0.5
-
-[simulator]
-motor = "config/motors/pmsm-paper.toml"
 """
 
 SERIAL_BENCH = """
-[bench]
-name = "fault-serial"
-timing = "lockstep"
-plant_injections = true
-wire_faults = true
-fault_reset = "once"
-
-[services]
-start = "sim_backend.rig:start"
-
 [drive]
 transport = "serial"
 port = "socket://127.0.0.1:1"
@@ -103,17 +95,6 @@ timeout_s = 0.5
 consumer_time_ms = {consumer_time_ms}
 sync_period_s = {sync_period_s}
 trace_decimation = 1
-
-[load]
-transport = "modbus-tcp"
-map = "config/load-machines/drivebench-sim.toml"
-host = "127.0.0.1"
-port = 0
-unit_id = 1
-timeout_s = 0.5
-
-[simulator]
-motor = "config/motors/pmsm-paper.toml"
 """
 
 SCENARIO = """
@@ -157,8 +138,9 @@ limit = 100.0
 
 def write_bench(directory: Path, transport: str, sync_period_s: float = 0.001) -> Path:
     path = directory / f"bench-{transport}.toml"
-    template = CANOPEN_BENCH if transport == "canopen" else SERIAL_BENCH
-    path.write_text(template.format(sync_period_s=sync_period_s, consumer_time_ms=CONSUMER_TIME_MS))
+    drive = CANOPEN_BENCH if transport == "canopen" else SERIAL_BENCH
+    path.write_text(BENCH_HEAD.format(transport=transport)
+                    + drive.format(sync_period_s=sync_period_s, consumer_time_ms=CONSUMER_TIME_MS) + BENCH_TAIL)
     return path
 
 

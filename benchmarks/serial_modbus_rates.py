@@ -28,20 +28,29 @@ from sim_backend.toy import ToyDrive
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def sync_rate(device: SimulatedDevice, start, n: int) -> tuple[float, float, float]:
-    """(syncs per second, drive s per wall s, trace upload MB/s)"""
-    server = start(device)
-    url = getattr(server, "url", None) or server.path
-    link = SerialDriveLink({"port": url, "timeout_s": 5.0, "sync_period_s": 0.001}, ROOT, LinkSettings())
+def enabled_link(port: str) -> SerialDriveLink:
+    """A serial link at 1 ms SYNC tracing every signal, the drive enabled at 2 rad/s after one SYNC."""
+    link = SerialDriveLink({"port": port, "timeout_s": 5.0, "sync_period_s": 0.001}, ROOT, LinkSettings())
     link.open()
     link.configure(list(SIGNAL_NAMES), list(SIGNAL_NAMES), 1)
     link.enable_velocity_mode()
     link.set_speed_ref(2.0)
     link.sync()
+    return link
+
+
+def timed_syncs(link: SerialDriveLink, n: int) -> float:
     t0 = time.perf_counter()
     for _ in range(n):
         link.sync()
-    wall = time.perf_counter() - t0
+    return time.perf_counter() - t0
+
+
+def sync_rate(device: SimulatedDevice, start, n: int) -> tuple[float, float, float]:
+    """(syncs per second, drive s per wall s, trace upload MB/s)"""
+    server = start(device)
+    link = enabled_link(getattr(server, "url", None) or server.path)
+    wall = timed_syncs(link, n)
     t0 = time.perf_counter()
     trace = link.fetch_trace()
     upload = time.perf_counter() - t0
@@ -73,16 +82,8 @@ def out_of_process_rtf(motor: Path, n: int) -> float:
                             stdout=subprocess.PIPE, text=True, cwd=ROOT)
     try:
         port = int(proc.stdout.readline())
-        link = SerialDriveLink({"port": f"socket://127.0.0.1:{port}", "timeout_s": 5.0}, ROOT, LinkSettings())
-        link.open()
-        link.configure(list(SIGNAL_NAMES), list(SIGNAL_NAMES), 1)
-        link.enable_velocity_mode()
-        link.set_speed_ref(2.0)
-        link.sync()
-        t0 = time.perf_counter()
-        for _ in range(n):
-            link.sync()
-        rtf = n * 1e-3 / (time.perf_counter() - t0)
+        link = enabled_link(f"socket://127.0.0.1:{port}")
+        rtf = n * 1e-3 / timed_syncs(link, n)
         link.close()
     finally:
         proc.stdin.close()

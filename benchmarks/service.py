@@ -28,37 +28,15 @@ sys.path.insert(0, str(ROOT))
 
 from bench.service.client import Client, FINAL  # noqa: E402
 
-RIGS = """
-[[rig]]
-name = "pmsm-sim-1"
-bench = "{root}/config/benches/sim-pmsm.toml"
-tags = ["pmsm", "paper"]
-max_concurrent = 2
+SIMULATED_RIGS = [("pmsm-sim-1", "pmsm"), ("pmsm-sim-2", "pmsm"), ("spim-sim-1", "spim"), ("spim-sim-2", "spim")]
 
-[[rig]]
-name = "pmsm-sim-2"
-bench = "{root}/config/benches/sim-pmsm.toml"
-tags = ["pmsm", "paper"]
-max_concurrent = 2
 
-[[rig]]
-name = "spim-sim-1"
-bench = "{root}/config/benches/sim-spim.toml"
-tags = ["spim", "paper"]
-max_concurrent = 2
-
-[[rig]]
-name = "spim-sim-2"
-bench = "{root}/config/benches/sim-spim.toml"
-tags = ["spim", "paper"]
-max_concurrent = 2
-
-[[rig]]
-name = "real-rig"
-bench = "{root}/config/benches/sim-pmsm.toml"
-tags = ["lease-test"]
-simulated = false
-"""
+def rigs_toml() -> str:
+    rigs = [f'[[rig]]\nname = "{name}"\nbench = "{ROOT}/config/benches/sim-{kind}.toml"\n'
+            f'tags = ["{kind}", "paper"]\nmax_concurrent = 2\n' for name, kind in SIMULATED_RIGS]
+    rigs.append(f'[[rig]]\nname = "real-rig"\nbench = "{ROOT}/config/benches/sim-pmsm.toml"\n'
+                'tags = ["lease-test"]\nsimulated = false\n')
+    return "\n".join(rigs)
 
 
 def suite() -> list[Path]:
@@ -77,7 +55,7 @@ def baseline(scenarios: list[Path], out: Path) -> dict[str, float]:
 
 
 def start_service(work: Path, port: int, parallel: int, ttl: float) -> tuple[subprocess.Popen, dict[str, str]]:
-    (work / "rigs.toml").write_text(RIGS.format(root=ROOT))
+    (work / "rigs.toml").write_text(rigs_toml())
     tokens = {}
     for role in ("operator", "viewer", "admin"):
         made = subprocess.run([sys.executable, "-m", "bench", "token", "create", "--role", role, "--name",

@@ -12,6 +12,8 @@ import math
 import numpy as np
 from numba import njit
 
+from sim_backend.numerics import smooth_sign
+
 SQRT3 = math.sqrt(3.0)
 
 
@@ -38,14 +40,6 @@ def limit_to_linear_range(u_alpha: float, u_beta: float, vdc: float) -> tuple[fl
         scale = u_max / mag
         return u_alpha * scale, u_beta * scale
     return u_alpha, u_beta
-
-
-@njit(cache=True, inline="always")
-def smooth_sign(x: float, width: float) -> float:
-    """sign(x) made linear within +-width (a real inverter's dead-time error fades through zero current)."""
-    if width <= 0.0:
-        return float(np.sign(x))
-    return max(-1.0, min(1.0, x / width))
 
 
 @njit(cache=True, inline="always")

@@ -16,7 +16,7 @@ from sim_backend.pmsm import kernel as kn
 from sim_backend.pmsm import plant as pl
 
 ALLOWED_IMPORTS = {"__future__", "math", "numpy", "numba", "drivers", "drivers.signals",
-                   "sim_backend.pmsm.numba_cache"}
+                   "sim_backend.numerics", "sim_backend.pmsm.numba_cache"}
 
 
 def imported_modules(path: Path) -> set[str]:

@@ -92,6 +92,21 @@ def test_a_viewer_gets_403_on_every_mutating_endpoint(api):
         assert response.status_code == 403, path
 
 
+def test_a_page_error_is_a_page_and_an_api_error_stays_json(api):
+    viewer = H(api.tokens.viewer)
+    page = api.get("/runs/999999", headers=viewer)
+    assert page.status_code == 404 and page.headers["content-type"].startswith("text/html")
+    assert "999999" in page.text and "<html" in page.text.lower()
+    refused = api.post("/ui/rigs/sim-a/reserve", data={"hours": "1", "reason": "x"}, headers=viewer)
+    assert refused.status_code == 403 and "reserving needs the operator role" in refused.text
+    assert refused.headers["content-type"].startswith("text/html")
+    bad_seed = api.post("/ui/runs", data={"scenario": "x.toml", "target": "rig:sim-a", "seed": "abc"},
+                        headers=H(api.tokens.operator))
+    assert bad_seed.status_code == 422 and "seed: must be an integer" in bad_seed.text
+    assert api.get("/api/runs/999999", headers=viewer).json()["detail"]
+    assert api.get("/api/runs/999999", headers=viewer).headers["content-type"] == "application/json"
+
+
 def test_operator_may_not_do_admin_things(api):
     op = H(api.tokens.operator)
     assert api.post("/api/tokens", json={"name": "x", "role": "admin"}, headers=op).status_code == 403

@@ -11,12 +11,12 @@ from __future__ import annotations
 import asyncio
 from contextlib import asynccontextmanager
 from http.cookies import SimpleCookie
-from typing import Any
+from typing import Any, Callable
 
 import anyio
 from fastapi import Body, Depends, FastAPI, Request, WebSocket, WebSocketDisconnect
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse, JSONResponse
+from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
@@ -155,9 +155,13 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
     def svc() -> Service:
         return holder["service"]
 
+    ui_error: Callable[[Request, ApiError], Response] | None = None    # set by add_ui below
+
     @app.exception_handler(ApiError)
     async def api_error(request: Request, exc: ApiError):
-        return JSONResponse({"detail": exc.detail}, status_code=exc.status)
+        if request.url.path.startswith("/api/") or ui_error is None:
+            return JSONResponse({"detail": exc.detail}, status_code=exc.status)
+        return ui_error(request, exc)   # a web page's error is a page
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(request: Request, exc: RequestValidationError):
@@ -301,5 +305,5 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
             s.events.unsubscribe(queue)
 
     from bench.service.ui import add_ui
-    add_ui(app, svc)
+    ui_error = add_ui(app, svc)
     return app

@@ -38,7 +38,8 @@ def _fmt(value) -> str:
 templates.env.filters["fmt"] = _fmt
 
 
-def add_ui(app: FastAPI, svc: Callable[[], Service]) -> None:
+def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiError], HTMLResponse]:
+    """Adds the pages to app; returns the renderer of an ApiError as a page (app.py uses it outside /api/)."""
     def who(request: Request) -> Principal:
         return request.scope["state"]["principal"]
 
@@ -51,6 +52,10 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> None:
         response = page(request, "error.html", status=exc.status, lines=lines)
         response.status_code = exc.status
         return response
+
+    def need_operator(request: Request, action: str) -> None:
+        if not who(request).at_least("operator"):
+            raise ApiError(403, f"{who(request).role} token: {action} needs the operator role")
 
     @app.get("/login", response_class=HTMLResponse)
     def login_page(request: Request, failed: int = 0):
@@ -80,26 +85,20 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> None:
     @app.get("/runs/{run_id}", response_class=HTMLResponse)
     def run_page(request: Request, run_id: int):
         s = svc()
-        try:
-            run = s.get_run(run_id)
-            files = []
-            for name in RUN_FILES:
-                try:
-                    s.run_file(run_id, name)
-                    files.append(name)
-                except ApiError:
-                    pass
-        except ApiError as exc:
-            return error(request, exc)
+        run = s.get_run(run_id)
+        files = []
+        for name in RUN_FILES:
+            try:
+                s.run_file(run_id, name)
+                files.append(name)
+            except ApiError:
+                pass
         return page(request, "run.html", run=run, r=s.run_dict(run), files=files)
 
     @app.get("/runs/{run_id}/live", response_class=HTMLResponse)
     def live_page(request: Request, run_id: int):
         s = svc()
-        try:
-            run = s.get_run(run_id)
-        except ApiError as exc:
-            return error(request, exc)
+        run = s.get_run(run_id)
         viewer = None
         if s.settings.live_viewer_url and s.settings.live_grpc_url:
             viewer = f"{s.settings.live_viewer_url}/?url={urllib.parse.quote(s.settings.live_grpc_url, safe='')}"
@@ -108,39 +107,29 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> None:
     @app.post("/ui/runs")
     def ui_submit(request: Request, scenario: str = Form(...), target: str = Form(...), seed: str = Form("")):
         kind, _, value = target.partition(":")
+        need_operator(request, "submitting")
         try:
-            if not who(request).at_least("operator"):
-                raise ApiError(403, f"{who(request).role} token: submitting needs the operator role")
             seed_value = int(seed) if seed.strip() else None
-            run = submit(svc().db, who(request), Submission(scenario=scenario, rig=value if kind == "rig" else None,
-                                                             tag=value if kind == "tag" else None, seed=seed_value),
-                         svc().settings.scenario_root, svc().settings.data_dir)
-        except ApiError as exc:
-            return error(request, exc)
         except ValueError:
-            return error(request, ApiError(422, [f"request: seed: must be an integer, got {seed!r}"]))
+            raise ApiError(422, [f"request: seed: must be an integer, got {seed!r}"]) from None
+        run = submit(svc().db, who(request), Submission(scenario=scenario, rig=value if kind == "rig" else None,
+                                                         tag=value if kind == "tag" else None, seed=seed_value),
+                     svc().settings.scenario_root, svc().settings.data_dir)
         svc().runner.wake()
         return RedirectResponse(f"/runs/{run.id}", status_code=303)
 
     @app.post("/ui/runs/{run_id}/abort")
     def ui_abort(request: Request, run_id: int):
-        try:
-            if not who(request).at_least("operator"):
-                raise ApiError(403, f"{who(request).role} token: aborting needs the operator role")
-            svc().abort(run_id, who(request))
-        except ApiError as exc:
-            return error(request, exc)
+        need_operator(request, "aborting")
+        svc().abort(run_id, who(request))
         return RedirectResponse(f"/runs/{run_id}", status_code=303)
 
     @app.get("/history", response_class=HTMLResponse)
     def history(request: Request, rig: str = "", state: str = "", scenario: str = "", verdict: str = "",
                 revision: str = "", owner: str = "", limit: int = 200):
         s = svc()
-        try:
-            runs = s.list_runs(rig or None, state or None, scenario or None, verdict or None, revision or None,
-                               owner or None, limit)
-        except ApiError as exc:
-            return error(request, exc)
+        runs = s.list_runs(rig or None, state or None, scenario or None, verdict or None, revision or None,
+                           owner or None, limit)
         return page(request, "history.html", runs=runs, rigs=[r["name"] for r in s.rigs()],
                     scenarios=s.scenario_names(),
                     filters={"rig": rig, "state": state, "scenario": scenario, "verdict": verdict,
@@ -162,36 +151,27 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> None:
     @app.get("/rigs/{name}", response_class=HTMLResponse)
     def rig_page(request: Request, name: str):
         s = svc()
-        try:
-            rig = s.rig(name)
-        except ApiError as exc:
-            return error(request, exc)
+        rig = s.rig(name)
         return page(request, "rig.html", rig=rig, runs=s.list_runs(rig=name, limit=20))
 
     @app.post("/ui/rigs/{name}/reserve")
     def ui_reserve(request: Request, name: str, hours: float = Form(...), reason: str = Form("")):
-        try:
-            if not who(request).at_least("operator"):
-                raise ApiError(403, f"{who(request).role} token: reserving needs the operator role")
-            reserve(svc().db, name, who(request), hours * 3600.0, reason)
-        except ApiError as exc:
-            return error(request, exc)
+        need_operator(request, "reserving")
+        reserve(svc().db, name, who(request), hours * 3600.0, reason)
         return RedirectResponse(f"/rigs/{name}", status_code=303)
 
     @app.post("/ui/leases/{lease_id}/release")
     def ui_release(request: Request, lease_id: int):
-        try:
-            if not who(request).at_least("operator"):
-                raise ApiError(403, f"{who(request).role} token: releasing needs the operator role")
-            lease = release(svc().db, lease_id, who(request))
-        except ApiError as exc:
-            return error(request, exc)
+        need_operator(request, "releasing")
+        lease = release(svc().db, lease_id, who(request))
         svc().runner.wake()
         return RedirectResponse(f"/rigs/{lease.rig}", status_code=303)
 
     @app.get("/static/app.js")
     def app_js():
         return Response((HERE / "static" / "app.js").read_text(encoding="utf-8"), media_type="text/javascript")
+
+    return error
 
 
 def _trend_png(points: list[dict], criterion: str, scenario: str) -> bytes:

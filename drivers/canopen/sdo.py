@@ -19,6 +19,7 @@ from drivers.canopen import objects as o
 
 
 NO_SUCH_OBJECT = (o.ABORT_NOT_IN_OD, 0x06090011)     # object / subindex does not exist
+_RAISE = object()     # _transfer: no "missing" value given
 
 
 def abort_text(exc: SdoAbortedError) -> str:
@@ -62,62 +63,48 @@ class SdoAccess:
 
     def read(self, index: int, subindex: int = 0) -> Any:
         var = self.var(index, subindex)
-        try:
-            with self.lock:
-                return var.decode_raw(self.node.sdo.upload(index, subindex))
-        except (SdoAbortedError, SdoCommunicationError) as exc:
-            raise self._failed("read", index, subindex, var.name, exc) from None
+        return var.decode_raw(self._transfer("read", index, subindex, var.name,
+                                             lambda: self.node.sdo.upload(index, subindex)))
 
     def write(self, index: int, subindex: int, value: Any) -> None:
         var = self.var(index, subindex)
-        try:
-            with self.lock:
-                self.node.sdo.download(index, subindex, var.encode_raw(value))
-        except (SdoAbortedError, SdoCommunicationError) as exc:
-            raise self._failed("write", index, subindex, var.name, exc) from None
+        data = var.encode_raw(value)
+        self._transfer("write", index, subindex, var.name, lambda: self.node.sdo.download(index, subindex, data))
 
     def upload(self, index: int, subindex: int = 0) -> bytes:
         """Raw read of any index, with or without an EDS entry."""
-        try:
-            with self.lock:
-                return self.node.sdo.upload(index, subindex)
-        except (SdoAbortedError, SdoCommunicationError) as exc:
-            raise self._failed("read", index, subindex, "", exc) from None
+        return self._transfer("read", index, subindex, "", lambda: self.node.sdo.upload(index, subindex))
 
     def download(self, index: int, subindex: int, data: bytes) -> None:
         """Raw write of any index, with or without an EDS entry."""
-        try:
-            with self.lock:
-                self.node.sdo.download(index, subindex, data)
-        except (SdoAbortedError, SdoCommunicationError) as exc:
-            raise self._failed("write", index, subindex, "", exc) from None
+        self._transfer("write", index, subindex, "", lambda: self.node.sdo.download(index, subindex, data))
 
     def read_standard(self, index: int, subindex: int = 0, signed: bool = False) -> int | None:
         """A standard integer object read from the device itself (the EDS may lack it, the device may have it);
         None when the device says it has no such object."""
-        try:
-            with self.lock:
-                data = self.node.sdo.upload(index, subindex)
-        except SdoAbortedError as exc:
-            if exc.code in NO_SUCH_OBJECT:
-                return None
-            raise self._failed("read", index, subindex, "", exc) from None
-        except SdoCommunicationError as exc:
-            raise self._failed("read", index, subindex, "", exc) from None
-        return int.from_bytes(data, "little", signed=signed)
+        data = self._transfer("read", index, subindex, "", lambda: self.node.sdo.upload(index, subindex),
+                              missing=None)
+        return None if data is None else int.from_bytes(data, "little", signed=signed)
 
     def write_standard(self, index: int, subindex: int, value: int, size: int, signed: bool = False) -> bool:
         """Write a standard integer object; False when the device has no such object."""
+        data = value.to_bytes(size, "little", signed=signed)
+        return self._transfer("write", index, subindex, "",
+                              lambda: self.node.sdo.download(index, subindex, data) or True, missing=False)
+
+    def _transfer(self, verb: str, index: int, subindex: int, name: str, call: Callable[[], Any],
+                  missing: Any = _RAISE) -> Any:
+        """call() under the link's lock; an abort or timeout becomes a LinkError, except that an abort saying the
+        object does not exist returns `missing` where one is given."""
         try:
             with self.lock:
-                self.node.sdo.download(index, subindex, value.to_bytes(size, "little", signed=signed))
+                return call()
         except SdoAbortedError as exc:
-            if exc.code in NO_SUCH_OBJECT:
-                return False
-            raise self._failed("write", index, subindex, "", exc) from None
+            if missing is not _RAISE and exc.code in NO_SUCH_OBJECT:
+                return missing
+            raise self._failed(verb, index, subindex, name, exc) from None
         except SdoCommunicationError as exc:
-            raise self._failed("write", index, subindex, "", exc) from None
-        return True
+            raise self._failed(verb, index, subindex, name, exc) from None
 
 
 MIN_FRAMES_PER_S = 1000.0   # the slowest transfer rate a block upload may take before its deadline

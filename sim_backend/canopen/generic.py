@@ -55,18 +55,15 @@ def _var(name: str, index: int, subindex: int, data_type: int, access: str, defa
 def add_missing_standard_objects(od: objectdictionary.ObjectDictionary, comm_loss: bool = True) -> list[str]:
     """The comm-loss objects a CiA 402 drive has even where its EDS omits them; returns what was added."""
     added = []
-    if comm_loss and o.CONSUMER_HEARTBEAT not in od:
-        record = ODRecord("Consumer heartbeat time", o.CONSUMER_HEARTBEAT)
-        record.add_member(_var("Number of entries", o.CONSUMER_HEARTBEAT, 0, o.UNSIGNED8, "const", 1))
-        record.add_member(_var("Consumer heartbeat time 1", o.CONSUMER_HEARTBEAT, 1, o.UNSIGNED32, "rw", 0))
-        od.add_object(record)
-        added.append("0x1016")
-    if comm_loss and o.ERROR_BEHAVIOUR not in od:
-        record = ODRecord("Error behaviour", o.ERROR_BEHAVIOUR)
-        record.add_member(_var("Number of entries", o.ERROR_BEHAVIOUR, 0, o.UNSIGNED8, "const", 1))
-        record.add_member(_var("Communication error", o.ERROR_BEHAVIOUR, 1, o.UNSIGNED8, "rw", 0))
-        od.add_object(record)
-        added.append("0x1029")
+    records = ((o.CONSUMER_HEARTBEAT, "Consumer heartbeat time", "Consumer heartbeat time 1", o.UNSIGNED32),
+               (o.ERROR_BEHAVIOUR, "Error behaviour", "Communication error", o.UNSIGNED8))
+    for index, name, entry, data_type in records if comm_loss else ():
+        if index not in od:
+            record = ODRecord(name, index)
+            record.add_member(_var("Number of entries", index, 0, o.UNSIGNED8, "const", 1))
+            record.add_member(_var(entry, index, 1, data_type, "rw", 0))
+            od.add_object(record)
+            added.append(f"0x{index:04X}")
     for index, name, data_type, default in ((o.ABORT_CONNECTION_OPTION, "Abort connection option code", o.INTEGER16, 1),
                                             (o.QUICK_STOP_OPTION, "Quick stop option code", o.INTEGER16, 2),
                                             (o.COMM_CYCLE_PERIOD, "Communication cycle period", o.UNSIGNED32, 1000)):

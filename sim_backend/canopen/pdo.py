@@ -87,24 +87,22 @@ class PdoEngine:
     def rebuild(self) -> tuple[list[int], list[int]]:
         """Re-read every PDO; returns (RPDO COB-IDs no longer used, RPDO COB-IDs now used)."""
         old = list(self.rpdos)
-        self.tpdos, self.rpdos = [], {}
-        for n in range(o.N_TPDO_MAX):
-            if o.TPDO_COMM + n not in self.od:
-                break
-            pdo = self._read(o.TPDO_COMM + n, o.TPDO_MAP + n)
-            if not pdo.cob_id & o.COB_ID_INVALID and pdo.entries:
-                pdo.cob_id &= 0x7FF
-                pdo.packer = self._packer(pdo)
-                self.tpdos.append(pdo)
-        for n in range(o.N_RPDO_MAX):
-            if o.RPDO_COMM + n not in self.od:
-                break
-            pdo = self._read(o.RPDO_COMM + n, o.RPDO_MAP + n)
-            if not pdo.cob_id & o.COB_ID_INVALID and pdo.entries:
-                pdo.cob_id &= 0x7FF
-                self.rpdos[pdo.cob_id] = pdo
+        self.tpdos = list(self._valid(o.TPDO_COMM, o.TPDO_MAP, o.N_TPDO_MAX))
+        for pdo in self.tpdos:
+            pdo.packer = self._packer(pdo)
+        self.rpdos = {pdo.cob_id: pdo for pdo in self._valid(o.RPDO_COMM, o.RPDO_MAP, o.N_RPDO_MAX)}
         self.dirty = False
         return old, list(self.rpdos)
+
+    def _valid(self, comm_base: int, map_base: int, n_max: int):
+        """The valid PDOs with a mapping, in number order, up to the first one the dictionary lacks."""
+        for n in range(n_max):
+            if comm_base + n not in self.od:
+                return
+            pdo = self._read(comm_base + n, map_base + n)
+            if not pdo.cob_id & o.COB_ID_INVALID and pdo.entries:
+                pdo.cob_id &= 0x7FF
+                yield pdo
 
     def receive(self, pdo: Pdo, data: bytes) -> None:
         """An RPDO of the right length: synchronous ones wait for the next SYNC, the others act now."""

@@ -25,9 +25,11 @@ from numba import njit
 
 from drivers import signals
 from drivers.signals import SIGNAL_INDEX
+import sim_backend.numerics as numerics
+from sim_backend.numerics import smooth_sign
 from sim_backend.pmsm.numba_cache import drop_stale_cache
 
-drop_stale_cache(__file__, [signals.__file__])
+drop_stale_cache(__file__, [signals.__file__, numerics.__file__])
 
 SQRT3 = math.sqrt(3.0)
 
@@ -136,13 +138,6 @@ def _small_rotation(a: float) -> complex:
 
 
 @njit(cache=True, inline="always")
-def _fade_sign(x: float, width: float) -> float:
-    if width <= 0.0:
-        return float(np.sign(x))
-    return max(-1.0, min(1.0, x / width))
-
-
-@njit(cache=True, inline="always")
 def _start(s: np.ndarray, p: np.ndarray, i_meas_xy: complex) -> None:
     """Gates on: estimators restart from w^ = 0 and psi^ = nominal; rho^ keeps its last value."""
     s[S_RUNNING] = 1.0
@@ -152,23 +147,15 @@ def _start(s: np.ndarray, p: np.ndarray, i_meas_xy: complex) -> None:
     s[S_INT_PSI] = p[F_FLUX]
     s[S_IHAT_X] = i_meas_xy.real
     s[S_IHAT_Y] = i_meas_xy.imag
-    s[S_U_ALPHA_LAST] = 0.0
-    s[S_U_BETA_LAST] = 0.0
-    s[S_U_ALPHA_PREV] = 0.0
-    s[S_U_BETA_PREV] = 0.0
-    s[S_SPEED_REF_RAMPED] = 0.0
-    s[S_INT_SPEED] = 0.0
-    s[S_INT_IX] = 0.0
-    s[S_INT_IY] = 0.0
+    for k in (S_U_ALPHA_LAST, S_U_BETA_LAST, S_U_ALPHA_PREV, S_U_BETA_PREV, S_SPEED_REF_RAMPED, S_INT_SPEED,
+              S_INT_IX, S_INT_IY):
+        s[k] = 0.0
 
 
 @njit(cache=True, inline="always")
 def _stop(s: np.ndarray) -> None:
-    s[S_RUNNING] = 0.0
-    s[S_M_ALPHA] = 0.0
-    s[S_M_BETA] = 0.0
-    s[S_U_ALPHA_LAST] = 0.0
-    s[S_U_BETA_LAST] = 0.0
+    for k in (S_RUNNING, S_M_ALPHA, S_M_BETA, S_U_ALPHA_LAST, S_U_BETA_LAST):
+        s[k] = 0.0
 
 
 @njit(cache=True, inline="always")
@@ -303,9 +290,9 @@ def firmware_step(s: np.ndarray, p: np.ndarray, i_a: float, i_b: float, vdc: flo
         comp = p[F_DEADTIME_COMP_V]
         if comp > 0.0:
             width = p[F_DEADTIME_COMP_WIDTH]
-            e_a = comp * _fade_sign(i_a, width)
-            e_b = comp * _fade_sign(i_b, width)
-            e_c = comp * _fade_sign(i_c, width)
+            e_a = comp * smooth_sign(i_a, width)
+            e_b = comp * smooth_sign(i_b, width)
+            e_c = comp * smooth_sign(i_c, width)
             u_ab += complex((2.0 * e_a - e_b - e_c) / 3.0, (e_b - e_c) / SQRT3)
         inv_vdc = 1.0 / max(vdc, 1.0)
         s[S_M_ALPHA] = u_ab.real * inv_vdc

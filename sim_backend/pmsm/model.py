@@ -44,6 +44,37 @@ def _num(cfg: dict, section: str, key: str, default: float | None = None, positi
     return float(value)
 
 
+# [firmware] keys that must be given, > 0; speed_est_ki_over_kp (a number or "a1") is read apart
+_FIRMWARE_POSITIVE = {
+    "control_period_s": fw.F_PERIOD,
+    "rs_ohm": fw.F_RS,
+    "ls_h": fw.F_LS,
+    "flux_wb": fw.F_FLUX,
+    "inertia_kgm2": fw.F_INERTIA,
+    "speed_est_kp": fw.F_SPEED_EST_KP,
+    "flux_est_kp": fw.F_FLUX_EST_KP,
+    "flux_est_ki_over_kp": fw.F_FLUX_EST_KI_OVER_KP,
+    "flux_est_min_speed_elec_rad_s": fw.F_FLUX_EST_MIN_SPEED,
+    "flux_est_min_fraction": fw.F_FLUX_EST_MIN_FRACTION,
+    "flux_est_max_fraction": fw.F_FLUX_EST_MAX_FRACTION,
+    "speed_loop_bandwidth_rad_s": fw.F_SPEED_BW,
+    "speed_pi_zero_fraction": fw.F_SPEED_ZERO_FRACTION,
+    "current_loop_bandwidth_rad_s": fw.F_CURRENT_BW,
+    "current_limit_a": fw.F_I_MAX,
+    "overcurrent_trip_a": fw.F_I_TRIP,
+    "speed_ramp_mech_rad_s2": fw.F_RAMP,
+    "voltage_limit_fraction": fw.F_VOLTAGE_FRACTION,
+}
+# [firmware] keys that may be left out: (parameter, default)
+_FIRMWARE_DEFAULTS = {
+    "flux_est_standstill_relax_s": (fw.F_FLUX_HOLD_RELAX_S, 0.0),
+    "delay_comp_periods": (fw.F_DELAY_COMP, 1.5),
+    "deadtime_comp_v": (fw.F_DEADTIME_COMP_V, 0.0),
+    "deadtime_comp_width_a": (fw.F_DEADTIME_COMP_WIDTH, 0.05),
+    "isx_ref_a": (fw.F_ISX_REF, 0.0),
+}
+
+
 class PmsmDrive:
     kind = "pmsm"
 
@@ -100,35 +131,15 @@ class PmsmDrive:
 
         f = np.zeros(fw.N_PARAMS)
         s = "firmware"
-        f[fw.F_PERIOD] = _num(cfg, s, "control_period_s", positive=True)
+        for key, index in _FIRMWARE_POSITIVE.items():
+            f[index] = _num(cfg, s, key, positive=True)
+        for key, (index, default) in _FIRMWARE_DEFAULTS.items():
+            f[index] = _num(cfg, s, key, default)
         f[fw.F_POLE_PAIRS] = pole_pairs
-        f[fw.F_RS] = _num(cfg, s, "rs_ohm", positive=True)
-        f[fw.F_LS] = _num(cfg, s, "ls_h", positive=True)
-        f[fw.F_FLUX] = _num(cfg, s, "flux_wb", positive=True)
-        f[fw.F_INERTIA] = _num(cfg, s, "inertia_kgm2", positive=True)
-        f[fw.F_SPEED_EST_KP] = _num(cfg, s, "speed_est_kp", positive=True)
-        ratio = _get(cfg, s, "speed_est_ki_over_kp")
-        if ratio == "a1":
+        if _get(cfg, s, "speed_est_ki_over_kp") == "a1":
             f[fw.F_SPEED_EST_KI_OVER_KP] = 0.0
         else:
             f[fw.F_SPEED_EST_KI_OVER_KP] = _num(cfg, s, "speed_est_ki_over_kp", positive=True)
-        f[fw.F_FLUX_EST_KP] = _num(cfg, s, "flux_est_kp", positive=True)
-        f[fw.F_FLUX_EST_KI_OVER_KP] = _num(cfg, s, "flux_est_ki_over_kp", positive=True)
-        f[fw.F_FLUX_EST_MIN_SPEED] = _num(cfg, s, "flux_est_min_speed_elec_rad_s", positive=True)
-        f[fw.F_FLUX_EST_MIN_FRACTION] = _num(cfg, s, "flux_est_min_fraction", positive=True)
-        f[fw.F_FLUX_EST_MAX_FRACTION] = _num(cfg, s, "flux_est_max_fraction", positive=True)
-        f[fw.F_FLUX_HOLD_RELAX_S] = _num(cfg, s, "flux_est_standstill_relax_s", 0.0)
-        f[fw.F_SPEED_BW] = _num(cfg, s, "speed_loop_bandwidth_rad_s", positive=True)
-        f[fw.F_SPEED_ZERO_FRACTION] = _num(cfg, s, "speed_pi_zero_fraction", positive=True)
-        f[fw.F_CURRENT_BW] = _num(cfg, s, "current_loop_bandwidth_rad_s", positive=True)
-        f[fw.F_I_MAX] = _num(cfg, s, "current_limit_a", positive=True)
-        f[fw.F_I_TRIP] = _num(cfg, s, "overcurrent_trip_a", positive=True)
-        f[fw.F_RAMP] = _num(cfg, s, "speed_ramp_mech_rad_s2", positive=True)
-        f[fw.F_VOLTAGE_FRACTION] = _num(cfg, s, "voltage_limit_fraction", positive=True)
-        f[fw.F_DELAY_COMP] = _num(cfg, s, "delay_comp_periods", 1.5)
-        f[fw.F_DEADTIME_COMP_V] = _num(cfg, s, "deadtime_comp_v", 0.0)
-        f[fw.F_DEADTIME_COMP_WIDTH] = _num(cfg, s, "deadtime_comp_width_a", 0.05)
-        f[fw.F_ISX_REF] = _num(cfg, s, "isx_ref_a", 0.0)
         fw.derive_gains(f)
         return cls(plant, angle0, f, inv, seed, noise)
 

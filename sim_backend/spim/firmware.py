@@ -25,7 +25,7 @@ import math
 import numpy as np
 from numba import njit
 
-from sim_backend.angles import wrap_angle
+from sim_backend.numerics import wrap_angle
 
 FAULT_OVERCURRENT = 0x2310
 

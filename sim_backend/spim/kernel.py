@@ -13,7 +13,7 @@ import math
 
 from numba import njit
 
-from sim_backend.angles import wrap_angle
+from sim_backend.numerics import wrap_angle
 from sim_backend.mechanics import LOAD_BRAKE, smooth_load_torque
 from sim_backend.spim import firmware as fw
 from sim_backend.spim import inverter as inv

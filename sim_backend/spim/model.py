@@ -10,7 +10,7 @@ import numpy as np
 
 from drivers.signals import SIGNAL_NAMES
 from drivers.parameters import ParamKind, names_for
-from sim_backend.angles import wrap_angle
+from sim_backend.numerics import wrap_angle
 from sim_backend.mechanics import LOAD_BRAKE, LOAD_TORQUE, LOAD_VISCOUS
 from sim_backend.spim import firmware as fw
 from sim_backend.spim import inverter as inv

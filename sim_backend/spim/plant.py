@@ -32,19 +32,17 @@ N_PLANT_STATE = 8
 @njit(cache=True, inline="always")
 def currents(psd, psq, prd, prq, p, open_d, open_q):
     """(i_sd, i_sq, i_rd, i_rq) from the flux linkages."""
-    if open_d:
-        isd = 0.0
-        ird = prd / p[P_LR]
-    else:
-        isd = p[P_INV_D_A] * psd - p[P_INV_D_B] * prd
-        ird = p[P_INV_D_C] * prd - p[P_INV_D_B] * psd
-    if open_q:
-        isq = 0.0
-        irq = prq / p[P_LR]
-    else:
-        isq = p[P_INV_Q_A] * psq - p[P_INV_Q_B] * prq
-        irq = p[P_INV_Q_C] * prq - p[P_INV_Q_B] * psq
+    isd, ird = _axis_currents(psd, prd, p[P_INV_D_A], p[P_INV_D_B], p[P_INV_D_C], p[P_LR], open_d)
+    isq, irq = _axis_currents(psq, prq, p[P_INV_Q_A], p[P_INV_Q_B], p[P_INV_Q_C], p[P_LR], open_q)
     return isd, isq, ird, irq
+
+
+@njit(cache=True, inline="always")
+def _axis_currents(ps, pr, inv_a, inv_b, inv_c, lr, open_):
+    """(stator, rotor) current of one axis from its flux linkages; an open stator winding carries none."""
+    if open_:
+        return 0.0, pr / lr
+    return inv_a * ps - inv_b * pr, inv_c * pr - inv_b * ps
 
 
 @njit(cache=True, inline="always")
