@@ -406,13 +406,46 @@ def time_axis(t_s: np.ndarray, row_period_s: float | None, tolerance: float = 1.
     """Rows, gaps (intervals over `tolerance` periods: 1.5 on a drive clock, more on receive-time stamps, which
     jitter), the rows they miss, and duplicated or backward stamps of a time axis."""
     t = np.asarray(t_s, dtype=np.float64)
-    steps = np.diff(t) if t.size > 1 else np.zeros(0)
-    period = row_period_s or (float(np.median(steps)) if steps.size else 0.0)
-    gaps = steps > tolerance * period if period > 0 else np.zeros(steps.size, dtype=bool)
-    return {"rows": int(t.size), "row_period_s": period, "tolerance": tolerance, "gaps": int(gaps.sum()),
-            "missing_rows": int(np.sum(np.round(steps[gaps] / period) - 1)) if gaps.any() else 0,
-            "largest_gap_s": float(steps.max()) if steps.size else 0.0,
-            "duplicates": int(np.count_nonzero(steps <= 0))}
+    if not row_period_s and t.size > 1:
+        row_period_s = float(np.median(np.diff(t)))
+    axis = TimeAxis(row_period_s or 0.0, tolerance)
+    axis.add(t)
+    return axis.result()
+
+
+@dataclass
+class TimeAxis:
+    """time_axis() over a time axis given in consecutive pieces (a run's journal, batch by batch): memory does not
+    grow with the run. The row period must be known beforehand."""
+    period: float
+    tolerance: float = 1.5
+    rows: int = 0
+    gaps: int = 0
+    missing_rows: int = 0
+    largest_gap_s: float | None = None
+    duplicates: int = 0
+    _last: float | None = None
+
+    def add(self, t: np.ndarray) -> None:
+        if t.size == 0:
+            return
+        steps = np.diff(t) if self._last is None else np.diff(t, prepend=self._last)
+        self._last = float(t[-1])
+        self.rows += int(t.size)
+        if steps.size == 0:
+            return
+        gaps = steps > self.tolerance * self.period if self.period > 0 else np.zeros(steps.size, dtype=bool)
+        self.gaps += int(gaps.sum())
+        if gaps.any():
+            self.missing_rows += int(np.sum(np.round(steps[gaps] / self.period) - 1))
+        largest = float(steps.max())
+        self.largest_gap_s = largest if self.largest_gap_s is None else max(self.largest_gap_s, largest)
+        self.duplicates += int(np.count_nonzero(steps <= 0))
+
+    def result(self) -> dict[str, Any]:
+        return {"rows": self.rows, "row_period_s": self.period, "tolerance": self.tolerance, "gaps": self.gaps,
+                "missing_rows": self.missing_rows, "largest_gap_s": self.largest_gap_s or 0.0,
+                "duplicates": self.duplicates}
 
 
 def signals_of(spec: CriterionSpec) -> list[str]:

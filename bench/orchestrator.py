@@ -20,10 +20,10 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from bench.benchconfig import load_bench_config
-from bench.criteria import signals_of
+from bench.criteria import TimeAxis, signals_of, time_axis
 from bench.errors import InputError, find_repo_root
 from bench.links import make_links, started_services
-from bench.records import RunRecorder
+from bench.records import RunRecorder, release_freed_memory
 from bench.rerun_view import RerunStream
 from bench.scenario import load_scenario
 from bench.summary_plot import BUCKETS as PLOT_BUCKETS, PLOT_SIGNALS, write_summary_png
@@ -579,21 +579,27 @@ class _Run:
                 error = f"final trace upload failed: {exc}"
             self._record_live_tail()
         # read back from the run's journal only what the verdict and the plot need: memory does not grow with the
-        # run's length (the time axis: 8 bytes a row; the criteria: their windows; the plot: an envelope)
+        # run's length (the time axis: checked batch by batch; the criteria: their windows; the plot: an envelope)
         duration = float(self.scenario.duration_s)
-        t_axis = self.recorder.read_back([], t_max=duration + 1e-9)[TIME_COLUMN]
+        row_period = self._row_period_s()
+        # live samples of a drive without a clock are stamped on receipt in real time: they jitter, allow for it
+        tolerance = 1.9 if self.realtime and self.data_source == "pdo" else 1.5
+        if row_period:
+            axis = TimeAxis(row_period, tolerance)
+            for chunk in self.recorder.iter_back([], t_max=duration + 1e-9):
+                axis.add(chunk[TIME_COLUMN])
+            holes = axis.result()
+        else:        # the period is the median interval: the whole axis at once
+            holes = time_axis(self.recorder.read_back([], t_max=duration + 1e-9)[TIME_COLUMN], None, tolerance)
         specs = self.scenario.criteria
         first = min((s.window_s[0] - float(s.params.get("smooth_s") or 0.0) for s in specs), default=0.0) - 1.0
         needed = {name for spec in specs for name in signals_of(spec)}
         columns = self.recorder.read_back(needed, t_min=first, t_max=duration + 1e-9)
         t = columns.pop(TIME_COLUMN)
-        row_period = self._row_period_s()
-        # live samples of a drive without a clock are stamped on receipt in real time: they jitter, allow for it
-        tolerance = 1.9 if self.realtime and self.data_source == "pdo" else 1.5
         judged = judge_run(self.scenario, t, columns, measured=self.measured, row_period_s=row_period,
                            tolerance=tolerance, abort_reason=abort_reason, error=error, stop_errors=stop_errors,
-                           t_axis=t_axis)
-        del columns, t_axis, t
+                           holes=holes)
+        del columns, t
         self.recorder.note("time_axis", judged.time_axis)
         verdict, reason, results, error = judged.verdict, judged.reason, judged.results, judged.error
         try:
@@ -603,5 +609,6 @@ class _Run:
                                   title=f"{self.scenario.name} - {verdict}")
         except Exception as exc:
             self.recorder.note("summary_png_error", f"{type(exc).__name__}: {exc}")
+        release_freed_memory()
         record = self.recorder.finish(verdict, results, reason)
         return RunResult(self.recorder.run_dir, verdict, record, results, interrupted, error)

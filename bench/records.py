@@ -12,8 +12,11 @@ The recorder keeps at most one flush interval of rows in memory; finish() stream
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import ctypes.util
 import dataclasses
 import datetime as dt
+import gc
 import json
 import math
 import os
@@ -23,7 +26,7 @@ import threading
 import time
 from importlib import metadata
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Iterator
 from xml.etree import ElementTree as ET
 
 import numpy as np
@@ -39,7 +42,10 @@ JOURNAL = "telemetry.arrows"
 PARQUET = "telemetry.parquet"
 JUNIT = "junit.xml"
 from bench.criteria import VERDICTS  # noqa: E402  (pass fail incomplete aborted error)
-_ROW_GROUP_ROWS = 1 << 16    # rows per Parquet row group: ~9 MB of a full record held at once when it is written
+_ROW_GROUP_ROWS = 1 << 14    # rows per Parquet row group: ~2 MB of a full record held at once when it is written
+# reading the journal back and writing telemetry.parquet at the end of a run: the system allocator hands the buffers
+# back to the OS (Arrow's default pool keeps them: +25-40 MB after every long run)
+_END_POOL = pa.system_memory_pool()
 
 
 def utc_now() -> str:
@@ -212,27 +218,39 @@ class RunRecorder:
     def read_back(self, signals: Iterable[str] | None = None, t_min: float = -math.inf,
                   t_max: float = math.inf) -> dict[str, np.ndarray]:
         """The rows appended so far with t_min <= t_s <= t_max (t_s + the given signal columns, default all), read
-        back from the journal after a flush, one batch at a time: the caller evaluates criteria without keeping
-        its own copy of the run, and only the rows it needs are ever in memory. A signal never recorded comes back
-        as NaN."""
+        back from the journal after a flush: the caller evaluates criteria without keeping its own copy of the run,
+        and only the rows it needs are ever in memory. A signal never recorded comes back as NaN."""
+        names = None
+        parts: dict[str, list[np.ndarray]] = {}
+        for chunk in self.iter_back(signals, t_min, t_max):
+            names = names or list(chunk)
+            for n, values in chunk.items():
+                parts.setdefault(n, []).append(values)
+        if names is None:
+            names = list(self._flushed_schema().names) if signals is None else [TIME_COLUMN, *dict.fromkeys(signals)]
+        return {n: np.concatenate(parts[n]) if n in parts else np.zeros(0) for n in names}
+
+    def iter_back(self, signals: Iterable[str] | None = None, t_min: float = -math.inf,
+                  t_max: float = math.inf) -> Iterator[dict[str, np.ndarray]]:
+        """read_back() one journal batch at a time (for a summary of the whole run in bounded memory)."""
         schema = self._flushed_schema()
         names = list(schema.names) if signals is None else [TIME_COLUMN, *dict.fromkeys(signals)]
-        kept = [n for n in names if n in schema.names]
-        parts: dict[str, list[np.ndarray]] = {n: [] for n in kept}
-        rows = 0
         for batch in self._journal_batches():
             t = batch.column(0).to_numpy(zero_copy_only=False)
             mask = (t >= t_min) & (t <= t_max)
             if not mask.any():
                 continue
             every = bool(mask.all())
-            rows += int(mask.sum())
-            for n in kept:
+            rows = int(mask.sum())
+            chunk = {}
+            for n in names:
+                if n not in schema.names:
+                    chunk[n] = np.full(rows, np.nan)
+                    continue
                 values = batch.column(schema.get_field_index(n)).to_numpy(zero_copy_only=False)
                 # a copy: a view would keep the whole batch (every column of the record) alive
-                parts[n].append(values.copy() if every else values[mask])
-        return {n: (np.concatenate(parts[n]) if parts[n] else np.zeros(0)) if n in parts else np.full(rows, np.nan)
-                for n in names}
+                chunk[n] = values.copy() if every else values[mask]
+            yield chunk
 
     def read_back_envelope(self, signals: Iterable[str], buckets: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """For a plot of the whole run in bounded memory: per time bucket the minimum and maximum of each signal
@@ -362,7 +380,9 @@ class RunRecorder:
         journal = self.run_dir / JOURNAL
         tmp = self.run_dir / (PARQUET + ".tmp")
         schema = self._schema or _empty_schema()
-        with pq.ParquetWriter(tmp, schema, compression="zstd") as out:
+        # no dictionary pages (noisy floats do not repeat), 64 KiB data pages: ~7 MB of buffers instead of ~18 MB
+        with pq.ParquetWriter(tmp, schema, compression="zstd", memory_pool=_END_POOL, use_dictionary=False,
+                              data_page_size=1 << 16) as out:
             pending: list[pa.RecordBatch] = []
             pending_rows = 0
             for batch in _read_journal(journal)[1] if journal.exists() else []:
@@ -374,7 +394,7 @@ class RunRecorder:
             if pending or pending_rows == 0:
                 out.write_table(pa.Table.from_batches(pending, schema=schema))
         os.replace(tmp, self.run_dir / PARQUET)
-        pa.default_memory_pool().release_unused()    # the row groups' buffers: back to the OS, not kept by the pool
+        release_freed_memory()
 
     def _write_record(self) -> None:
         """A full disk or a vanished directory must not end a run with the drive enabled: the error is kept (the
@@ -397,6 +417,26 @@ class RunRecorder:
                               f"run's safe stop was done"])
 
 
+def release_freed_memory() -> None:
+    """After the end-of-run steps (Parquet, the plot): freed buffers go back to the OS instead of staying in the
+    allocators' free lists, so a process that runs many runs (a campaign worker, a long session) stays flat."""
+    gc.collect()
+    pa.default_memory_pool().release_unused()
+    if _LIBC is not None:
+        _LIBC.malloc_trim(0)
+
+
+def _load_libc():
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return libc if hasattr(libc, "malloc_trim") else None      # glibc only
+    except OSError:
+        return None
+
+
+_LIBC = _load_libc()
+
+
 def _empty_schema() -> pa.Schema:
     return pa.schema([pa.field(k, pa.float64()) for k in (TIME_COLUMN, *SIGNAL_NAMES)])
 
@@ -405,7 +445,7 @@ def _read_journal(path: Path):
     """(schema or None, generator of complete batches); stops quietly at a truncated or missing tail."""
     f = open(path, "rb")
     try:
-        reader = pa.ipc.open_stream(f)
+        reader = pa.ipc.open_stream(f, memory_pool=_END_POOL)
     except (pa.ArrowInvalid, OSError, EOFError):
         f.close()
         return None, iter(())

@@ -22,11 +22,12 @@ class Judged:
 
 def judge_run(scenario, t: np.ndarray, columns: dict[str, np.ndarray], *, measured: frozenset[str] | None,
               row_period_s: float | None, tolerance: float, abort_reason: str | None, error: str | None,
-              stop_errors: list[str], t_axis: np.ndarray | None = None) -> Judged:
+              stop_errors: list[str], holes: dict | None = None) -> Judged:
     """`t` and `columns`: the recorded rows the criteria need (rows after duration_s, the stop, are not judged);
-    `t_axis`: the drive clock of every in-test row, for the time-axis check (default: `t`)."""
+    `holes`: time_axis() of every in-test row (default: of `t`)."""
     in_test = t <= float(scenario.duration_s) + 1e-9
-    holes = time_axis(t[in_test] if t_axis is None else t_axis, row_period_s, tolerance)
+    if holes is None:
+        holes = time_axis(t[in_test], row_period_s, tolerance)
     try:
         results = evaluate(scenario.criteria, t[in_test], {k: v[in_test] for k, v in columns.items()},
                            measured=measured, row_period_s=row_period_s, tolerance=tolerance)

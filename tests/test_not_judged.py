@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.criteria import CriterionSpec, evaluate, time_axis, verdict
+from bench.criteria import CriterionSpec, TimeAxis, evaluate, time_axis, verdict
 from tests.fakes import FakeRig
 from tests.test_orchestrator import run
 
@@ -52,6 +52,22 @@ def test_missing_rows_in_the_window_are_not_judged_whatever_the_values():
     holes = time_axis(t[keep], 0.001)
     assert (holes["gaps"], holes["missing_rows"], holes["duplicates"]) == (1, lost, 0)
     assert time_axis(np.array([0.0, 0.001, 0.001, 0.002]), 0.001)["duplicates"] == 1
+
+
+def test_the_time_axis_checked_batch_by_batch_is_the_whole_axis_checked_at_once():
+    rng = np.random.default_rng(3)
+    t = np.cumsum(np.full(5000, 0.001))
+    t = np.delete(t, np.r_[700:740, 2999, 4100:4103])                 # three holes, one of them one row
+    t = np.insert(t, 1500, t[1500])                                   # a duplicated stamp
+    t[3500] = t[3499] - 0.0005                                        # a stamp going back
+    whole = time_axis(t, 0.001)
+    # three holes (44 rows), the step after the backward stamp counted as one more (1 row); 2 non-increasing steps
+    assert (whole["gaps"], whole["missing_rows"], whole["duplicates"]) == (4, 45, 2)
+    for cuts in ([], [1500, 1501], sorted(rng.choice(t.size, 40, replace=False)), list(range(1, t.size))):
+        axis = TimeAxis(0.001)
+        for piece in np.split(t, cuts):
+            axis.add(piece)
+        assert axis.result() == whole, cuts[:5]
 
 
 def test_verdict_order():
