@@ -64,6 +64,7 @@ class Point:
     seed: int
     axes: tuple[tuple[str, float], ...]
     point_id: str
+    rig: str | None = None    # a real rig's bench name (a bench without [services]): one point at a time on it
 
 
 @dataclass(frozen=True)
@@ -233,14 +234,26 @@ def points(campaign: Campaign, out_dir: Path) -> list[Point]:
     out = []
     for scenario in campaign.scenarios:
         text = scenario.read_text()
+        rig = rig_of(scenario)
         for axes in axis_points(campaign):
             run_file = scenario if not axes else _derived(scenario, text, axes, out_dir)
             for seed in campaign.seeds:
                 digest = hashlib.sha256(text.encode())
                 digest.update(json.dumps([list(a) for a in axes]).encode())
                 digest.update(str(seed).encode())
-                out.append(Point(run_file, scenario, seed, axes, digest.hexdigest()[:16]))
+                out.append(Point(run_file, scenario, seed, axes, digest.hexdigest()[:16], rig))
     return out
+
+
+def rig_of(scenario: Path) -> str | None:
+    """The rig a scenario's points hold while they run: its bench's name when the bench starts no simulator of its
+    own (no [services]: a real drive, or a served simulator, which takes one bench at a time too); None for a
+    simulated bench, whose points may run side by side."""
+    from bench.benchconfig import load_bench_config
+    from bench.scenario import load_scenario
+
+    cfg = load_bench_config(load_scenario(scenario).bench)
+    return None if cfg["services"]["start"] else cfg["bench"]["name"]
 
 
 def _derived(scenario: Path, text: str, axes: tuple[tuple[str, float], ...], out_dir: Path) -> Path:

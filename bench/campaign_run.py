@@ -10,9 +10,11 @@ import socket
 import time
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable
+
+import numpy as np
 
 from bench.campaign import Campaign, Point, points, wilson_interval
 
@@ -28,18 +30,30 @@ def run_point(point: dict[str, Any], out_root: str) -> dict[str, Any]:
 
     started = time.perf_counter()
     row: dict[str, Any] = {"point_id": point["point_id"], "scenario": point["source"], "seed": point["seed"],
-                           "axes": json.dumps(point["axes"]), "worker_pid": os.getpid(), "host": socket.gethostname()}
+                           "axes": json.dumps(point["axes"]), "rig": point.get("rig"), "worker_pid": os.getpid(),
+                           "host": socket.gethostname(), "node": _node_id(), "started_unix": time.time()}
     try:
         result = run_scenario(point["scenario"], out_root=out_root, seed=point["seed"], rerun_mode="off")
     except (InputError, LinkError) as exc:
         return {**row, "verdict": "error", "error": str(exc), "wall_s": time.perf_counter() - started,
-                "run_dir": None, "criteria": []}
+                "ended_unix": time.time(), "run_dir": None, "criteria": []}
     record = result.record
     return {**row, "verdict": result.verdict, "error": record.get("abort_reason"),
-            "wall_s": time.perf_counter() - started, "run_dir": str(result.run_dir),
+            "wall_s": time.perf_counter() - started, "ended_unix": time.time(), "run_dir": str(result.run_dir),
             "criteria": [{"name": c["name"], "value": c["value"], "limit": c["limit"],
                           "status": c.get("status") or ("pass" if c["passed"] else "fail"),
                           "known_gap": c.get("known_gap")} for c in record["criteria"]]}
+
+
+def _node_id() -> str:
+    """The Ray node a point ran on, else this host."""
+    try:
+        import ray
+        if ray.is_initialized():
+            return ray.get_runtime_context().get_node_id()
+    except ImportError:
+        pass
+    return socket.gethostname()
 
 
 def _worker_init() -> None:
@@ -90,7 +104,7 @@ def run_campaign(campaign: Campaign, out_dir: Path, workers: int = 2, engine: st
 
 def _as_dict(point: Point) -> dict[str, Any]:
     return {"point_id": point.point_id, "scenario": str(point.scenario), "source": str(point.source),
-            "seed": point.seed, "axes": [list(a) for a in point.axes]}
+            "seed": point.seed, "axes": [list(a) for a in point.axes], "rig": point.rig}
 
 
 def _run_local(todo: list[Point], runs_dir: str, workers: int, record: Callable[[dict], None]) -> None:
@@ -105,8 +119,13 @@ def _run_local(todo: list[Point], runs_dir: str, workers: int, record: Callable[
             running: dict[Future, Point] = {}
             broken = False
             while (queue or running) and not broken:
-                while queue and len(running) < 2 * max(1, workers):
-                    point = queue.pop(0)
+                busy = {p.rig for p in running.values() if p.rig is not None}
+                while len(running) < 2 * max(1, workers):
+                    point = next((p for p in queue if p.rig is None or p.rig not in busy), None)
+                    if point is None:                  # every queued point waits for its rig
+                        break
+                    queue.remove(point)
+                    busy.add(point.rig)
                     attempts[point.point_id] = attempts.get(point.point_id, 0) + 1
                     running[pool.submit(run_point, _as_dict(point), runs_dir)] = point
                 done, _ = wait(running, return_when=FIRST_COMPLETED)
@@ -118,10 +137,7 @@ def _run_local(todo: list[Point], runs_dir: str, workers: int, record: Callable[
                         broken = True
                         _retry_or_report(point, attempts, queue, record, "its worker process died")
                     except Exception as exc:       # a bug in the bench: the point is an error, the campaign goes on
-                        record({"point_id": point.point_id, "scenario": str(point.source), "seed": point.seed,
-                                "axes": json.dumps([list(a) for a in point.axes]), "verdict": "error",
-                                "error": f"{type(exc).__name__}: {exc}", "wall_s": None, "run_dir": None,
-                                "criteria": [], "worker_pid": None, "host": socket.gethostname()})
+                        record(_error_row(point, f"{type(exc).__name__}: {exc}"))
             for future, point in running.items():      # a broken pool: what was in flight
                 _retry_or_report(point, attempts, queue, record, "its worker process died")
 
@@ -130,10 +146,14 @@ def _retry_or_report(point: Point, attempts: dict[str, int], queue: list[Point],
     if attempts.get(point.point_id, 0) < 2:
         queue.append(point)
     else:
-        record({"point_id": point.point_id, "scenario": str(point.source), "seed": point.seed,
-                "axes": json.dumps([list(a) for a in point.axes]), "verdict": "error",
-                "error": f"{why} twice", "wall_s": None, "run_dir": None, "criteria": [], "worker_pid": None,
-                "host": None})
+        record(_error_row(point, f"{why} twice"))
+
+
+def _error_row(point: Point, error: str) -> dict[str, Any]:
+    """A point that produced no run: it counts as an error in the results."""
+    return {"point_id": point.point_id, "scenario": str(point.source), "seed": point.seed,
+            "axes": json.dumps([list(a) for a in point.axes]), "rig": point.rig, "verdict": "error", "error": error,
+            "wall_s": None, "run_dir": None, "criteria": [], "worker_pid": None, "host": None, "node": None}
 
 
 def _run_ray(todo: list[Point], runs_dir: str, address: str | None, record: Callable[[dict], None]) -> None:
@@ -143,13 +163,23 @@ def _run_ray(todo: list[Point], runs_dir: str, address: str | None, record: Call
         from bench.errors import InputError
         raise InputError(["--engine ray: ray is not installed (pip install -e \".[ray]\")"]) from None
     ray.init(address=address, ignore_reinit_error=True, log_to_driver=False)
-    remote = ray.remote(num_cpus=1)(run_point)
-    pending = {remote.remote(_as_dict(p), runs_dir): p for p in todo}
+    remote = ray.remote(num_cpus=1, max_retries=1)(run_point)     # a node or worker lost: the point runs once more
+    pending = {}
+    for p in todo:
+        # a real rig is a custom resource of the node its host runs (`ray start --resources '{"rig:NAME": 1}'`):
+        # one task holds it at a time, and only that node can run the point
+        options = {"resources": {f"rig:{p.rig}": 1}} if p.rig else {"scheduling_strategy": "SPREAD"}
+        pending[remote.options(**options).remote(_as_dict(p), runs_dir)] = p
     while pending:
         done, _ = ray.wait(list(pending), num_returns=1)
         for ref in done:
-            pending.pop(ref)
-            record(ray.get(ref))
+            point = pending.pop(ref)
+            try:
+                record(ray.get(ref))
+            except ray.exceptions.RayTaskError as exc:         # a bug in the bench: an error, the campaign goes on
+                record(_error_row(point, f"{type(exc.cause).__name__}: {exc.cause}"))
+            except ray.exceptions.RayError as exc:             # its worker or node died, and again on the retry
+                record(_error_row(point, f"its worker process died twice ({type(exc).__name__})"))
 
 
 def summarize(campaign: Campaign, rows: list[dict]) -> list[dict]:
@@ -187,8 +217,8 @@ def write_results(campaign: Campaign, out_dir: Path, rows: list[dict]) -> dict[s
     flat = []
     for r in rows:
         crit = {c["name"]: c for c in r.get("criteria") or []}
-        base = {k: r.get(k) for k in ("point_id", "scenario", "seed", "axes", "verdict", "error", "wall_s",
-                                      "run_dir", "worker_pid", "host")}
+        base = {k: r.get(k) for k in ("point_id", "scenario", "seed", "axes", "rig", "verdict", "error", "wall_s",
+                                      "started_unix", "ended_unix", "run_dir", "worker_pid", "host", "node")}
         for n in names:
             base[f"value:{n}"] = crit[n]["value"] if n in crit else None
             base[f"status:{n}"] = crit[n]["status"] if n in crit else None
@@ -228,8 +258,78 @@ def _write_report(campaign: Campaign, out_dir: Path, rows: list[dict], summary: 
     for ratio, r, c in worst[:10]:
         lines.append(f"- {ratio:.3g}: {Path(r['scenario']).stem} seed {r['seed']} axes {r['axes']}: {c['name']} "
                      f"({r['run_dir'] and Path(r['run_dir']).name})")
+    grid = pass_rate_grid(campaign, rows)
+    if grid is not None:
+        _plot_heatmap(grid, out_dir / "heatmap.png")
+        lines += ["", f"Where it fails: `heatmap.png`, the share of passing runs over {grid.x_name} x {grid.y_name}."]
     (out_dir / "report.md").write_text("\n".join(lines) + "\n")
     _plot(summary, out_dir / "pass_rates.png")
+
+
+HEATMAP_BINS = 5    # a sampled axis (low..high) is cut into this many equal bins
+
+
+@dataclass(frozen=True)
+class PassRateGrid:
+    x_name: str
+    y_name: str
+    x_labels: tuple[str, ...]
+    y_labels: tuple[str, ...]
+    passes: np.ndarray       # [y, x] runs that passed
+    runs: np.ndarray         # [y, x] runs
+
+
+def pass_rate_grid(campaign: Campaign, rows: list[dict]) -> PassRateGrid | None:
+    """The runs' verdicts over the campaign's first two axes (a grid axis by value, a sampled one in bins); None
+    for a campaign with fewer than two axes."""
+    if len(campaign.axes) < 2:
+        return None
+    cuts = []
+    for axis in campaign.axes[:2]:
+        if axis.values:
+            values = sorted(set(axis.values))
+            cuts.append((values, [f"{v:g}" for v in values], lambda v, values=values: values.index(v)))
+        else:
+            edges = np.linspace(axis.low, axis.high, HEATMAP_BINS + 1)
+            labels = [f"{edges[k]:.3g}-{edges[k + 1]:.3g}" for k in range(HEATMAP_BINS)]
+            cuts.append((labels, labels, lambda v, edges=edges: int(np.clip(np.searchsorted(edges, v, "right") - 1,
+                                                                             0, HEATMAP_BINS - 1))))
+    (xs, x_labels, x_of), (ys, y_labels, y_of) = cuts
+    passes = np.zeros((len(ys), len(xs)), dtype=int)
+    runs = np.zeros((len(ys), len(xs)), dtype=int)
+    x_name, y_name = campaign.axes[0].parameter, campaign.axes[1].parameter
+    for row in rows:
+        axes = dict(json.loads(row["axes"]) if isinstance(row["axes"], str) else row["axes"])
+        if x_name not in axes or y_name not in axes:
+            continue
+        i, j = y_of(axes[y_name]), x_of(axes[x_name])
+        runs[i, j] += 1
+        passes[i, j] += row["verdict"] == "pass"
+    return PassRateGrid(x_name, y_name, tuple(x_labels), tuple(y_labels), passes, runs)
+
+
+def _plot_heatmap(grid: PassRateGrid, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rate = np.where(grid.runs > 0, grid.passes / grid.runs, np.nan)
+    fig = Figure(figsize=(1.2 * len(grid.x_labels) + 3, 0.8 * len(grid.y_labels) + 2))
+    ax = fig.subplots()
+    image = ax.imshow(rate, origin="lower", cmap="RdYlGn", vmin=0.0, vmax=1.0, aspect="auto")
+    for i in range(rate.shape[0]):
+        for j in range(rate.shape[1]):
+            if grid.runs[i, j]:
+                ax.text(j, i, f"{grid.passes[i, j]}/{grid.runs[i, j]}", ha="center", va="center", fontsize=8)
+    ax.set_xticks(range(len(grid.x_labels)), grid.x_labels, fontsize=7)
+    ax.set_yticks(range(len(grid.y_labels)), grid.y_labels, fontsize=7)
+    ax.set_xlabel(grid.x_name)
+    ax.set_ylabel(grid.y_name)
+    fig.colorbar(image, ax=ax, label="share of runs that pass")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
 
 
 def _plot(summary: list[dict], path: Path) -> None:
@@ -256,4 +356,4 @@ def _plot(summary: list[dict], path: Path) -> None:
 
 
 def campaign_json(result: dict[str, Any]) -> str:
-    return json.dumps({k: v for k, v in result.items()}, default=lambda o: asdict(o) if hasattr(o, "__dataclass_fields__") else str(o))
+    return json.dumps(result, default=lambda o: asdict(o) if hasattr(o, "__dataclass_fields__") else str(o))

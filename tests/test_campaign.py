@@ -11,7 +11,7 @@ import pytest
 from click.testing import CliRunner
 
 from bench.campaign import load_campaign, points, wilson_interval
-from bench.campaign_run import run_campaign, write_results
+from bench.campaign_run import pass_rate_grid, run_campaign, write_results
 from bench.cli import cli
 from bench.errors import InputError
 from bench.orchestrator import run_scenario
@@ -73,6 +73,37 @@ def test_axes_grid_and_latin_hypercube_points(tmp_path):
     rs = sorted(v[0][1] for v in a)
     assert all(0.8 <= x <= 1.2 for x in rs)
     assert sorted(int((x - 0.8) / 0.4 * 5) for x in rs) == [0, 1, 2, 3, 4]   # one sample per stratum
+
+
+def test_the_heatmap_counts_runs_per_cell_of_the_first_two_axes(tmp_path):
+    grid_file = write(tmp_path, f'schema_version = 1\nscenarios = ["{RS_STEP}"]\nseeds = [1, 2]\n'
+                                '[[axis]]\nparameter = "plant_rs"\nvalues = [0.9, 1.1]\n'
+                                '[[axis]]\nparameter = "plant_ls"\nvalues = [0.8, 1.0, 1.2]\n')
+    camp = load_campaign(grid_file)
+    rows = []
+    for p in points(camp, tmp_path / "out"):
+        axes = dict(p.axes)
+        failing = axes["plant_rs"] == 1.1 and axes["plant_ls"] == 1.2 or (axes["plant_ls"] == 0.8 and p.seed == 2)
+        rows.append({"point_id": p.point_id, "axes": json.dumps([list(a) for a in p.axes]), "seed": p.seed,
+                     "scenario": str(p.source), "verdict": "fail" if failing else "pass", "criteria": []})
+    grid = pass_rate_grid(camp, rows)
+    assert (grid.x_name, grid.y_name, grid.x_labels, grid.y_labels) == ("plant_rs", "plant_ls", ("0.9", "1.1"),
+                                                                          ("0.8", "1", "1.2"))
+    assert grid.runs.tolist() == [[2, 2], [2, 2], [2, 2]]
+    assert grid.passes.tolist() == [[1, 1], [2, 2], [2, 0]]
+    write_results(camp, tmp_path / "out", rows)
+    assert (tmp_path / "out" / "heatmap.png").stat().st_size > 1000
+    assert "heatmap.png" in (tmp_path / "out" / "report.md").read_text()
+    sampled = load_campaign(write(tmp_path, f'schema_version = 1\nscenarios = ["{RS_STEP}"]\nseeds = [1]\n'
+                                            '[[axis]]\nparameter = "plant_rs"\nlow = 0.8\nhigh = 1.2\n'
+                                            '[[axis]]\nparameter = "plant_ls"\nlow = 0.9\nhigh = 1.1\n'
+                                            '[sampling]\npoints = 10\nseed = 3\n'))
+    rows = [{"axes": json.dumps([list(a) for a in p.axes]), "verdict": "pass"} for p in points(sampled, tmp_path / "s")]
+    grid = pass_rate_grid(sampled, rows)
+    assert grid.runs.shape == (5, 5) and grid.runs.sum() == 10
+    assert grid.runs.sum(axis=0).tolist() == [2, 2, 2, 2, 2]       # Latin hypercube: two samples per bin of each axis
+    no_axes = write(tmp_path, f'schema_version = 1\nscenarios = ["{RS_STEP}"]\nseeds = [1]\n')
+    assert pass_rate_grid(load_campaign(no_axes), []) is None
 
 
 def test_a_campaign_runs_every_point_like_drivebench_run_and_resumes(tmp_path):
