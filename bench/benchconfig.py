@@ -2,15 +2,19 @@
 
 The bench reads [bench], [services], [drive] and [load]; [simulator] belongs to sim_backend and is only
 checked for being a table (its `motor` path is resolved like every other path). Relative paths are resolved
-against the repo root (the directory holding pyproject.toml) and rewritten as absolute strings; the
-config's own path is kept in cfg["_path"]. Defaults are filled in, so readers can index without .get().
+against the repo root (the directory holding pyproject.toml) and rewritten as absolute strings.
+
+load_bench_config() checks the whole file (every problem one `file: field: reason` line) and builds a BenchConfig
+once: [bench] and [services] as typed sections; [drive] and [load] as the checked settings their link classes take
+(the transport's module owns those keys), defaults filled in. A [services] starter receives `as_dict()`.
 """
 
 from __future__ import annotations
 
 import functools
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 from bench.errors import InputError, Problems, find_repo_root
 from bench.services import check_service
@@ -36,26 +40,64 @@ _LOAD_KEYS = {
 _TOP_KEYS = {"bench", "services", "drive", "load", "reference", "simulator"}
 
 
-def load_bench_config(path: str | Path) -> dict[str, Any]:
+@dataclass(frozen=True)
+class BenchSection:
+    """[bench]: what the bench itself decides, whatever the transport."""
+    name: str
+    description: str = ""
+    timing: str = "lockstep"            # drivers.api.TIMINGS
+    plant_injections: bool = False      # the rig may change the plant (a simulator)
+    wire_faults: bool = False           # the rig may corrupt its own wire (a simulator)
+    fault_reset: str = "once"           # drivers.api.FAULT_RESET_POLICIES
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    path: str                                   # the config file, absolute
+    bench: BenchSection
+    drive: Mapping[str, Any]                    # [drive]: the drive link's settings
+    load: Mapping[str, Any] = field(default_factory=dict)     # [load]: empty on a free shaft
+    services_start: str | None = None           # [services] start: a simulated rig's starter; None on a real rig
+    reference_source: str | None = None         # [reference] source
+    simulator: Mapping[str, Any] | None = None  # [simulator], for sim_backend
+
+    def as_dict(self) -> dict[str, Any]:
+        """The plain layout a [services] starter receives (its contract: sections as tables, "_path")."""
+        out: dict[str, Any] = {"_path": self.path, "bench": asdict(self.bench),
+                               "services": {"start": self.services_start}, "drive": dict(self.drive),
+                               "load": dict(self.load), "reference": {"source": self.reference_source}}
+        if self.simulator is not None:
+            out["simulator"] = dict(self.simulator)
+        return out
+
+    def with_overrides(self, overrides: Mapping[str, Mapping[str, Any]]) -> "BenchConfig":
+        """The config with a starter's endpoint overrides ({"drive": {...}, "load": {...}}) merged in."""
+        unknown = set(overrides) - {"drive", "load"}
+        if unknown:
+            raise ValueError(f"a [services] starter may override drive and load only, not {sorted(unknown)}")
+        return replace(self, drive={**self.drive, **(overrides.get("drive") or {})},
+                       load={**self.load, **(overrides.get("load") or {})})
+
+
+def load_bench_config(path: str | Path) -> BenchConfig:
     """Read and validate a bench config; InputError lists every problem as `file: field: reason`."""
     path = Path(path)
     raw = read_toml(path)
     problems = Problems(path)
     root = find_repo_root(path)
     problems.unknown_keys(raw, _TOP_KEYS, "")
-    cfg: dict[str, Any] = {"_path": str(path.resolve())}
 
     bench = problems.table(raw, "bench", "") or {}
     problems.unknown_keys(bench, _BENCH_KEYS, "bench")
-    cfg["bench"] = {
-        "name": problems.string(bench, "name", "bench"),
-        "description": problems.string(bench, "description", "bench", required=False, default=""),
-        "timing": problems.string(bench, "timing", "bench", required=False, default="lockstep", choices=TIMINGS),
-        "plant_injections": problems.boolean(bench, "plant_injections", "bench", required=False, default=False),
-        "wire_faults": problems.boolean(bench, "wire_faults", "bench", required=False, default=False),
-        "fault_reset": problems.string(bench, "fault_reset", "bench", required=False, default="once",
-                                       choices=FAULT_RESET_POLICIES),
-    }
+    section = BenchSection(
+        name=problems.string(bench, "name", "bench"),
+        description=problems.string(bench, "description", "bench", required=False, default=""),
+        timing=problems.string(bench, "timing", "bench", required=False, default="lockstep", choices=TIMINGS),
+        plant_injections=problems.boolean(bench, "plant_injections", "bench", required=False, default=False),
+        wire_faults=problems.boolean(bench, "wire_faults", "bench", required=False, default=False),
+        fault_reset=problems.string(bench, "fault_reset", "bench", required=False, default="once",
+                                    choices=FAULT_RESET_POLICIES),
+    )
 
     services = problems.table(raw, "services", "", required=False) or {}
     problems.unknown_keys(services, _SERVICES_KEYS, "services")
@@ -64,14 +106,12 @@ def load_bench_config(path: str | Path) -> dict[str, Any]:
         reason = check_service(start)
         if reason:
             problems.add("services.start", reason)
-    cfg["services"] = {"start": start}
 
-    cfg["drive"] = _drive(problems, problems.table(raw, "drive", ""), root)
-    cfg["load"] = _load(problems, problems.table(raw, "load", "", required=False), root)
-    reference, reference_problems = check_reference(raw.get("reference"), bool(cfg["load"]))
+    drive = _drive(problems, problems.table(raw, "drive", ""), root)
+    load = _load(problems, problems.table(raw, "load", "", required=False), root)
+    reference, reference_problems = check_reference(raw.get("reference"), bool(load))
     for field_, reason in reference_problems:
         problems.add(field_, reason)
-    cfg["reference"] = {"source": reference.source if reference else None}
 
     simulator = problems.table(raw, "simulator", "", required=False)
     if simulator is not None:
@@ -79,30 +119,30 @@ def load_bench_config(path: str | Path) -> dict[str, Any]:
         if "motor" in simulator:
             motor = problems.string(simulator, "motor", "simulator")
             simulator["motor"] = _existing_path(problems, "simulator.motor", motor, root) if motor else None
-        cfg["simulator"] = simulator
     problems.raise_if_any()
-    return cfg
+    return BenchConfig(path=str(path.resolve()), bench=section, drive=drive, load=load, services_start=start,
+                       reference_source=reference.source if reference else None, simulator=simulator)
 
 
-def link_settings(cfg: dict[str, Any]) -> LinkSettings:
+def link_settings(cfg: BenchConfig) -> LinkSettings:
     """The bench's own settings every drive link obeys, whatever the transport."""
-    return LinkSettings(timing=cfg["bench"]["timing"], fault_reset=cfg["bench"]["fault_reset"])
+    return LinkSettings(timing=cfg.bench.timing, fault_reset=cfg.bench.fault_reset)
 
 
-def drive_description(cfg: dict[str, Any]) -> DeviceDescription | None:
+def drive_description(cfg: BenchConfig) -> DeviceDescription | None:
     """The drive's EDS as the bench reads it before connecting (None when the config names none)."""
-    eds = cfg.get("drive", {}).get("eds")
+    eds = cfg.drive.get("eds")
     return _read_eds_cached(eds, *_stamp(eds)) if eds else None
 
 
-def measurable_signals(cfg: dict[str, Any]) -> frozenset[str]:
+def measurable_signals(cfg: BenchConfig) -> frozenset[str]:
     """The signals this bench can measure, judged from its files alone (the run records what it really measured):
     the drive's (from its EDS, profile and [drive] signals) and the reference sensor's."""
     from drivers.canopen.profile import static_measurable
     from drivers.reference import ReferenceConfig
     from drivers.signals import SIGNAL_NAMES
 
-    drive = cfg.get("drive", {})
+    drive = cfg.drive
     description = drive_description(cfg)
     if drive.get("transport") != "canopen" or description is None:
         own = frozenset(SIGNAL_NAMES)                 # the serial protocol is drivebench's: every signal
@@ -110,7 +150,7 @@ def measurable_signals(cfg: dict[str, Any]) -> frozenset[str]:
         own = static_measurable(drive, description.has,
                                 lambda index: description.has(index) and bool(description.od[index].default),
                                 description.drivebench_kind is not None)
-    reference = ReferenceConfig((cfg.get("reference") or {}).get("source")).signals(bool(cfg.get("load")))
+    reference = ReferenceConfig(cfg.reference_source).signals(bool(cfg.load))
     return own | frozenset(reference)
 
 

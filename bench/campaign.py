@@ -253,7 +253,7 @@ def rig_of(scenario: Path) -> str | None:
     from bench.scenario import load_scenario
 
     cfg = load_bench_config(load_scenario(scenario).bench)
-    return None if cfg["services"]["start"] else cfg["bench"]["name"]
+    return None if cfg.services_start else cfg.bench.name
 
 
 def _derived(scenario: Path, text: str, axes: tuple[tuple[str, float], ...], out_dir: Path) -> Path:

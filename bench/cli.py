@@ -284,19 +284,19 @@ def validate(files, bench_path) -> None:
         try:
             if _is_bench_config(path):
                 cfg = load_bench_config(path)
-                load = f"load over {cfg['load']['transport']}" if cfg.get("load") else "no load machine"
-                click.echo(f"{path}: ok (bench config {cfg['bench']['name']!r}, drive over {cfg['drive']['transport']}, "
+                load = f"load over {cfg.load['transport']}" if cfg.load else "no load machine"
+                click.echo(f"{path}: ok (bench config {cfg.bench.name!r}, drive over {cfg.drive['transport']}, "
                            f"{load})")
             else:
                 scenario, cfg = prepare(path, bench_path)
                 click.echo(f"{path}: ok (scenario {scenario.name!r}, {scenario.duration_s:g} s, "
-                           f"{len(scenario.criteria)} criteria, bench {cfg['bench']['name']!r})")
+                           f"{len(scenario.criteria)} criteria, bench {cfg.bench.name!r})")
                 measurable = measurable_signals(cfg)
                 for i, criterion in enumerate(scenario.criteria):
                     missing = [s for s in signals_of(criterion) if s not in measurable]
                     if missing:
                         click.echo(f"{path}: criteria[{i}] ({criterion.name}): not judged on bench "
-                                   f"{cfg['bench']['name']!r}: {', '.join(missing)} not measured there")
+                                   f"{cfg.bench.name!r}: {', '.join(missing)} not measured there")
         except (InputError, FileNotFoundError, tomllib.TOMLDecodeError, OSError) as exc:
             bad = True
             for line in _problem_lines(exc):
@@ -318,12 +318,12 @@ def probe(bench_path, scan, as_json) -> None:
         from bench.links import started_services
 
         cfg = load_bench_config(bench_path)
-        drive = cfg["drive"]
+        drive = cfg.drive
         with started_services(cfg, 0) as live:
-            section = live["drive"]
+            section = live.drive
             if drive["transport"] == "canopen":
                 from drivers.canopen.probe import probe as probe_canopen, scan as scan_bus
-                report = {"bench": cfg["bench"]["name"], "drive": probe_canopen(section, find_repo_root(bench_path))}
+                report = {"bench": cfg.bench.name, "drive": probe_canopen(section, find_repo_root(bench_path))}
                 if scan:
                     report["nodes"] = scan_bus(section)
             else:
@@ -332,7 +332,7 @@ def probe(bench_path, scan, as_json) -> None:
                 link = SerialDriveLink(dict(section), find_repo_root(bench_path), LinkSettings())
                 try:
                     identity = link.open()
-                    report = {"bench": cfg["bench"]["name"], "drive": {
+                    report = {"bench": cfg.bench.name, "drive": {
                         "identity": dataclasses.asdict(identity), "control_period_s": link.control_period_s,
                         "parameters": list(link.parameters)}}
                 finally:

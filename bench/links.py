@@ -2,19 +2,18 @@
 
 Drive links are constructed as `Class(section, base_dir, settings)` with the config's [drive] table and the bench's
 own LinkSettings ([bench] timing and fault_reset); load links as `Class(section, base_dir)` with [load].
-A service is `module:function`, called as `function(bench_cfg, seed)`; it is a context manager that
+A service is `module:function`, called as `function(bench_cfg.as_dict(), seed)`; it is a context manager that
 yields endpoint overrides {"drive": {...}, "load": {...}} merged into the config before connecting.
 """
 
 from __future__ import annotations
 
 import contextlib
-import copy
 import importlib
 from pathlib import Path
-from typing import Any, Callable, ContextManager, Iterator
+from typing import Any, Callable, ContextManager, Iterator, Mapping
 
-from bench.benchconfig import link_settings
+from bench.benchconfig import BenchConfig, link_settings
 from bench.errors import InputError
 from bench.services import registered_service
 
@@ -41,7 +40,7 @@ def import_object(spec: str, what: str) -> Any:
         raise InputError([f"{what}: module {module_name!r} has no {attr!r}"]) from None
 
 
-def _link_class(section: dict, table: dict[str, str], where: str, cfg_path: str) -> Callable:
+def _link_class(section: Mapping[str, Any], table: dict[str, str], where: str, cfg_path: str) -> Callable:
     transport = section.get("transport")
     spec = table.get(transport)
     if spec is None:
@@ -50,33 +49,24 @@ def _link_class(section: dict, table: dict[str, str], where: str, cfg_path: str)
     return import_object(spec, f"{cfg_path}: {where}.transport {transport!r}")
 
 
-def make_links(cfg: dict, base_dir: Path) -> tuple[Any, Any]:
+def make_links(cfg: BenchConfig, base_dir: Path) -> tuple[Any, Any]:
     """(drive link, load link or None for a rig without a load machine), constructed but not opened."""
-    path = cfg.get("_path", "bench config")
-    drive_cls = _link_class(cfg["drive"], DRIVE_TRANSPORTS, "drive", path)
-    drive = drive_cls(dict(cfg["drive"]), base_dir, link_settings(cfg))
-    if not cfg.get("load"):
+    drive_cls = _link_class(cfg.drive, DRIVE_TRANSPORTS, "drive", cfg.path)
+    drive = drive_cls(dict(cfg.drive), base_dir, link_settings(cfg))
+    if not cfg.load:
         return drive, None
-    load_cls = _link_class(cfg["load"], LOAD_TRANSPORTS, "load", path)
-    return drive, load_cls(dict(cfg["load"]), base_dir)
+    load_cls = _link_class(cfg.load, LOAD_TRANSPORTS, "load", cfg.path)
+    return drive, load_cls(dict(cfg.load), base_dir)
 
 
 @contextlib.contextmanager
-def started_services(cfg: dict, seed: int) -> Iterator[dict]:
+def started_services(cfg: BenchConfig, seed: int) -> Iterator[BenchConfig]:
     """Start [services] if the config names one; yield the config with its endpoint overrides merged."""
-    spec = cfg.get("services", {}).get("start")
-    if not spec:
+    if not cfg.services_start:
         yield cfg
         return
-    start = import_object(registered_service(spec, f"{cfg.get('_path', 'bench config')}: services.start"),
-                          f"{cfg.get('_path', 'bench config')}: services.start")
-    manager: ContextManager = start(cfg, seed)
+    where = f"{cfg.path}: services.start"
+    start = import_object(registered_service(cfg.services_start, where), where)
+    manager: ContextManager = start(cfg.as_dict(), seed)
     with manager as overrides:
-        yield merge_overrides(cfg, overrides or {})
-
-
-def merge_overrides(cfg: dict, overrides: dict) -> dict:
-    merged = copy.deepcopy(cfg)
-    for section, values in overrides.items():
-        merged.setdefault(section, {}).update(values or {})
-    return merged
+        yield cfg.with_overrides(overrides or {})

@@ -19,11 +19,11 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from bench.benchconfig import load_bench_config
+from bench.benchconfig import BenchConfig, load_bench_config
 from bench.criteria import TimeAxis, signals_of, time_axis
 from bench.errors import InputError, find_repo_root
 from bench.links import make_links, started_services
-from bench.records import RunRecorder, release_freed_memory
+from bench.records import RunRecord, RunRecorder, release_freed_memory
 from bench.rerun_view import RerunStream
 from bench.scenario import load_scenario
 from bench.summary_plot import BUCKETS as PLOT_BUCKETS, PLOT_SIGNALS, write_summary_png
@@ -71,7 +71,7 @@ class Interrupted(KeyboardInterrupt):
 class RunResult:
     run_dir: Path
     verdict: str                       # pass | fail | aborted | error
-    record: dict[str, Any]
+    record: RunRecord                  # what record.json holds
     criteria: list = field(default_factory=list)
     interrupted: bool = False          # Ctrl-C/SIGTERM: callers should not start further runs
     error: str | None = None           # one line when verdict == "error"
@@ -89,9 +89,9 @@ def live_columns(samples: Sequence[LiveSample], names: Sequence[str]) -> dict[st
     return cols
 
 
-def trace_signals_for(cfg: dict, scenario) -> tuple[str, ...]:
+def trace_signals_for(cfg: BenchConfig, scenario) -> tuple[str, ...]:
     """The configured trace set (or the default) plus every signal a criterion reads, in catalogue order."""
-    wanted = set(cfg["drive"].get("trace_signals") or TRACE_SIGNALS)
+    wanted = set(cfg.drive.get("trace_signals") or TRACE_SIGNALS)
     wanted |= {c.signal for c in scenario.criteria if c.signal in SIGNAL_NAMES}
     wanted |= {v for c in scenario.criteria for v in c.params.values() if isinstance(v, str) and v in SIGNAL_NAMES}
     return tuple(name for name in SIGNAL_NAMES if name in wanted)
@@ -164,7 +164,7 @@ def run_scenario(
             return _run_connected(scenario, cfg, seed, *links, Path(out_root), rerun_mode, rerun_url, progress, warn,
                                   signals)
         with started_services(cfg, seed) as live_cfg:
-            drive, load = make_links(live_cfg, find_repo_root(cfg["_path"]))
+            drive, load = make_links(live_cfg, find_repo_root(cfg.path))
             return _run_connected(scenario, live_cfg, seed, drive, load, Path(out_root), rerun_mode, rerun_url,
                                   progress, warn, signals)
 
@@ -230,7 +230,7 @@ def _run_connected(scenario, cfg, seed, drive, load, out_root, rerun_mode, rerun
 class _Run:
     """One run on connected links: the run loop's state, the supervisor side, the safe stop and the record."""
     scenario: Any
-    cfg: dict[str, Any]
+    cfg: BenchConfig
     seed: int
     drive: Any
     load: Any
@@ -247,13 +247,13 @@ class _Run:
         self._t_recorded_last = -math.inf    # drive time of the last recorded row (the data is on disk only)
         self.live_buffer: list[LiveSample] = []
         self.telemetry = TelemetryWorker()
-        self.realtime = self.cfg["bench"]["timing"] == "realtime"
+        self.realtime = self.cfg.bench.timing == "realtime"
         self._live_lock = threading.Lock()        # live_buffer: the command thread adds, the worker prunes
         self.supervisor = Supervisor(self.scenario.limits)
-        self.sync_period_s = float(self.cfg["drive"]["sync_period_s"])
+        self.sync_period_s = float(self.cfg.drive["sync_period_s"])
         self.data_source = "trace" if self.identity.has_trace_recorder else "pdo"
         self.trace_signals = trace_signals_for(self.cfg, self.scenario)
-        self.reference = ReferenceConfig((self.cfg.get("reference") or {}).get("source"))
+        self.reference = ReferenceConfig(self.cfg.reference_source)
         self.reference_signals = self.reference.signals(self.load is not None)
         self.measured: frozenset[str] | None = None
         self.live_recorded: tuple[str, ...] = LIVE_SIGNALS
@@ -277,8 +277,8 @@ class _Run:
         self.recorder.note("load_machine",
                            self.load_name if self.load is not None else "none: free shaft (no [load])")
         self.recorder.note("reference", self.reference.as_record(self.load is not None))
-        bench = self.cfg["bench"]
-        self.recorder.note("bench", {"name": bench["name"], "path": self.cfg["_path"], "timing": bench["timing"]})
+        self.recorder.note("bench", {"name": self.cfg.bench.name, "path": self.cfg.path,
+                                     "timing": self.cfg.bench.timing})
         self._rerun_note = {"mode": self.rerun_mode, "url": self.rerun_url, "sinks": self.rerun.sinks}
         self._rerun_stride: int | None = None
         self.recorder.note("rerun", self._rerun_note)
@@ -349,7 +349,7 @@ class _Run:
         return result
 
     def _configure_and_enable(self) -> None:
-        decimation = int(self.cfg["drive"]["trace_decimation"])
+        decimation = int(self.cfg.drive["trace_decimation"])
         self.drive.configure(LIVE_SIGNALS, self.trace_signals, decimation)
         profile = getattr(self.drive, "profile", None)
         if profile is not None and profile.kind == "cia402" and "speed_true_mech_rad_s" in self.reference_signals:
@@ -477,7 +477,7 @@ class _Run:
         """The drive-clock period recorded rows come at: the recorder's decimation x control period, else one SYNC."""
         if self.data_source == "trace":
             control = getattr(self.drive, "control_period_s", None)
-            return control * int(self.cfg["drive"]["trace_decimation"]) if control else None
+            return control * int(self.cfg.drive["trace_decimation"]) if control else None
         return self.sync_period_s
 
     def _drive_fault_behind(self, trip) -> str:

@@ -26,7 +26,7 @@ import threading
 import time
 from importlib import metadata
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import TYPE_CHECKING, Any, Iterable, Iterator, TypedDict
 from xml.etree import ElementTree as ET
 
 import numpy as np
@@ -36,6 +36,54 @@ import pyarrow.parquet as pq
 from bench.criteria import CriterionResult
 from bench.errors import InputError, find_repo_root
 from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
+
+if TYPE_CHECKING:
+    from bench.benchconfig import BenchConfig
+
+class RunRecord(TypedDict, total=False):
+    """record.json: the one schema of a run's record (what finish() returns, what `show`, the service and campaigns
+    read). Written at the start, kept current while the run goes on, complete at the end."""
+    # always there, from the start
+    verdict: str                    # "running" until the end, then one of VERDICTS
+    complete: bool                  # False while running, after a crash, or when writing failed
+    scenario: dict[str, Any]        # path, sha256, name, duration_s
+    seed: int
+    bench: dict[str, Any]           # name, path, timing
+    drive: dict[str, Any]           # identity (as the drive reported it), firmware_version
+    software: dict[str, Any]        # drivebench version, revision, Python and library versions
+    started_utc: str
+    ended_utc: str | None
+    abort_reason: str | None
+    criteria: list[dict[str, Any]]  # CriterionResult.to_dict() per criterion
+    telemetry: dict[str, Any]       # rows, t_first_s, t_last_s
+    # noted by the orchestrator while the run goes on
+    load_machine: str
+    reference: dict[str, Any]
+    rerun: dict[str, Any]
+    data_source: str                # "trace" (the drive's recorder) or "pdo"
+    trace_signals: list[str]
+    trace_decimation: int
+    live_signals: list[str]
+    measured_signals: list[str]
+    unit_check: dict[str, Any]
+    drive_clock_start_s: float
+    injections_applied: list[dict[str, Any]]
+    drive_settings: dict[str, Any]  # what the link configured and read from the drive (units, comm-loss reaction)
+    load_settings: dict[str, Any]
+    # at the end
+    trips: list[dict[str, Any]]
+    supervisor_trip: dict[str, Any]
+    safe_stop: dict[str, Any]       # steps, errors
+    time_axis: dict[str, Any]       # criteria.time_axis(): rows, gaps, missing_rows, duplicates
+    signals_ignored_while_stopping: list[str]
+    status_after_trip_error: str
+    final_fetch_error: str
+    live_tail: dict[str, Any]
+    summary_png_error: str
+    traceback: str
+
+
+RECORD_KEYS = frozenset(RunRecord.__annotations__)
 
 RECORD = "record.json"
 JOURNAL = "telemetry.arrows"
@@ -111,8 +159,8 @@ def _run_dir_name(name: str) -> str:
 class RunRecorder:
     """Writes one run directory. append() is cheap; a background thread flushes the journal on time."""
 
-    def __init__(self, out_root: Path, scenario, seed: int, bench_cfg: dict, flush_interval_s: float = 0.5,
-                 flush_drive_s: float = 0.25):
+    def __init__(self, out_root: Path, scenario, seed: int, bench_cfg: BenchConfig | None,
+                 flush_interval_s: float = 0.5, flush_drive_s: float = 0.25):
         out_root = Path(out_root)
         out_root.mkdir(parents=True, exist_ok=True)
         base = _run_dir_name(scenario.name)
@@ -131,15 +179,14 @@ class RunRecorder:
         # in lockstep runs many times faster than the wall clock: a SIGKILL must not lose seconds of drive time)
         self.flush_drive_s = float(flush_drive_s)
         self._t_flushed = -math.inf
-        bench = bench_cfg.get("bench", {}) if isinstance(bench_cfg, dict) else {}
-        self.record: dict[str, Any] = {
+        self.record: RunRecord = {
             "verdict": "running",
             "complete": False,
             "scenario": {"path": str(scenario.path), "sha256": scenario.sha256, "name": scenario.name,
                          "duration_s": scenario.duration_s},
             "seed": seed,
-            "bench": {"name": bench.get("name"), "path": bench_cfg.get("_path") if isinstance(bench_cfg, dict)
-                      else None},
+            "bench": {"name": bench_cfg.bench.name if bench_cfg else None,
+                      "path": bench_cfg.path if bench_cfg else None},
             "drive": {"identity": None, "firmware_version": None},
             "software": software_identity(),
             "started_utc": utc_now(),
@@ -175,6 +222,8 @@ class RunRecorder:
             self._write_record()
 
     def note(self, key: str, value) -> None:
+        if key not in RECORD_KEYS:
+            raise ValueError(f"note(): {key!r} is not a field of RunRecord (bench/records.py)")
         with self._lock:
             self.record[key] = json_safe(value)
             self._write_record()
@@ -297,7 +346,7 @@ class RunRecorder:
 
     # --- at the end --------------------------------------------------------------------------------------
 
-    def finish(self, verdict: str, criteria: list[CriterionResult], abort_reason: str | None) -> dict[str, Any]:
+    def finish(self, verdict: str, criteria: list[CriterionResult], abort_reason: str | None) -> RunRecord:
         """Close the journal, write telemetry.parquet, junit.xml and the final record.json; the record as written
         (JSON-safe: what record.json holds)."""
         if verdict not in VERDICTS:

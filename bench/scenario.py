@@ -13,7 +13,8 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from bench.benchconfig import drive_description, load_bench_config, read_toml_with_bytes, resolve_path
+from bench.benchconfig import (BenchConfig, drive_description, load_bench_config, read_toml_with_bytes,
+                               resolve_path)
 from bench.criteria import CriterionSpec, parse_criteria
 from bench.errors import InputError, Problems, find_repo_root
 from drivers import parameters
@@ -330,12 +331,12 @@ def _load_segments(p: Problems, items: list[tuple[str, dict]], duration: float) 
     return tuple(segments)
 
 
-def _check_load_machine(p: Problems, segments: tuple[LoadSegment, ...], bench_cfg: dict | None,
+def _check_load_machine(p: Problems, segments: tuple[LoadSegment, ...], bench_cfg: BenchConfig | None,
                         bench_path: Path | None) -> None:
     """Load segments need a load machine, and one that has their mode (its register map says which)."""
     if not segments or bench_cfg is None:
         return
-    load = bench_cfg.get("load") or {}
+    load = bench_cfg.load
     if not load:
         p.add("load", f"the profile loads the shaft but bench config {bench_path} has no load machine ([load])")
         return
@@ -349,14 +350,14 @@ def _check_load_machine(p: Problems, segments: tuple[LoadSegment, ...], bench_cf
 
 
 def _check_injection_name(p: Problems, field_: str, name: str, kind: str | None,
-                          offered: tuple[Parameter, ...] | None, bench_cfg: dict | None,
+                          offered: tuple[Parameter, ...] | None, bench_cfg: BenchConfig | None,
                           bench_path: Path | None) -> Parameter | None:
     """The parameter record when the bench's drive offers `name` and the bench can honour its kind; else a problem.
     `offered` is None when the bench config could not be read (then any catalogue name is accepted here)."""
     param = next((q for q in offered if q.name == name), None) if offered is not None else parameters.lookup(name)
     if param is None:
         if offered is not None and name in parameters.ALL_NAMES:
-            eds = Path(bench_cfg["drive"]["eds"]).name if bench_cfg and bench_cfg["drive"].get("eds") else "none"
+            eds = Path(bench_cfg.drive["eds"]).name if bench_cfg and bench_cfg.drive.get("eds") else "none"
             what = f"a {kind} drive" if kind else f"the drive of bench config {bench_path} (EDS {eds})"
             p.add(field_, f"{name!r} is not a parameter of {what}")
         else:
@@ -364,7 +365,7 @@ def _check_injection_name(p: Problems, field_: str, name: str, kind: str | None,
             p.add(field_, f"unknown hook {name!r} (known: {', '.join(known) or 'none: the drive offers no parameters'})")
         return None
     if bench_cfg is not None and param.capability is not Capability.NONE \
-            and not bench_cfg["bench"][param.capability.value]:
+            and not getattr(bench_cfg.bench, param.capability.value):
         if param.capability is Capability.PLANT:
             p.add(field_, f"simulator-only injection {name!r} needs a simulator, but bench config {bench_path} has "
                           f"plant_injections = false")
@@ -376,7 +377,7 @@ def _check_injection_name(p: Problems, field_: str, name: str, kind: str | None,
 
 
 def _injections(p: Problems, items: list[tuple[str, dict]], duration: float, kind: str | None,
-                offered: tuple[Parameter, ...] | None, bench_cfg: dict | None,
+                offered: tuple[Parameter, ...] | None, bench_cfg: BenchConfig | None,
                 bench_path: Path | None) -> tuple[Injection, ...]:
     out = []
     for where, item in items:

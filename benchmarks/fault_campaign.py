@@ -201,7 +201,7 @@ def run_on_rig(scenario: Path, out_root: Path, bench: Path | None = None):
     builder), so the simulated device can be asked afterwards. Returns (RunResult, Rig); the device is asked
     after its own comm-loss reaction had the time to act."""
     from bench.benchconfig import load_bench_config
-    from bench.links import make_links, merge_overrides
+    from bench.links import make_links
     from bench.orchestrator import DEFAULT_SEED, run_scenario
     from bench.scenario import load_scenario
     from sim_backend.rig import build, spec_for_bench
@@ -209,8 +209,8 @@ def run_on_rig(scenario: Path, out_root: Path, bench: Path | None = None):
     loaded = load_scenario(scenario, bench=bench)
     cfg = load_bench_config(loaded.bench)
     seed = loaded.seed if loaded.seed is not None else DEFAULT_SEED
-    with build(spec_for_bench(cfg, seed)) as rig:
-        links = make_links(merge_overrides(cfg, rig.overrides), REPO)
+    with build(spec_for_bench(cfg.as_dict(), seed)) as rig:
+        links = make_links(cfg.with_overrides(rig.overrides), REPO)
         result = run_scenario(scenario, bench, out_root=out_root, rerun_mode="off", links=links)
         faults.wait_safe(rig.device, CONSUMER_TIME_MS / 1000 + 4.0)  # a dead endpoint: its own reaction may be due
     return result, rig

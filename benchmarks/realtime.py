@@ -22,7 +22,6 @@ import statistics
 import struct
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -132,7 +131,7 @@ def command_latency(duration: float, period: float) -> dict:
 
         def make_links(cfg, base):                 # listen on the run's private channel
             drive, load = real_make_links(cfg, base)
-            bus = can.Bus(interface="virtual", channel=cfg["drive"]["channel"], receive_own_messages=False)
+            bus = can.Bus(interface="virtual", channel=cfg.drive["channel"], receive_own_messages=False)
             listener = Listener({0x80, 0x181, 0x201})
             listeners.append(listener)
             can.Notifier(bus, [listener], timeout=0.01)

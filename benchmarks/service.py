@@ -141,7 +141,7 @@ def main() -> int:
         timeout = 600 + 120 * len(ids)
         runs = {}
         while time.monotonic() - t0 < timeout:
-            listed = viewer.request("GET", f"/api/runs?limit=1000")
+            listed = viewer.request("GET", "/api/runs?limit=1000")
             runs = {r["id"]: r for r in listed if r["id"] in ids}
             if len(runs) == len(ids) and all(r["state"] in FINAL for r in runs.values()):
                 break

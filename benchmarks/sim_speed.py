@@ -26,7 +26,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from sim_backend.drive import load_motor_config, make_drive  # noqa: E402
+from sim_backend.drive import make_drive  # noqa: E402
 from sim_backend.mechanics import LOAD_TORQUE  # noqa: E402
 
 PMSM = ROOT / "config/motors/pmsm-paper.toml"

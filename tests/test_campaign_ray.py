@@ -20,32 +20,10 @@ ray = pytest.importorskip("ray", reason="ray is not installed (pip install -e \"
 from bench.campaign import load_campaign, points  # noqa: E402
 from bench.campaign_run import run_campaign, write_results  # noqa: E402
 from tests.service_fixtures import free_port  # noqa: E402
-from tests.test_transports_agree import EDS, _bench, _serve_pmsm  # noqa: E402
+from tests.test_transports_agree import EDS, SCENARIO, _bench, _serve_pmsm  # noqa: E402
 
 RAY = Path(sys.executable).with_name("ray")
 RIG = "served-rig"
-SCENARIO = """schema_version = 1
-name = "{name}"
-bench = "{bench}"
-duration_s = 0.6
-seed = 1
-
-[[speed]]
-kind = "step"
-at_s = 0.0
-speed_mech_rad_s = 20.0
-
-[limits]
-overspeed_mech_rad_s = 60.0
-overcurrent_a = 10.0
-
-[[criteria]]
-name = "speed estimate tracks"
-kind = "speed_error_max_pct"
-signal = "speed_est_mech_rad_s"
-window_s = [0.4, 0.6]
-limit = 10.0
-"""
 
 
 def _start_node(*args: str, temp_dir: str) -> subprocess.Popen:
@@ -116,8 +94,9 @@ def test_rig_points_hold_their_rig_and_simulated_points_spread_over_both_nodes(t
         sim_bench = _bench(tmp_path, "simulated", '[services]\nstart = "sim_backend.rig:start"\n',
                            f'transport = "canopen"\ninterface = "virtual"\nchannel = "x"\nnode_id = 1\n'
                            f'eds = "{EDS}"\nsdo_timeout_s = 5.0\n', "port = 0")
-        (tmp_path / "scenario-on-rig.toml").write_text(SCENARIO.format(name="on-rig", bench=rig_bench))
-        (tmp_path / "scenario-simulated.toml").write_text(SCENARIO.format(name="simulated", bench=sim_bench))
+        # the 1.5 s scenario of test_transports_agree (speed step, load step, R_s injection, two criteria)
+        (tmp_path / "scenario-on-rig.toml").write_text(SCENARIO.format(bench=rig_bench, seed=1))
+        (tmp_path / "scenario-simulated.toml").write_text(SCENARIO.format(bench=sim_bench, seed=1))
         (tmp_path / "campaign.toml").write_text('schema_version = 1\nname = "ray-two-nodes"\n'
                                                 'scenarios = ["scenario-on-rig.toml", "scenario-simulated.toml"]\n'
                                                 'seeds = [1, 2, 3, 4]\n[acceptance]\nrule = "every_run"\n')

@@ -258,9 +258,9 @@ def test_inprocess_service_opens_private_endpoints():
     import socket
 
     cfg = load_bench_config(REPO / "config/benches/sim-pmsm.toml")
-    with start(cfg, seed=3) as first, start(cfg, seed=3) as second:
+    with start(cfg.as_dict(), seed=3) as first, start(cfg.as_dict(), seed=3) as second:
         assert first["drive"]["channel"] != second["drive"]["channel"]      # parallel runs never cross-talk
-        link = CanopenDriveLink(dict(cfg["drive"], **first["drive"], sync_period_s=0.01), REPO, link_settings(cfg))
+        link = CanopenDriveLink(dict(cfg.drive, **first["drive"], sync_period_s=0.01), REPO, link_settings(cfg))
         try:
             assert link.open().product_code == 0x04020001
             link.configure(LIVE, TRACE, 10)

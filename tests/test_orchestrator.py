@@ -12,7 +12,7 @@ import pytest
 
 from bench.errors import InputError
 from bench.orchestrator import LIVE_SIGNALS, run_scenario
-from bench.records import load_run
+from bench.records import RECORD_KEYS, load_run
 from drivers.api import LinkError
 from tests.fakes import SAFE_STOP, FakeRig
 
@@ -94,6 +94,8 @@ def test_full_run_passes_and_records_everything(tmp_path):
     assert result.verdict == "pass", result.record
     rec = json.loads((result.run_dir / "record.json").read_text())
     assert rec["verdict"] == "pass" and rec["complete"]
+    assert set(rec) <= RECORD_KEYS and rec == result.record          # one schema: finish() returns record.json
+    assert {"time_axis", "safe_stop", "trips", "drive_settings", "bench"} <= set(rec)
     assert rec["drive"]["firmware_version"] == "toy-1.0"
     assert rec["data_source"] == "trace"
     assert rec["safe_stop"] == {"steps": ["load zero torque and disabled", "drive quick stop", "drive disabled"],

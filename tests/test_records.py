@@ -19,13 +19,14 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from bench.benchconfig import BenchConfig, BenchSection
 from bench.criteria import CriterionResult
 from bench.errors import InputError
 from bench.records import JOURNAL, RunRecorder, load_run
 from drivers.signals import SIGNAL_NAMES
 
 SCENARIO = SimpleNamespace(name="demo/run 1", path=Path("/x/demo.toml"), sha256="ab" * 32, duration_s=1.0)
-BENCH = {"bench": {"name": "sim-test"}, "_path": "/x/bench.toml"}
+BENCH = BenchConfig(path="/x/bench.toml", bench=BenchSection(name="sim-test"), drive={})
 
 
 def block(k: int, n: int = 100) -> dict[str, np.ndarray]:
@@ -175,9 +176,11 @@ CHILD = textwrap.dedent("""
     from pathlib import Path
     from types import SimpleNamespace
     import numpy as np
+    from bench.benchconfig import BenchConfig, BenchSection
     from bench.records import RunRecorder
     sc = SimpleNamespace(name="killed", path=Path("/x.toml"), sha256="00", duration_s=100.0)
-    rec = RunRecorder(Path(sys.argv[1]), sc, 5, {"bench": {"name": "b"}, "_path": "/b.toml"}, flush_interval_s=0.1)
+    bench = BenchConfig(path="/b.toml", bench=BenchSection(name="b"), drive={})
+    rec = RunRecorder(Path(sys.argv[1]), sc, 5, bench, flush_interval_s=0.1)
     print(rec.run_dir, flush=True)
     k = 0
     while True:
@@ -230,4 +233,12 @@ def test_truncated_last_batch_is_dropped(tmp_path):
         record, cols, complete = load_run(copy)
         assert not complete and cols["t_s"].size == expected_rows, (cut, cols["t_s"].size)
         assert np.array_equal(cols["t_s"], np.arange(expected_rows) * 1e-3)
+    rec.finish("pass", [], None)
+
+
+def test_a_note_outside_the_record_schema_is_refused(tmp_path):
+    rec = RunRecorder(tmp_path, SCENARIO, 1, BENCH)
+    rec.note("safe_stop", {"steps": [], "errors": []})
+    with pytest.raises(ValueError, match="not a field of RunRecord"):
+        rec.note("safe_stpo", {})
     rec.finish("pass", [], None)

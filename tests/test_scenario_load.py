@@ -184,8 +184,8 @@ def test_repo_bench_configs_parse_when_their_files_exist():
         except InputError as e:
             assert all("file not found" in line for line in e.problems), str(e)
             continue
-        assert cfg["_path"] == str(path.resolve())
-        if cfg["drive"]["transport"] == "canopen":
-            assert Path(cfg["drive"]["eds"]).is_absolute()
-        if "simulator" in cfg:
-            assert Path(cfg["simulator"]["motor"]).is_absolute()
+        assert cfg.path == str(path.resolve())
+        if cfg.drive["transport"] == "canopen":
+            assert Path(cfg.drive["eds"]).is_absolute()
+        if cfg.simulator is not None:
+            assert Path(cfg.simulator["motor"]).is_absolute()

@@ -13,8 +13,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def test_serial_bench_config_is_valid():
     cfg = load_bench_config(ROOT / "config/benches/sim-pmsm-serial.toml")
-    assert cfg["drive"]["transport"] == "serial" and cfg["drive"]["port"].startswith("socket://127.0.0.1:")
-    assert cfg["load"]["transport"] == "modbus-tcp"
+    assert cfg.drive["transport"] == "serial" and cfg.drive["port"].startswith("socket://127.0.0.1:")
+    assert cfg.load["transport"] == "modbus-tcp"
 
 
 def test_pmsm_drive_over_serial_and_modbus_services(tmp_path):
@@ -41,7 +41,7 @@ def test_pmsm_drive_over_serial_and_modbus_services(tmp_path):
         drive.disable()
         drive.close()
         load.close()
-    assert samples[-1].t_s == pytest.approx(300 * cfg["drive"]["sync_period_s"])
+    assert samples[-1].t_s == pytest.approx(300 * cfg.drive["sync_period_s"])
     assert fb.torque_nm == pytest.approx(0.5) and fb.enabled
     assert fb.speed_mech_rad_s == pytest.approx(samples[-1].values["speed_true_mech_rad_s"], abs=1e-4)
     assert len(trace["t_s"]) == 3000

@@ -18,13 +18,12 @@ import pytest
 from drivers.api import LinkError, LinkSettings
 from drivers.serial_frames import SOF, Cmd, crc8
 from drivers.serial_link import SerialDriveLink
-from sim_backend.canopen.node import start_node
 from sim_backend.device import SimulatedDevice
-from sim_backend.rig import RigSpec, build, private_channel
+from sim_backend.rig import RigSpec, build
 from sim_backend.serial_server import start_serial_tcp
-from sim_backend.socketcand_server import SocketcandServer
 from sim_backend.toy import ToyDrive
 from tests.canopen_helpers import EDS
+from tests.test_socketcand import served  # noqa: F401  (the fixture: a toy drive behind a socketcand server)
 
 
 def rss_mb() -> float:
@@ -60,14 +59,8 @@ def sdo_read_device_type(sock: socket.socket) -> bytes:
 
 
 @pytest.fixture
-def can_rig():
-    channel = private_channel()
-    device = SimulatedDevice(ToyDrive())
-    node = start_node(device, EDS, 1, interface="virtual", channel=channel)
-    server = SocketcandServer(channel, "127.0.0.1", 0)
-    yield server
-    server.stop()
-    node.stop()
+def can_rig(request):
+    return request.getfixturevalue("served")[0]
 
 
 def test_socketcand_line_without_end_is_bounded_and_the_client_dropped(can_rig):

@@ -157,7 +157,7 @@ host = "127.0.0.1"
 port = 502
 """)
     cfg = load_bench_config(path)
-    assert "start" not in cfg["services"] or cfg["services"]["start"] is None
+    assert cfg.services_start is None
     link, _ = make_links(cfg, REPO)
     assert link.timing == "realtime"
     assert link.fault_reset_policy == "never"

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bench.benchconfig import BenchConfig, BenchSection
 from bench.criteria import evaluate, verdict
 from bench.records import RunRecorder
 from bench.report import criteria_comments, firmware_deviations, main, write_report
@@ -66,7 +67,7 @@ def make_run(tmp_path: Path, kind: str, name: str, pos_err: float, flux_err: flo
     path = scen_dir / f"{name}.toml"
     path.write_text(SCENARIO.format(name=name, bench=(ROOT / "config/benches/sim-pmsm.toml").as_posix()))
     scenario = load_scenario(path)
-    recorder = RunRecorder(tmp_path / "runs", scenario, 3, {"bench": {"name": f"sim-{kind}"}, "_path": "x"})
+    recorder = RunRecorder(tmp_path / "runs", scenario, 3, BenchConfig(path="x", bench=BenchSection(name=f"sim-{kind}"), drive={}))
     t = np.arange(1, 20001) * 1e-4
     cols = {name: np.zeros_like(t) for name in SIGNAL_NAMES}
     cols["t_s"] = t

@@ -71,7 +71,7 @@ def load_rigs(path: str | Path) -> list[RigConfig]:
         if not isinstance(tags, list) or not all(isinstance(t, str) and t for t in tags):
             p.add(f"{where}.tags", "must be an array of non-empty strings")
             tags = []
-        starts_services = bool(cfg and (cfg.get("services") or {}).get("start"))
+        starts_services = bool(cfg and cfg.services_start)
         simulated = p.boolean(item, "simulated", where, required=False, default=starts_services)
         concurrent = p.integer(item, "max_concurrent", where, required=False,
                                default=DEFAULT_SIM_CONCURRENCY if simulated else 1, min_value=1, max_value=64)
