@@ -31,18 +31,10 @@ sys.path.insert(0, str(REPO))
 
 from drivers.serial_frames import SOF, Cmd, FrameDecoder, crc8, encode_frame  # noqa: E402
 
-CONFIG = """
-[simulator]
-motor = "toy"
-[simulator.serve]
-canopen_socketcand = "127.0.0.1:0"
-serial_tcp = "127.0.0.1:0"
-modbus_tcp = "127.0.0.1:0"
-one_bench = false
-[drive]
-node_id = 1
-eds = "{eds}"
-"""
+ENDPOINTS = ("canopen_socketcand", "serial_tcp", "modbus_tcp")     # every front end, on free loopback ports
+# one_bench = false: the abuse clients and the normal client share the simulator
+CONFIG = ('[simulator]\nmotor = "toy"\n[simulator.serve]\n' + "".join(f'{e} = "127.0.0.1:0"\n' for e in ENDPOINTS)
+          + 'one_bench = false\n[drive]\nnode_id = 1\neds = "{eds}"\n')
 
 
 def rss_mb(pid: int) -> float:
