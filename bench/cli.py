@@ -183,6 +183,7 @@ def run(scenarios, bench_path, rerun_mode, rerun_url, out_root, seed, as_json) -
 
 def run_many(scenarios, bench_path, out_root, seed, rerun_mode, rerun_url, as_json) -> int:
     from bench.orchestrator import prepare, run_scenario
+    from bench.service.child import trip_reporter
 
     problems: list[str] = []
     for path in scenarios:  # validate everything before touching any hardware
@@ -202,7 +203,7 @@ def run_many(scenarios, bench_path, out_root, seed, rerun_mode, rerun_url, as_js
             with _progress(path) as progress:
                 result = run_scenario(path, bench_path, out_root=out_root, seed=seed, rerun_mode=rerun_mode,
                                       rerun_url=rerun_url, progress=progress,
-                                      warn=lambda line: click.echo(line, err=True))
+                                      warn=lambda line: click.echo(line, err=True), on_trip=trip_reporter())
         except (InputError, FileNotFoundError, tomllib.TOMLDecodeError, LinkError, OSError) as exc:
             _fail(exc)
             verdicts.append("error")

@@ -23,7 +23,7 @@ from bench.benchconfig import BenchConfig, load_bench_config
 from bench.criteria import TimeAxis, signals_of, time_axis
 from bench.errors import InputError, find_repo_root
 from bench.links import make_links, started_services
-from bench.records import RunRecord, RunRecorder, release_freed_memory
+from bench.records import RunRecord, RunRecorder, json_safe, release_freed_memory
 from bench.rerun_view import RerunStream
 from bench.scenario import load_scenario
 from bench.summary_plot import BUCKETS as PLOT_BUCKETS, PLOT_SIGNALS, write_summary_png
@@ -147,6 +147,7 @@ def run_scenario(
     *,
     links: tuple[Any, Any] | None = None,
     warn: Callable[[str], None] | None = None,
+    on_trip: Callable[[dict], None] | None = None,
 ) -> RunResult:
     """Run one scenario. Raises InputError (bad files, refused injections) and LinkError (cannot connect)
     before a run directory exists; after that every outcome is a record and a RunResult.
@@ -162,11 +163,11 @@ def run_scenario(
     with _StopSignals() as signals:
         if links is not None:
             return _run_connected(scenario, cfg, seed, *links, Path(out_root), rerun_mode, rerun_url, progress, warn,
-                                  signals)
+                                  signals, on_trip)
         with started_services(cfg, seed) as live_cfg:
             drive, load = make_links(live_cfg, find_repo_root(cfg.path))
             return _run_connected(scenario, live_cfg, seed, drive, load, Path(out_root), rerun_mode, rerun_url,
-                                  progress, warn, signals)
+                                  progress, warn, signals, on_trip)
 
 
 def check_out_root(out_root: Path) -> None:
@@ -208,7 +209,7 @@ def _close_quietly(*links) -> list[str]:
 
 
 def _run_connected(scenario, cfg, seed, drive, load, out_root, rerun_mode, rerun_url, progress, warn,
-                   signals: _StopSignals | None = None) -> RunResult:
+                   signals: _StopSignals | None = None, on_trip: Callable[[dict], None] | None = None) -> RunResult:
     identity, load_name = _open(drive, load)  # LinkError here: nothing started, nothing to stop
     recorder = None
     safe_stop = SafeStop(drive, load)
@@ -221,7 +222,7 @@ def _run_connected(scenario, cfg, seed, drive, load, out_root, rerun_mode, rerun
         _close_quietly(drive, load)
         raise
     run = _Run(scenario, cfg, seed, drive, load, identity, load_name, recorder, safe_stop, rerun_mode, rerun_url,
-               progress, warn)
+               progress, warn, on_trip)
     run.signals = signals
     return run.execute()
 
@@ -242,6 +243,7 @@ class _Run:
     rerun_url: str | None
     progress: Callable[[str], None] | None
     warn: Callable[[str], None] | None
+    on_trip: Callable[[dict], None] | None = None   # told of each trip as it happens (the service's live view)
 
     def __post_init__(self) -> None:
         self._t_recorded_last = -math.inf    # drive time of the last recorded row (the data is on disk only)
@@ -328,6 +330,7 @@ class _Run:
         while not loop.wait(SUPERVISE_POLL_S):
             if self.supervisor.tripped.is_set() and tripped_at is None:
                 tripped_at = time.monotonic()
+                self._tell_supervisor_trip()
             if tripped_at is not None and time.monotonic() - tripped_at > STUCK_GRACE_S:
                 loop.abandon()
                 trip = self.supervisor.trip
@@ -335,12 +338,26 @@ class _Run:
                                         f"{trip.reason if trip else 'the trip'}; abandoned, safe stop from the "
                                         f"supervisor side")
                 return False
+        if self.supervisor.tripped.is_set() and tripped_at is None:   # the loop saw the trip first and ended
+            self._tell_supervisor_trip()
         return True
+
+    def _tell_supervisor_trip(self) -> None:
+        if self.supervisor.trip is not None:
+            self._tell_trip(self.supervisor.trip.as_dict())
 
     def _add_trip(self, reason: str, message: str, values: dict | None = None, t_s: float | None = None) -> None:
         self.trips.append({"reason": reason, "t_s": self._t_drive if t_s is None else t_s, "values": values or {},
                            "message": message, "wall_s": round(time.monotonic() - self._started_wall, 4),
                            "utc": datetime.now(timezone.utc).isoformat(timespec="milliseconds")})
+        self._tell_trip(self.trips[-1])
+
+    def _tell_trip(self, trip: dict) -> None:
+        if self.on_trip is not None:
+            try:
+                self.on_trip(json_safe(trip))
+            except Exception:
+                pass               # a viewer that cannot be told must not change the run
 
     def _load_call(self, fn, *args):
         self._link_in_use = "load"

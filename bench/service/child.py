@@ -2,7 +2,8 @@
 
 DRIVEBENCH_PARENT_PID: die with the service. Linux delivers SIGTERM when the service goes (also by SIGKILL), and
 SIGTERM is the run's one safe-stop path, so an orphaned run stops the drive and closes its record.
-DRIVEBENCH_PROGRESS=jsonl: progress as `{"progress_s": t, "duration_s": T}` lines on stderr.
+DRIVEBENCH_PROGRESS=jsonl: progress as `{"progress_s": t, "duration_s": T}` lines on stderr, and each trip as it
+happens as `{"trip": {"reason", "t_s", "message", ...}}`.
 """
 
 from __future__ import annotations
@@ -40,5 +41,15 @@ def progress_reporter() -> Callable[[float, float], None] | None:
         if wall - last[0] >= PROGRESS_MIN_INTERVAL_S or t_s >= total:
             last[0] = wall
             print(json.dumps({"progress_s": round(t_s, 3), "duration_s": total}), file=sys.stderr, flush=True)
+
+    return report
+
+
+def trip_reporter() -> Callable[[dict], None] | None:
+    if os.environ.get("DRIVEBENCH_PROGRESS") != "jsonl":
+        return None
+
+    def report(trip: dict) -> None:
+        print(json.dumps({"trip": trip}), file=sys.stderr, flush=True)
 
     return report

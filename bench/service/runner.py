@@ -341,7 +341,7 @@ class Runner:
             self.events.publish(run_event(row))
 
     def _read_stderr(self, child: Child) -> None:
-        """Progress lines become events; everything else goes to the run's service.log."""
+        """Progress lines become events; trips become events and stay in service.log; the rest goes there too."""
         with open(child.out_dir / "service.log", "ab") as log:
             for raw in child.proc.stderr:
                 line = raw.decode("utf-8", "replace").rstrip("\n")
@@ -352,6 +352,13 @@ class Runner:
                         self.events.publish({"type": "progress", "id": child.run_id, "progress_s": child.progress_s,
                                              "duration_s": data.get("duration_s")})
                         continue
+                    except (ValueError, KeyError, TypeError):
+                        pass
+                if line.startswith('{"trip"'):
+                    try:
+                        trip = json.loads(line)["trip"]
+                        self.events.publish({"type": "trip", "id": child.run_id, "reason": str(trip["reason"]),
+                                             "t_s": trip.get("t_s"), "message": str(trip.get("message", ""))})
                     except (ValueError, KeyError, TypeError):
                         pass
                 log.write(raw)

@@ -1,4 +1,4 @@
-// Live updates: run states and progress from the service's websocket (/api/events, cookie auth).
+// Live updates: run states, progress and trips from the service's websocket (/api/events, cookie auth).
 (function () {
   const proto = location.protocol === "https:" ? "wss:" : "ws:";
   let socket;
@@ -14,6 +14,13 @@
         document.querySelectorAll('[data-run-progress="' + event.id + '"]').forEach(function (bar) {
           if (event.duration_s) bar.max = event.duration_s;
           bar.value = event.progress_s;
+        });
+      } else if (event.type === "trip") {
+        document.querySelectorAll('[data-run-trips="' + event.id + '"]').forEach(function (list) {
+          const item = document.createElement("li");
+          const at = typeof event.t_s === "number" ? " at t = " + event.t_s.toFixed(3) + " s" : "";
+          item.textContent = "trip: " + event.reason + at + ": " + event.message;
+          list.appendChild(item);
         });
       } else if (event.type === "run") {
         let changed = false;
