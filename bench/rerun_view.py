@@ -22,6 +22,11 @@ import numpy as np
 RERUN_MODES = ("spawn", "connect", "save", "off")
 APPLICATION_ID = "drivebench"
 MAX_BATCH_ROWS = 20_000
+# With only a file to write (no live viewer), batches of this much wall time: Rerun's FileSink keeps an index entry
+# per chunk (one chunk per entity and batch) until the file is closed (its footer), so RSS grows with the number of
+# batches: at 4 batches/s of 16 entities that was ~2.4 MB/min; at one batch per 5 s it is ~0.1 MB/min.
+FILE_ONLY_INTERVAL_S = 5.0
+LIVE_INTERVAL_S = 0.1
 CLOSE_TIMEOUT_S = 10.0
 FLUX_VECTOR_PERIOD_S = 0.01  # arrows are decimated to 100 Hz of drive time: a phasor view needs no more
 
@@ -103,19 +108,21 @@ class RerunStream:
         recording_name: str = "run",
         recorded: Sequence[str] | None = None,
         batch_s: float = 0.1,
-        min_wall_interval_s: float = 0.1,
+        min_wall_interval_s: float | None = None,
         warn: Callable[[str], None] = _warn,
     ):
         if mode not in RERUN_MODES:
             raise ValueError(f"rerun mode must be one of {', '.join(RERUN_MODES)}, not {mode!r}")
         self.mode = mode
         self.batch_s = batch_s
-        self.min_wall_interval_s = min_wall_interval_s
+        self.min_wall_interval_s = LIVE_INTERVAL_S if min_wall_interval_s is None else min_wall_interval_s
         self.rrd_path = rrd_path
         self._rec = None
         self._warn = warn
         self._times: list[float] = []
         self._rows: list[Mapping[str, float]] = []
+        self._blocks: list[tuple[np.ndarray, dict[str, np.ndarray]]] = []   # log_columns() blocks not yet sent
+        self._block_rows = 0
         self._last_send = time.monotonic()
         self._last_arrow_bin = -math.inf
         self.sinks: list[str] = []   # what the stream really goes to: "file", "viewer"
@@ -156,6 +163,8 @@ class RerunStream:
         if not sinks:
             self._rec = None
             return
+        if self.sinks == ["file"] and min_wall_interval_s is None:
+            self.min_wall_interval_s = FILE_ONLY_INTERVAL_S
         self._rec.set_sinks(*sinks, default_blueprint=default_blueprint(recorded))
         self._rec.send_recording_name(recording_name)
         self._style()
@@ -183,16 +192,36 @@ class RerunStream:
             return
         # at most ~10 batches per wall second: a lockstep run faster than real time sends bigger batches
         if time.monotonic() - self._last_send >= self.min_wall_interval_s or len(self._times) >= MAX_BATCH_ROWS:
-            self.flush()
+            self._flush_rows()
 
     def log_columns(self, t_s: np.ndarray, columns: Mapping[str, np.ndarray]) -> None:
-        """Send a block of columns at once (already a batch)."""
+        """A block of columns: sent with the blocks before it once `min_wall_interval_s` has passed (or the rows
+        reach MAX_BATCH_ROWS)."""
         if self._rec is None or len(t_s) == 0:
             return
-        self.flush()
-        self._send(np.asarray(t_s, dtype=np.float64), {k: np.asarray(v, dtype=np.float64) for k, v in columns.items()})
+        self._flush_rows()
+        self._blocks.append((np.array(t_s, dtype=np.float64),
+                             {k: np.array(v, dtype=np.float64) for k, v in columns.items()}))
+        self._block_rows += len(t_s)
+        if time.monotonic() - self._last_send >= self.min_wall_interval_s or self._block_rows >= MAX_BATCH_ROWS:
+            self._flush_blocks()
 
     def flush(self) -> None:
+        self._flush_rows()
+        self._flush_blocks()
+
+    def _flush_blocks(self) -> None:
+        if self._rec is None or not self._blocks:
+            return
+        blocks, self._blocks, self._block_rows = self._blocks, [], 0
+        names = dict.fromkeys(name for _, columns in blocks for name in columns)
+        t = np.concatenate([b[0] for b in blocks])
+        columns = {n: np.concatenate([c[n] if n in c else np.full(len(bt), np.nan) for bt, c in blocks])
+                   for n in names}
+        self._last_send = time.monotonic()
+        self._send(t, columns)
+
+    def _flush_rows(self) -> None:
         if self._rec is None or not self._times:
             return
         t = np.asarray(self._times, dtype=np.float64)
