@@ -443,7 +443,7 @@ class RunRecorder:
             if pending or pending_rows == 0:
                 out.write_table(pa.Table.from_batches(pending, schema=schema))
         os.replace(tmp, self.run_dir / PARQUET)
-        release_freed_memory()
+        release_freed_memory(collect=False)
 
     def _write_record(self) -> None:
         """A full disk or a vanished directory must not end a run with the drive enabled: the error is kept (the
@@ -466,10 +466,12 @@ class RunRecorder:
                               f"run's safe stop was done"])
 
 
-def release_freed_memory() -> None:
-    """After the end-of-run steps (Parquet, the plot): freed buffers go back to the OS instead of staying in the
-    allocators' free lists, so a process that runs many runs (a campaign worker, a long session) stays flat."""
-    gc.collect()
+def release_freed_memory(collect: bool = True) -> None:
+    """After the end-of-run steps (the plot, Parquet): freed buffers go back to the OS instead of staying in the
+    allocators' free lists, so a process that runs many runs (a campaign worker, a long session) stays flat.
+    collect: first a full garbage collection (~25 ms; a matplotlib figure is a web of cycles)."""
+    if collect:
+        gc.collect()
     pa.default_memory_pool().release_unused()
     if _LIBC is not None:
         _LIBC.malloc_trim(0)
