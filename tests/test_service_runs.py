@@ -26,19 +26,24 @@ def _state(api, run_id, token):
     return api.get(f"/api/runs/{run_id}", headers=H(token)).json()
 
 
+def submit_and_follow(api, events, body: dict, timeout_s: float = 60.0) -> tuple[int, list[dict]]:
+    """Submit a run as the operator; its websocket events up to its final state."""
+    t0 = time.monotonic()
+    run_id = api.post("/api/runs", json=body, headers=H(api.tokens.operator)).json()["id"]
+    seen: list[dict] = []
+    while not seen or seen[-1].get("state") not in ("pass", "fail", "error", "aborted"):
+        event = events.receive_json()
+        assert time.monotonic() - t0 < timeout_s, seen
+        if event["id"] == run_id:
+            seen.append(event)
+    return run_id, seen
+
+
 def test_a_trip_is_pushed_as_it_happens(tmp_path):
     tripping = (SCENARIOS / SHORT).read_text().replace("overcurrent_a = 10.0", "overcurrent_a = 0.5")
     with client_for(make_settings(tmp_path, lease_ttl_s=3.0)) as api:
-        op = api.tokens.operator
         with api.websocket_connect("/api/events", headers=H(api.tokens.viewer)) as events:
-            t0 = time.monotonic()
-            run_id = api.post("/api/runs", json={"scenario_toml": tripping, "rig": "sim-a"}, headers=H(op)).json()["id"]
-            seen = []
-            while not seen or seen[-1].get("state") not in ("pass", "fail", "error", "aborted"):
-                event = events.receive_json()
-                assert time.monotonic() - t0 < 60, seen
-                if event["id"] == run_id:
-                    seen.append(event)
+            _, seen = submit_and_follow(api, events, {"scenario_toml": tripping, "rig": "sim-a"})
     trips = [e for e in seen if e["type"] == "trip"]
     assert seen[-1]["state"] == "aborted" and trips, seen
     assert trips[0]["reason"] == "overcurrent" and 0 < trips[0]["t_s"] < 1.0 and "0.5" in trips[0]["message"]
@@ -49,14 +54,7 @@ def test_a_run_goes_from_queue_to_verdict_with_events_and_its_record(tmp_path):
     with client_for(make_settings(tmp_path, lease_ttl_s=3.0)) as api:
         op = api.tokens.operator
         with api.websocket_connect("/api/events", headers=H(api.tokens.viewer)) as events:
-            t0 = time.monotonic()
-            run_id = api.post("/api/runs", json={"scenario": SHORT, "rig": "sim-a"}, headers=H(op)).json()["id"]
-            seen = []
-            while not seen or seen[-1].get("state") not in ("pass", "fail", "error", "aborted"):
-                event = events.receive_json()
-                assert time.monotonic() - t0 < 60, seen
-                if event["id"] == run_id:
-                    seen.append(event)
+            run_id, seen = submit_and_follow(api, events, {"scenario": SHORT, "rig": "sim-a"})
         states = [e["state"] for e in seen if e["type"] == "run"]
         assert states[0] == "running" and states[-1] == "pass", seen
         assert any(e["type"] == "progress" for e in seen)
