@@ -4,6 +4,10 @@ pool of reused workers, results resumable, pass rates judged with the Wilson int
 from __future__ import annotations
 
 import json
+import os
+import signal
+import threading
+import time
 from pathlib import Path
 
 import pyarrow.parquet as pq
@@ -130,3 +134,42 @@ def test_a_campaign_runs_every_point_like_drivebench_run_and_resumes(tmp_path):
     assert len(rows_again) == 6 and (out / "results.jsonl").read_text().splitlines() == lines
     assert sorted((out / "runs").iterdir()) == run_dirs
     assert json.loads(lines[0])["point_id"] in {r["point_id"] for r in rows_again}
+
+
+def _pool_workers() -> list[int]:
+    """This process's children that are multiprocessing spawn workers."""
+    me, out = os.getpid(), []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            cmdline = (stat.parent / "cmdline").read_bytes()
+        except OSError:
+            continue
+        if int(fields[1]) == me and b"spawn_main" in cmdline:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def test_a_killed_worker_loses_only_its_points_and_they_run_again(tmp_path):
+    camp = load_campaign(write(tmp_path, f'schema_version = 1\nname = "kill"\nscenarios = ["{RS_STEP}"]\n'
+                                         'seeds = [1, 2, 3, 4, 5, 6]\n[acceptance]\nrule = "every_run"\n'))
+    out = tmp_path / "out"
+    result: dict = {}
+    thread = threading.Thread(target=lambda: result.update(rows=run_campaign(camp, out, workers=2)), daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 120
+    while not (out / "results.jsonl").exists() or not (out / "results.jsonl").read_text().strip():
+        assert time.monotonic() < deadline and thread.is_alive(), "no point finished"
+        time.sleep(0.05)
+    done_before = {json.loads(line)["point_id"] for line in (out / "results.jsonl").read_text().splitlines()}
+    workers = _pool_workers()
+    assert len(workers) == 2, workers
+    os.kill(workers[0], signal.SIGKILL)                      # mid-campaign: it holds a point (two queued per worker)
+    thread.join(180)
+    assert not thread.is_alive()
+    rows = result["rows"]
+    assert sorted(r["seed"] for r in rows) == [1, 2, 3, 4, 5, 6]          # no point lost
+    assert [r["verdict"] for r in rows] == ["pass"] * 6, [(r["seed"], r["verdict"], r["error"]) for r in rows]
+    assert workers[0] not in {r["worker_pid"] for r in rows if r["point_id"] not in done_before}
+    lines = (out / "results.jsonl").read_text().splitlines()
+    assert len(lines) == 6                                    # what had finished was not run again
