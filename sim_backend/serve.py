@@ -122,7 +122,9 @@ def serve(cfg: dict, stop: threading.Event, out=sys.stdout) -> None:
             if name in rig.endpoints:
                 print(f"{name} {rig.endpoints[name]}", file=out, flush=True)
         print("ready (Ctrl-C to stop)", file=out, flush=True)
-        stop.wait()
+        # A signal may land on any thread; the handler only runs when the main thread wakes, so it must wake.
+        while not stop.wait(0.2):
+            pass
 
 
 def main(config_path: str | Path) -> int:
