@@ -125,6 +125,8 @@ CATALOGUE: tuple[Parameter, ...] = (
     Parameter("fw_ls_h", F, "H", POSITIVE_SI, _P, "stator inductance in the estimators"),
     Parameter("fw_flux_wb", F, "Wb", POSITIVE_SI, _P, "nominal rotor flux in the estimators"),
     Parameter("fw_inertia_kgm2", F, "kg*m^2", POSITIVE_SI, _P, "inertia in the speed controller design"),
+    Parameter("fw_isx_ref_a", F, "A", Domain("is a field-axis current in A", low=-5.0, high=5.0), _P,
+              "field-axis current reference i_sx* (paper III.D: 0; non-zero shows eq. (15a))"),
     Parameter("fw_rsd_ohm", F, "ohm", POSITIVE_SI, _S, "main winding resistance"),
     Parameter("fw_rsq_ohm", F, "ohm", POSITIVE_SI, _S, "auxiliary winding resistance"),
     Parameter("fw_rr_ohm", F, "ohm", POSITIVE_SI, _S, "rotor resistance"),

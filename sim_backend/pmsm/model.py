@@ -9,14 +9,15 @@ from typing import Any
 import numpy as np
 
 from drivers.signals import SIGNAL_NAMES
-from drivers.parameters import ParamKind, names_for
+from drivers.parameters import ParamKind, lookup, names_for
 from sim_backend.inverter import adc_lsb, draw_measurement_noise
 from sim_backend.mechanics import LOAD_BRAKE, LOAD_TORQUE, LOAD_VISCOUS
 from sim_backend.pmsm import firmware as fw
 from sim_backend.pmsm import kernel as kn
 from sim_backend.pmsm import plant as pl
 
-_FW_OVERRIDES = {"fw_rs_ohm": fw.F_RS, "fw_ls_h": fw.F_LS, "fw_flux_wb": fw.F_FLUX, "fw_inertia_kgm2": fw.F_INERTIA}
+_FW_OVERRIDES = {"fw_rs_ohm": fw.F_RS, "fw_ls_h": fw.F_LS, "fw_flux_wb": fw.F_FLUX, "fw_inertia_kgm2": fw.F_INERTIA,
+                 "fw_isx_ref_a": fw.F_ISX_REF}
 _PLANT_FACTORS = {"plant_rs": pl.P_RS, "plant_ls": pl.P_LS, "plant_flux": pl.P_FLUX, "plant_inertia": pl.P_INERTIA}
 
 
@@ -182,8 +183,9 @@ class PmsmDrive:
         elif name == "freeze_flux_est":
             self._fw_s[fw.S_FREEZE_FLUX] = 1.0 if value else 0.0
         elif name in _FW_OVERRIDES:
-            if not (value > 0 and math.isfinite(value)):
-                raise ValueError(f"{name}: must be a positive finite number, got {value!r}")
+            problem = lookup(name, "pmsm").problem(value)
+            if problem:
+                raise ValueError(problem)
             self._fw_p[_FW_OVERRIDES[name]] = value
             fw.derive_gains(self._fw_p)
         else:
