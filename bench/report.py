@@ -9,6 +9,7 @@ deviations from the papers (collected from docs/firmware*.md and the suite's own
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 import re
 import sys
@@ -314,8 +315,8 @@ def write_report(run_dirs: Sequence[Path], out_md: Path = Path("docs/validation.
         "Each test is a criterion of a scenario file (`scenarios/pmsm`, `scenarios/spim`); its claim column "
         "gives the limit, the window and the basis written in the scenario file. A **known gap** keeps the "
         "paper's limit and fails without failing the run (tests/known_gaps.toml lists them).",
-        "Regenerate: `pytest tests/test_acceptance_suite.py -n 2 --drivebench-out runs/acceptance` then "
-        "`drivebench report runs/acceptance/*`.",
+        "Regenerate: `pytest tests/test_acceptance_suite.py tests/test_mutants.py -n 2 --drivebench-out "
+        "runs/acceptance` then `drivebench report runs/acceptance/*`.",
         "",
     ]
     counts = {"pass": 0, SEED_DEPENDENT: 0, "known gap": 0, "**FAIL**": 0, "not judged": 0}
@@ -352,6 +353,7 @@ def write_report(run_dirs: Sequence[Path], out_md: Path = Path("docs/validation.
                              f"Why: {md_cell(c['known_gap'])}")
             lines.append("")
 
+    lines += mutation_section(sorted({Path(d).parent for d in run_dirs}))
     lines += ["## Deviations from the papers", "", "### In the simulated drives", ""]
     docs_dir = out_md.parent if any(out_md.parent.glob("firmware*.md")) else REPO_ROOT / "docs"
     found = firmware_deviations(docs_dir)
@@ -367,6 +369,41 @@ def write_report(run_dirs: Sequence[Path], out_md: Path = Path("docs/validation.
     lines.append("")
     out_md.write_text("\n".join(lines), encoding="utf-8")
     return out_md
+
+
+MUTANTS_FILE = "mutants.json"
+
+
+def mutation_section(dirs: Sequence[Path]) -> list[str]:
+    """The kill table tests/test_mutants.py leaves beside the runs (DIR/mutants.json), when there is one."""
+    table: dict[str, Any] = {}
+    for d in dirs:
+        path = d / MUTANTS_FILE
+        if not path.is_file():
+            continue
+        try:
+            loaded = json.loads(path.read_text(encoding="utf-8"))
+            if not isinstance(loaded, dict) or not all(isinstance(v, dict) and isinstance(v.get("killed_by"), dict)
+                                                       for v in loaded.values()):
+                raise ValueError("not a table of mutants with killed_by")
+        except (OSError, ValueError) as exc:
+            raise InputError([f"{path}: mutants: {exc}"]) from None
+        table.update(loaded)
+    if not table:
+        return []
+    lines = ["## Mutation testing", "",
+             "Firmware mutants (`tests/mutants.py`: one firmware function changed, cheats given the plant's state) run "
+             "through their drive's scenarios above by `tests/test_mutants.py`; a mutant must fail a criterion the "
+             "real firmware passes (known gaps do not count) or end aborted. A surviving mutant fails the suite.", "",
+             "| mutant | what it does | rejected by |", "|---|---|---|"]
+    for key in sorted(table, key=lambda k: (list(PAPERS).index(k.split("/")[0]) if k.split("/")[0] in PAPERS
+                                            else len(PAPERS), k)):
+        m = table[key]
+        by = "; ".join(f"**{scenario}**: " + ", ".join(md_cell(str(w)) for w in why)
+                       for scenario, why in sorted(m["killed_by"].items()))
+        lines.append(f"| {md_cell(key)} | {md_cell(str(m.get('what', '')))} | {by or '**survives**'} |")
+    lines.append("")
+    return lines
 
 
 def _run_section(r: Run, out_md: Path, plot_dir: Path) -> list[str]:

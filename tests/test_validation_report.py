@@ -169,3 +169,20 @@ def test_real_firmware_docs_yield_deviations(doc):
     # each item is one whole deviation: a bold title and its reason, no heading or list marker swallowed
     assert all(item.startswith("**") and "**" in item[2:] and len(item) > 40 for item in found), found
     assert not any(line.startswith(("#", "- ", "1.")) for item in found for line in item.splitlines())
+
+
+def test_mutation_table_beside_the_runs_goes_into_the_report(tmp_path, capsys):
+    run = make_run(tmp_path, "pmsm", "pmsm-good", pos_err=0.01, flux_err=0.5, i_sy=3.03)
+    table = {"pmsm/encoder_cheat": {"drive": "pmsm", "name": "encoder_cheat", "what": "angle from an encoder",
+                                    "killed_by": {"sig-isx-rs-step-eq15a": ["position error = eq. (15a)"]}},
+             "spim/lazy": {"drive": "spim", "name": "lazy", "what": "does nothing", "killed_by": {}}}
+    (run.parent / "mutants.json").write_text(__import__("json").dumps(table))
+    md = write_report([run], tmp_path / "v.md").read_text()
+    assert md.index("## Mutation testing") < md.index("## Deviations from the papers")
+    assert ("| pmsm/encoder_cheat | angle from an encoder | **sig-isx-rs-step-eq15a**: position error = eq. (15a) |"
+            in md)
+    assert "| spim/lazy | does nothing | **survives** |" in md
+    (run.parent / "mutants.json").write_text("[1, 2]")
+    assert main([run], tmp_path / "v.md") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"{run.parent / 'mutants.json'}: mutants: ")

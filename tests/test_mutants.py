@@ -1,0 +1,73 @@
+"""Mutation testing of the acceptance suite: every firmware mutant (tests/mutants.py) run through its drive's paper
+scenarios must be rejected by at least one criterion that the real firmware passes (a known gap does not count), or
+by the run ending aborted or in error. A surviving mutant fails the suite.
+
+With --drivebench-out DIR the kill table is written to DIR/mutants.json; `drivebench report DIR/*` puts it in
+docs/validation.md.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from bench.orchestrator import run_scenario
+from tests.mutants import ALL_MUTANTS, Mutant, _apply, build, mutant_kernel
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS: dict[str, dict] = {}
+
+
+def scenarios_of(drive: str) -> list[Path]:
+    return sorted((ROOT / "scenarios" / drive).glob("*.toml"))
+
+
+def kills(mutant: Mutant, out: Path) -> dict[str, list[str]]:
+    """scenario stem -> what rejected the mutant there (failing criteria that are not known gaps, or the verdict)."""
+    killed: dict[str, list[str]] = {}
+    with mutant_kernel(mutant, build(mutant)):
+        for path in scenarios_of(mutant.drive):
+            result = run_scenario(path, out_root=out, rerun_mode="off")
+            why = [c.name for c in result.criteria if c.status == "fail" and not c.known_gap]
+            if result.verdict in ("aborted", "error"):
+                why.insert(0, f"run {result.verdict}: {result.record.get('abort_reason') or result.error}")
+            if why:
+                killed[path.stem] = why
+    return killed
+
+
+@pytest.mark.parametrize("mutant", ALL_MUTANTS, ids=lambda m: f"{m.drive}-{m.name}")
+def test_every_firmware_mutant_is_rejected(mutant, tmp_path, request):
+    killed = kills(mutant, tmp_path)
+    assert killed, f"mutant {mutant.name} ({mutant.what}) survives every {mutant.drive} acceptance scenario"
+    RESULTS[f"{mutant.drive}/{mutant.name}"] = {"drive": mutant.drive, "name": mutant.name, "what": mutant.what,
+                                                "killed_by": killed}
+    out = request.config.getoption("--drivebench-out")
+    if out and out != "runs":
+        path = Path(out) / "mutants.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        table = json.loads(path.read_text()) if path.exists() else {}
+        table[f"{mutant.drive}/{mutant.name}"] = RESULTS[f"{mutant.drive}/{mutant.name}"]
+        path.write_text(json.dumps(table, indent=1, sort_keys=True))
+
+
+def test_the_encoder_cheat_is_caught_by_the_designed_signature_not_by_fig08(tmp_path):
+    """An encoder-reading firmware passes the whole Fig. 8 scenario (zero position error is what fig08 asks for);
+    the eq. (15a) signature with i_sx* = 2 A is what tells it from the MRAS."""
+    mutant = next(m for m in ALL_MUTANTS if m.name == "encoder_cheat")
+    with mutant_kernel(mutant):
+        fig08 = run_scenario(ROOT / "scenarios/pmsm/fig08-20rads-rs-step.toml", out_root=tmp_path, rerun_mode="off")
+        sig = run_scenario(ROOT / "scenarios/pmsm/sig-isx-rs-step-eq15a.toml", out_root=tmp_path, rerun_mode="off")
+    assert fig08.verdict == "pass"
+    failed = {c.name: c for c in sig.criteria if c.status == "fail"}
+    assert list(failed) == ["position error after the R_s step = eq. (15a), i_sx = 2 A"]
+    assert abs(failed["position error after the R_s step = eq. (15a), i_sx = 2 A"].value) > 0.08   # |0 - (-0.0919)|
+    real = run_scenario(ROOT / "scenarios/pmsm/sig-isx-rs-step-eq15a.toml", out_root=tmp_path, rerun_mode="off")
+    assert real.verdict == "pass"
+
+
+def test_a_mutant_edit_that_no_longer_matches_the_firmware_fails_loudly():
+    with pytest.raises(AssertionError, match="found 0 times"):
+        _apply("def firmware_step(): pass\n", [("s[S_THETA] = 0", "pass")], "stale mutant")
