@@ -23,7 +23,7 @@ from bench.benchconfig import BenchConfig, load_bench_config
 from bench.criteria import TimeAxis, signals_of, time_axis
 from bench.errors import InputError, find_repo_root
 from bench.links import make_links, started_services
-from bench.records import RunRecord, RunRecorder, json_safe, release_freed_memory
+from bench.records import RunRecord, RunRecorder, freeze_long_lived, json_safe, release_freed_memory
 from bench.rerun_view import RerunStream
 from bench.scenario import load_scenario
 from bench.summary_plot import BUCKETS as PLOT_BUCKETS, PLOT_SIGNALS, write_summary_png
@@ -160,6 +160,7 @@ def run_scenario(
     if seed is None:
         seed = scenario.seed if scenario.seed is not None else DEFAULT_SEED
     check_out_root(Path(out_root))      # before anything is connected: a bad --out must not leave a rig touched
+    freeze_long_lived()
     with _StopSignals() as signals:
         if links is not None:
             return _run_connected(scenario, cfg, seed, *links, Path(out_root), rerun_mode, rerun_url, progress, warn,
