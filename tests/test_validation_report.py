@@ -177,7 +177,7 @@ def test_mutation_table_beside_the_runs_goes_into_the_report(tmp_path, capsys):
                                     "killed_by": {"sig-isx-rs-step-eq15a": ["position error = eq. (15a)"]}},
              "spim/lazy": {"drive": "spim", "name": "lazy", "what": "does nothing", "killed_by": {}}}
     (run.parent / "mutants.json").write_text(__import__("json").dumps(table))
-    md = write_report([run], tmp_path / "v.md").read_text()
+    md = write_report([run, run.parent / "mutants.json"], tmp_path / "v.md").read_text()   # as `report DIR/*`
     assert md.index("## Mutation testing") < md.index("## Deviations from the papers")
     assert ("| pmsm/encoder_cheat | angle from an encoder | **sig-isx-rs-step-eq15a**: position error = eq. (15a) |"
             in md)
