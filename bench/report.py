@@ -294,7 +294,7 @@ def write_report(run_dirs: Sequence[Path], out_md: Path = Path("docs/validation.
     """
     out_md = Path(out_md)
     plot_dir = out_md.parent / out_md.stem
-    run_dirs = [Path(d) for d in run_dirs if Path(d).name != MUTANTS_FILE]   # `report DIR/*` also names the table
+    run_dirs = [Path(d) for d in run_dirs if Path(d).name != MUTANTS_DIR]   # `report DIR/*` also names the table
     all_runs = [read_run(Path(d)) for d in run_dirs]
     if not all_runs:
         raise InputError(["report: no run directories given"])
@@ -372,24 +372,21 @@ def write_report(run_dirs: Sequence[Path], out_md: Path = Path("docs/validation.
     return out_md
 
 
-MUTANTS_FILE = "mutants.json"
+MUTANTS_DIR = "mutants"
 
 
 def mutation_section(dirs: Sequence[Path]) -> list[str]:
-    """The kill table tests/test_mutants.py leaves beside the runs (DIR/mutants.json), when there is one."""
+    """The kill table tests/test_mutants.py leaves beside the runs (DIR/mutants/<drive>-<name>.json), if any."""
     table: dict[str, Any] = {}
-    for d in dirs:
-        path = d / MUTANTS_FILE
-        if not path.is_file():
-            continue
+    for path in sorted(p for d in dirs for p in (d / MUTANTS_DIR).glob("*.json")):
         try:
             loaded = json.loads(path.read_text(encoding="utf-8"))
-            if not isinstance(loaded, dict) or not all(isinstance(v, dict) and isinstance(v.get("killed_by"), dict)
-                                                       for v in loaded.values()):
-                raise ValueError("not a table of mutants with killed_by")
+            if not isinstance(loaded, dict) or not isinstance(loaded.get("killed_by"), dict) \
+                    or not isinstance(loaded.get("drive"), str) or not isinstance(loaded.get("name"), str):
+                raise ValueError("not a mutant with drive, name and killed_by")
         except (OSError, ValueError) as exc:
             raise InputError([f"{path}: mutants: {exc}"]) from None
-        table.update(loaded)
+        table[f"{loaded['drive']}/{loaded['name']}"] = loaded
     if not table:
         return []
     lines = ["## Mutation testing", "",

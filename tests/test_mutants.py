@@ -2,7 +2,7 @@
 scenarios must be rejected by at least one criterion that the real firmware passes (a known gap does not count), or
 by the run ending aborted or in error. A surviving mutant fails the suite.
 
-With --drivebench-out DIR the kill table is written to DIR/mutants.json; `drivebench report DIR/*` puts it in
+With --drivebench-out DIR the kill table is written to DIR/mutants/ (a file per mutant); `drivebench report DIR/*` puts it in
 docs/validation.md.
 """
 
@@ -45,13 +45,10 @@ def test_every_firmware_mutant_is_rejected(mutant, tmp_path, request):
     RESULTS[f"{mutant.drive}/{mutant.name}"] = {"drive": mutant.drive, "name": mutant.name, "what": mutant.what,
                                                 "killed_by": killed}
     out = request.config.getoption("--drivebench-out")
-    if out and out != "runs":
-        path = Path(out) / "mutants.json"
+    if out and out != "runs":             # one file per mutant: the suite's workers write side by side
+        path = Path(out) / "mutants" / f"{mutant.drive}-{mutant.name}.json"
         path.parent.mkdir(parents=True, exist_ok=True)
-        table = json.loads(path.read_text()) if path.exists() else {}
-        table[f"{mutant.drive}/{mutant.name}"] = RESULTS[f"{mutant.drive}/{mutant.name}"]
-        path.write_text(json.dumps(table, indent=1, sort_keys=True))
-
+        path.write_text(json.dumps(RESULTS[f"{mutant.drive}/{mutant.name}"], indent=1, sort_keys=True))
 
 def test_the_encoder_cheat_is_caught_by_the_designed_signature_not_by_fig08(tmp_path):
     """An encoder-reading firmware passes the whole Fig. 8 scenario (zero position error is what fig08 asks for);

@@ -173,16 +173,18 @@ def test_real_firmware_docs_yield_deviations(doc):
 
 def test_mutation_table_beside_the_runs_goes_into_the_report(tmp_path, capsys):
     run = make_run(tmp_path, "pmsm", "pmsm-good", pos_err=0.01, flux_err=0.5, i_sy=3.03)
-    table = {"pmsm/encoder_cheat": {"drive": "pmsm", "name": "encoder_cheat", "what": "angle from an encoder",
-                                    "killed_by": {"sig-isx-rs-step-eq15a": ["position error = eq. (15a)"]}},
-             "spim/lazy": {"drive": "spim", "name": "lazy", "what": "does nothing", "killed_by": {}}}
-    (run.parent / "mutants.json").write_text(__import__("json").dumps(table))
-    md = write_report([run, run.parent / "mutants.json"], tmp_path / "v.md").read_text()   # as `report DIR/*`
+    mutants = run.parent / "mutants"
+    mutants.mkdir()
+    (mutants / "pmsm-encoder_cheat.json").write_text(__import__("json").dumps(
+        {"drive": "pmsm", "name": "encoder_cheat", "what": "angle from an encoder",
+         "killed_by": {"sig-isx-rs-step-eq15a": ["position error = eq. (15a)"]}}))
+    (mutants / "spim-lazy.json").write_text('{"drive": "spim", "name": "lazy", "what": "does nothing", "killed_by": {}}')
+    md = write_report([run, mutants], tmp_path / "v.md").read_text()   # as `report DIR/*`
     assert md.index("## Mutation testing") < md.index("## Deviations from the papers")
     assert ("| pmsm/encoder_cheat | angle from an encoder | **sig-isx-rs-step-eq15a**: position error = eq. (15a) |"
             in md)
     assert "| spim/lazy | does nothing | **survives** |" in md
-    (run.parent / "mutants.json").write_text("[1, 2]")
+    (mutants / "spim-lazy.json").write_text("[1, 2]")
     assert main([run], tmp_path / "v.md") == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith(f"{run.parent / 'mutants.json'}: mutants: ")
+    assert len(err) == 1 and err[0].startswith(f"{mutants / 'spim-lazy.json'}: mutants: ")
