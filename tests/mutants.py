@@ -36,6 +36,10 @@ PMSM_MUTANTS = [
                       "s[S_THETA] = _wrap(s[S_THETA] + p[F_POLE_PAIRS] * s[S_SPEED_REF_RAMPED] * T)")]),
     Mutant("frozen_speed_estimate", "pmsm", "w^ never updated by (8a): stays 0 from the enable",
            firmware=[("if s[S_FREEZE_SPEED] == 0.0:", "if False:")]),
+    Mutant("speed_estimate_frozen_after_1s", "pmsm", "w^ updated by (8a) for the first second of drive time, then held",
+           firmware=[("        i_xy = _update_estimators(s, p, i_ab)",
+                      "        if t >= 1.0:\n            s[S_FREEZE_SPEED] = 1.0\n"
+                      "        i_xy = _update_estimators(s, p, i_ab)")]),
     Mutant("frozen_flux_estimate", "pmsm", "psi^ never updated by (8b): stays at the nominal flux",
            firmware=[("if s[S_FREEZE_FLUX] == 0.0 and abs(w) < w_min:", "if False:"),
                      ("elif s[S_FREEZE_FLUX] == 0.0:", "elif False:")]),
