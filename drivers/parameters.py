@@ -125,6 +125,8 @@ CATALOGUE: tuple[Parameter, ...] = (
     Parameter("fw_ls_h", F, "H", POSITIVE_SI, _P, "stator inductance in the estimators"),
     Parameter("fw_flux_wb", F, "Wb", POSITIVE_SI, _P, "nominal rotor flux in the estimators"),
     Parameter("fw_inertia_kgm2", F, "kg*m^2", POSITIVE_SI, _P, "inertia in the speed controller design"),
+    Parameter("fw_deadtime_comp_v", F, "V", Domain("is a compensation voltage in V", low=0.0, high=100.0), _BOTH,
+              "per-phase dead-time and device-drop compensation voltage (V_dc t_d f_pwm + V_drop when exact)"),
     Parameter("fw_isx_ref_a", F, "A", Domain("is a field-axis current in A", low=-5.0, high=5.0), _P,
               "field-axis current reference i_sx* (paper III.D: 0; non-zero shows eq. (15a))"),
     Parameter("fw_rsd_ohm", F, "ohm", POSITIVE_SI, _S, "main winding resistance"),
@@ -145,6 +147,11 @@ CATALOGUE: tuple[Parameter, ...] = (
     Parameter("plant_rsq", PL, "1", PLANT_FACTOR, _S, "auxiliary winding resistance"),
     Parameter("plant_rr", PL, "1", PLANT_FACTOR, _S, "rotor resistance"),
     Parameter("plant_inertia", PL, "1", PLANT_FACTOR, _S, "shaft inertia"),
+    # the simulated inverter's non-idealities (absolute values, from then on)
+    Parameter("inverter_dead_time_s", PL, "s", Domain("is a dead time in s", low=0.0, high=1e-5), _BOTH,
+              "the inverter's dead time (PMSM paper config: 0, ideally compensated)"),
+    Parameter("inverter_device_drop_v", PL, "V", Domain("is an on-state drop in V", low=0.0, high=5.0), _BOTH,
+              "the inverter's IGBT/diode on-state drop"),
     # faults of the simulated rig (both drive kinds)
     Parameter("fault_drop_frames_rate", WF, "1", Domain("is a probability per frame", low=0.0, high=1.0), _BOTH,
               "the drive's CAN/serial output frames are dropped with probability p"),

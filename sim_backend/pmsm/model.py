@@ -17,7 +17,8 @@ from sim_backend.pmsm import kernel as kn
 from sim_backend.pmsm import plant as pl
 
 _FW_OVERRIDES = {"fw_rs_ohm": fw.F_RS, "fw_ls_h": fw.F_LS, "fw_flux_wb": fw.F_FLUX, "fw_inertia_kgm2": fw.F_INERTIA,
-                 "fw_isx_ref_a": fw.F_ISX_REF}
+                 "fw_isx_ref_a": fw.F_ISX_REF, "fw_deadtime_comp_v": fw.F_DEADTIME_COMP_V}
+_INVERTER_VALUES = {"inverter_dead_time_s": kn.I_DEAD_TIME, "inverter_device_drop_v": kn.I_DEVICE_DROP}
 _PLANT_FACTORS = {"plant_rs": pl.P_RS, "plant_ls": pl.P_LS, "plant_flux": pl.P_FLUX, "plant_inertia": pl.P_INERTIA}
 
 
@@ -195,6 +196,12 @@ class PmsmDrive:
         return names_for(self.kind, ParamKind.TEST_HOOK, ParamKind.FIRMWARE)
 
     def set_plant_param(self, name: str, factor: float) -> None:
+        if name in _INVERTER_VALUES:                  # absolute values, not factors
+            problem = lookup(name, "pmsm").problem(float(factor))
+            if problem:
+                raise ValueError(problem)
+            self._inv_p[_INVERTER_VALUES[name]] = float(factor)
+            return
         if name not in _PLANT_FACTORS:
             raise KeyError(f"unknown plant parameter {name!r}; known: {', '.join(self.plant_param_names())}")
         factor = float(factor)

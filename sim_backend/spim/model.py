@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from drivers.signals import SIGNAL_NAMES
-from drivers.parameters import ParamKind, names_for
+from drivers.parameters import ParamKind, lookup, names_for
 from sim_backend.numerics import wrap_angle
 from sim_backend.mechanics import LOAD_BRAKE, LOAD_TORQUE, LOAD_VISCOUS
 from sim_backend.spim import firmware as fw
@@ -26,7 +26,11 @@ _FIRMWARE_NUMBERS = (
     "flux_kp_a_per_wb", "flux_ki_a_per_wbs", "slip_kp", "slip_ki", "speed_kp_nm_s_rad", "speed_ki_nm_rad",
     "torque_max_nm", "current_max_a", "overcurrent_trip_a", "speed_ramp_rad_s2", "speed_filter_rad_s",
     "emf_feedforward_filter_rad_s", "flux_min_wb", "modulation_max", "dead_time_comp_v",
-    "dead_time_comp_band_a", "magnetising_time_s", "flux_current_model_gain_rad_s", "demagnetising_time_s") + names_for("spim", ParamKind.FIRMWARE)
+    "dead_time_comp_band_a", "magnetising_time_s", "flux_current_model_gain_rad_s", "demagnetising_time_s")
+# the firmware's motor model: the catalogue's firmware parameters but the compensation voltage (dead_time_comp_v)
+_FW_MODEL_NAMES = tuple(n for n in names_for("spim", ParamKind.FIRMWARE) if n != "fw_deadtime_comp_v")
+_FIRMWARE_NUMBERS += _FW_MODEL_NAMES
+_INVERTER_VALUES = {"inverter_dead_time_s": inv.I_DEADTIME_S, "inverter_device_drop_v": inv.I_VDROP}
 _MAY_BE_ZERO = {"dead_time_s", "device_drop_v", "current_noise_a", "current_lsb_a", "vdc_noise_v", "vdc_lsb_v",
                 "dead_time_comp_v", "emf_feedforward_filter_rad_s", "flux_kp_a_per_wb", "flux_ki_a_per_wbs",
                 "slip_kp", "speed_kp_nm_s_rad", "magnetising_time_s", "viscous_nm_s_rad",
@@ -68,7 +72,7 @@ class SpimDrive:
         self._mech_cfg = mech
         self._substeps = int(substeps)
         self._fw_cfg = dict(fw_cfg)
-        self._fw_model = {name: fw_cfg[name] for name in names_for("spim", ParamKind.FIRMWARE)}
+        self._fw_model = {name: fw_cfg[name] for name in _FW_MODEL_NAMES}
         self.control_period_s = float(fw_cfg["control_period_s"])
         self.time_s = 0.0
         self._steps = 0
@@ -162,6 +166,12 @@ class SpimDrive:
             self._fs[fw.S_FREEZE_SLIP] = 1.0 if value else 0.0
         elif name == "freeze_flux_est":
             self._fs[fw.S_FREEZE_FLUX] = 1.0 if value else 0.0
+        elif name == "fw_deadtime_comp_v":
+            problem = lookup(name, "spim").problem(value)
+            if problem:
+                raise ValueError(problem)
+            self._fw_cfg["dead_time_comp_v"] = value
+            self._fp = fw.firmware_params(self._fw_model, self._fw_cfg)
         elif name in self._fw_model:
             if not value > 0:
                 raise ValueError(f"{name}: must be > 0, got {value!r}")
@@ -174,6 +184,12 @@ class SpimDrive:
         return names_for(self.kind, ParamKind.TEST_HOOK, ParamKind.FIRMWARE)
 
     def set_plant_param(self, name: str, factor: float) -> None:
+        if name in _INVERTER_VALUES:                  # absolute values, not factors
+            problem = lookup(name, "spim").problem(float(factor))
+            if problem:
+                raise ValueError(problem)
+            self._ip[_INVERTER_VALUES[name]] = float(factor)
+            return
         if name not in names_for(self.kind, ParamKind.PLANT):
             raise KeyError(f"unknown plant parameter {name!r}; known: {', '.join(self.plant_param_names())}")
         factor = float(factor)
