@@ -115,3 +115,65 @@ def test_the_kernel_hands_the_firmware_a_poisoned_row():
     source = inspect.getsource(kn.run_steps.py_func)
     before_call = source.split("fw.firmware_step(")[0]
     assert "row[c] = math.nan" in before_call.split("# --- firmware ---")[-1]
+
+
+# ---- the SPIM firmware: the same three guarantees ----
+
+SPIM_ALLOWED_IMPORTS = {"__future__", "math", "numpy", "numba", "sim_backend.numerics"}
+
+
+def test_spim_firmware_imports_nothing_from_the_plant_or_the_simulator():
+    from sim_backend.spim import firmware as sfw
+    imports = imported_modules(Path(sfw.__file__))
+    assert imports <= SPIM_ALLOWED_IMPORTS, imports - SPIM_ALLOWED_IMPORTS
+    source = Path(sfw.__file__).read_text()
+    for forbidden in ("plant", "kernel", "mechanics", "inverter", "X_WM", "X_PSD", "X_PRD"):
+        assert f"import {forbidden}" not in source and f"pl.{forbidden}" not in source
+
+
+def test_spim_step_function_takes_only_measurements_own_state_and_params():
+    from sim_backend.spim import firmware as sfw
+    assert list(inspect.signature(sfw.firmware_step.py_func).parameters) == ["s", "f", "isd_m", "isq_m", "vdc_m",
+                                                                              "row"]
+
+
+def spim_closed_loop(rr_factor: float, n: int, replay: np.ndarray | None = None):
+    """The SPIM kernel's loop in Python (plant, inverter, ADC, firmware): measurements and commands per period.
+    With `replay`, the firmware is fed those measurements instead of this plant's."""
+    from sim_backend.spim import firmware as sfw
+    from sim_backend.spim import inverter as sinv
+    from sim_backend.spim import kernel as skn
+    from sim_backend.spim import plant as spl
+    drive = make_drive("config/motors/spim-paper.toml", seed=0, noise=False)
+    if rr_factor != 1.0:
+        drive.set_plant_param("plant_rr", rr_factor)
+    x, pp, ip, fs, fp, ks = drive._x, drive._pp, drive._ip, drive._fs, drive._fp, drive._ks
+    fs[sfw.S_ENABLED] = 1.0
+    fs[sfw.S_SPEED_TARGET] = 50.0
+    row = np.zeros(16)
+    measured, commands = np.zeros((n, 3)), np.zeros((n, 4))
+    for k in range(n):
+        open_d, open_q = x[spl.X_OPEN_D] != 0.0, x[spl.X_OPEN_Q] != 0.0
+        isd, isq, _, _ = spl.currents(x[spl.X_PSD], x[spl.X_PSQ], x[spl.X_PRD], x[spl.X_PRQ], pp, open_d, open_q)
+        measured[k] = (sinv.adc(isd, 0.0, 0.0, ip[sinv.I_LSB_I]), sinv.adc(isq, 0.0, 0.0, ip[sinv.I_LSB_I]),
+                       sinv.adc(ip[sinv.I_VDC], 0.0, 0.0, ip[sinv.I_LSB_VDC]))
+        m = replay[k] if replay is not None else measured[k]
+        gates_now = ks[skn.K_GATES] != 0.0
+        vsd, vsq = sinv.winding_voltages(ks[skn.K_DA], ks[skn.K_DB], ks[skn.K_DC], isd, isq, not gates_now, ip)
+        gates_next, da, db, dc = sfw.firmware_step(fs, fp, m[0], m[1], m[2], row)
+        commands[k] = (gates_next, da, db, dc)
+        if gates_now:
+            x[spl.X_OPEN_D] = x[spl.X_OPEN_Q] = 0.0
+        spl.advance(x, pp, vsd, vsq, fp[sfw.F_TS], drive._substeps, not gates_now)
+        ks[:] = (1.0 if gates_next else 0.0, da, db, dc)
+    return measured, commands
+
+
+def test_spim_same_measurements_same_commands_whatever_the_plant():
+    n = 4000                                          # past the magnetising time: the speed loop runs too
+    meas_a, cmd_a = spim_closed_loop(1.0, n)
+    meas_b, cmd_b = spim_closed_loop(1.4, n)
+    assert cmd_a[:, 0].any()                          # the gates came on
+    assert not np.allclose(cmd_a, cmd_b)              # a rotor 40 % more resistive changes what the firmware sees...
+    _, cmd_b_replayed = spim_closed_loop(1.4, n, replay=meas_a)
+    assert cmd_b_replayed.tobytes() == cmd_a.tobytes()  # ...but given plant A's measurements it acts as for A
