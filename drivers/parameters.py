@@ -185,4 +185,15 @@ def lookup(name: str, drive_kind: str | None = None) -> Parameter | None:
                 None)
 
 
+def checked(name: str, drive_kind: str, value: float) -> float:
+    """value as a float when it is in the record's domain; ValueError naming the rule otherwise."""
+    record = lookup(name, drive_kind)
+    if record is None:
+        raise KeyError(f"unknown parameter {name!r} for a {drive_kind} drive")
+    problem = record.problem(float(value))
+    if problem:
+        raise ValueError(problem)
+    return float(value)
+
+
 ALL_NAMES: frozenset[str] = frozenset(p.name for p in CATALOGUE)

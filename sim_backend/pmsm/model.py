@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from drivers.signals import SIGNAL_NAMES
-from drivers.parameters import ParamKind, lookup, names_for
+from drivers.parameters import ParamKind, checked, names_for
 from sim_backend.inverter import adc_lsb, draw_measurement_noise
 from sim_backend.mechanics import LOAD_BRAKE, LOAD_TORQUE, LOAD_VISCOUS
 from sim_backend.pmsm import firmware as fw
@@ -184,10 +184,7 @@ class PmsmDrive:
         elif name == "freeze_flux_est":
             self._fw_s[fw.S_FREEZE_FLUX] = 1.0 if value else 0.0
         elif name in _FW_OVERRIDES:
-            problem = lookup(name, "pmsm").problem(value)
-            if problem:
-                raise ValueError(problem)
-            self._fw_p[_FW_OVERRIDES[name]] = value
+            self._fw_p[_FW_OVERRIDES[name]] = checked(name, self.kind, value)
             fw.derive_gains(self._fw_p)
         else:
             raise KeyError(f"unknown hook {name!r} for a pmsm drive; known: {', '.join(self.hook_names())}")
@@ -197,10 +194,7 @@ class PmsmDrive:
 
     def set_plant_param(self, name: str, factor: float) -> None:
         if name in _INVERTER_VALUES:                  # absolute values, not factors
-            problem = lookup(name, "pmsm").problem(float(factor))
-            if problem:
-                raise ValueError(problem)
-            self._inv_p[_INVERTER_VALUES[name]] = float(factor)
+            self._inv_p[_INVERTER_VALUES[name]] = checked(name, self.kind, factor)
             return
         if name not in _PLANT_FACTORS:
             raise KeyError(f"unknown plant parameter {name!r}; known: {', '.join(self.plant_param_names())}")

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from drivers.signals import SIGNAL_NAMES
-from drivers.parameters import ParamKind, lookup, names_for
+from drivers.parameters import ParamKind, checked, names_for
 from sim_backend.numerics import wrap_angle
 from sim_backend.mechanics import LOAD_BRAKE, LOAD_TORQUE, LOAD_VISCOUS
 from sim_backend.spim import firmware as fw
@@ -167,10 +167,7 @@ class SpimDrive:
         elif name == "freeze_flux_est":
             self._fs[fw.S_FREEZE_FLUX] = 1.0 if value else 0.0
         elif name == "fw_deadtime_comp_v":
-            problem = lookup(name, "spim").problem(value)
-            if problem:
-                raise ValueError(problem)
-            self._fw_cfg["dead_time_comp_v"] = value
+            self._fw_cfg["dead_time_comp_v"] = checked(name, self.kind, value)
             self._fp = fw.firmware_params(self._fw_model, self._fw_cfg)
         elif name in self._fw_model:
             if not value > 0:
@@ -185,10 +182,7 @@ class SpimDrive:
 
     def set_plant_param(self, name: str, factor: float) -> None:
         if name in _INVERTER_VALUES:                  # absolute values, not factors
-            problem = lookup(name, "spim").problem(float(factor))
-            if problem:
-                raise ValueError(problem)
-            self._ip[_INVERTER_VALUES[name]] = float(factor)
+            self._ip[_INVERTER_VALUES[name]] = checked(name, self.kind, factor)
             return
         if name not in names_for(self.kind, ParamKind.PLANT):
             raise KeyError(f"unknown plant parameter {name!r}; known: {', '.join(self.plant_param_names())}")
