@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from drivers.api import LoadMode
-from drivers.toml_file import TomlFileError, read_toml_file
+from drivers.toml_file import TomlFileError, known_entries, read_toml_file
 
 TYPES = {"uint16": (1, ">H"), "int16": (1, ">h"), "uint32": (2, ">I"), "int32": (2, ">i"), "float32": (2, ">f")}
 ROLES = ("enable", "setpoint", "mode", "speed", "torque", "status", "fault_code", "fault_reset", "watchdog",
@@ -136,11 +136,7 @@ def read_load_map(path: str | Path) -> LoadMap:
     if not isinstance(table, dict):
         problems.append(("registers", "must be a table of [registers.ROLE] tables"))
         table = {}
-    for role, spec in table.items():
-        where = f"registers.{role}"
-        if role not in ROLES:
-            problems.append((where, f"unknown role (known: {', '.join(ROLES)})"))
-            continue
+    for role, spec, where in known_entries(table, ROLES, "registers", "role", problems):
         if not isinstance(spec, dict):
             problems.append((where, "must be a table"))
             continue

@@ -10,7 +10,7 @@ import os
 import stat
 import tomllib
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 MAX_TOML_BYTES = 1 << 20      # 1 MiB: a scenario or config is a few kB
 MAX_DEPTH = 32
@@ -57,6 +57,17 @@ def read_toml_file(path: str | Path, max_bytes: int = MAX_TOML_BYTES) -> tuple[d
     if _depth(table) > MAX_DEPTH:
         raise TomlFileError(f"nested deeper than {MAX_DEPTH} levels: not a config file")
     return table, data
+
+
+def known_entries(table: dict, known: Sequence[str], prefix: str, kind: str, problems: list[tuple[str, str]]):
+    """(key, value, where) for each entry of a config table whose key is known; an unknown key is a problem
+    `(prefix.key, "unknown KIND (known: ...)")` and is skipped."""
+    for key, value in table.items():
+        where = f"{prefix}.{key}"
+        if key not in known:
+            problems.append((where, f"unknown {kind} (known: {', '.join(known)})"))
+            continue
+        yield key, value, where
 
 
 def _depth(value: Any, level: int = 0) -> int:

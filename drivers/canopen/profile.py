@@ -22,6 +22,7 @@ from typing import Any, Callable
 from drivers import extension
 from drivers.canopen import objects as o
 from drivers.signals import SIGNAL_NAMES
+from drivers.toml_file import known_entries
 from drivers.units import MILLI, PER_MILLE, UnitError, VelocityScale, decode_velocity_unit, parse_velocity_unit
 
 PROFILES = ("auto", "cia402", "drivebench")
@@ -314,11 +315,7 @@ def config_keys(section: dict) -> tuple[dict[str, Any], list[tuple[str, str]]]:
 
 def _signals(table: dict, problems: list[tuple[str, str]]) -> dict[str, dict]:
     out = {}
-    for signal, spec in table.items():
-        where = f"drive.signals.{signal}"
-        if signal not in SIGNAL_NAMES:
-            problems.append((where, f"unknown signal (known: {', '.join(SIGNAL_NAMES)})"))
-            continue
+    for signal, spec, where in known_entries(table, SIGNAL_NAMES, "drive.signals", "signal", problems):
         if isinstance(spec, str):
             spec = {"object": spec}
         if not isinstance(spec, dict) or set(spec) - {"object", "scale", "factor"}:
