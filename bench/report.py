@@ -295,7 +295,7 @@ def write_report(run_dirs: Sequence[Path], out_md: Path = Path("docs/validation.
     out_md = Path(out_md)
     plot_dir = out_md.parent / out_md.stem
     run_dirs = [Path(d) for d in run_dirs if Path(d).name != MUTANTS_DIR]   # `report DIR/*` also names the table
-    all_runs = [read_run(Path(d)) for d in run_dirs]
+    all_runs = [read_run(d) for d in run_dirs]
     if not all_runs:
         raise InputError(["report: no run directories given"])
     latest: dict[str, Run] = {}

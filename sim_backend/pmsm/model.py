@@ -198,9 +198,7 @@ class PmsmDrive:
             return
         if name not in _PLANT_FACTORS:
             raise KeyError(f"unknown plant parameter {name!r}; known: {', '.join(self.plant_param_names())}")
-        factor = float(factor)
-        if not (factor > 0 and math.isfinite(factor)):
-            raise ValueError(f"{name}: factor must be a positive finite number, got {factor!r}")
+        factor = checked(name, self.kind, factor)
         idx = _PLANT_FACTORS[name]
         self._plant_factors[idx] = factor
         self._plant_p[idx] = self._plant_nominal[idx] * factor

@@ -170,9 +170,7 @@ class SpimDrive:
             self._fw_cfg["dead_time_comp_v"] = checked(name, self.kind, value)
             self._fp = fw.firmware_params(self._fw_model, self._fw_cfg)
         elif name in self._fw_model:
-            if not value > 0:
-                raise ValueError(f"{name}: must be > 0, got {value!r}")
-            self._fw_model[name] = value
+            self._fw_model[name] = checked(name, self.kind, value)
             self._fp = fw.firmware_params(self._fw_model, self._fw_cfg)
         else:
             raise KeyError(f"unknown hook {name!r} for a spim drive; known: {', '.join(self.hook_names())}")
@@ -186,10 +184,7 @@ class SpimDrive:
             return
         if name not in names_for(self.kind, ParamKind.PLANT):
             raise KeyError(f"unknown plant parameter {name!r}; known: {', '.join(self.plant_param_names())}")
-        factor = float(factor)
-        if not (factor > 0 and math.isfinite(factor)):
-            raise ValueError(f"{name}: factor must be a positive finite number, got {factor!r}")
-        self._plant_factors[name] = factor
+        self._plant_factors[name] = checked(name, self.kind, factor)
         self._update_plant()
 
     def plant_param_names(self) -> tuple[str, ...]:
