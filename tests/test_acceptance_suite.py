@@ -23,6 +23,7 @@ REQUIRED = (
     "pmsm/fig07-reversal-2rads-flux-kick", "pmsm/fig08-20rads-rs-step", "pmsm/fig09-crane-lift-lower",
     "pmsm/fig10-startup-position-error", "pmsm/fig11-no-load-reversal", "spim/fig06-1500rpm-load-step",
     "spim/fig07-reversal-1500rpm", "spim/fig08-low-speed-15rpm", "spim/rr-sensitivity",
+    "pmsm/sig-isx-rs-step-eq15a", "spim/sig-slip-hold-unload",
 )
 
 

@@ -65,6 +65,23 @@ def test_the_encoder_cheat_is_caught_by_the_designed_signature_not_by_fig08(tmp_
     assert real.verdict == "pass"
 
 
+def test_the_tachometer_cheat_is_caught_by_the_slip_hold_signature_not_by_fig06(tmp_path):
+    """A SPIM firmware that reads its speed from a tachometer passes Fig. 6; holding the slip estimator under load
+    and then removing the load must leave w^ - w at -(held - no-load slip) / n_p (eq. 33), which it cannot show."""
+    mutant = next(m for m in ALL_MUTANTS if m.name == "true_speed_cheat")
+    sig_path = ROOT / "scenarios/spim/sig-slip-hold-unload.toml"
+    criterion = "slip held, load removed: w^ - w = -(held - no-load slip) / n_p of eq. (33)"
+    with mutant_kernel(mutant):
+        fig06 = run_scenario(ROOT / "scenarios/spim/fig06-1500rpm-load-step.toml", out_root=tmp_path, rerun_mode="off")
+        sig = run_scenario(sig_path, out_root=tmp_path, rerun_mode="off")
+    assert fig06.verdict == "pass"
+    failed = {c.name: c for c in sig.criteria if c.status == "fail"}
+    assert list(failed) == [criterion]
+    assert abs(failed[criterion].value - 10.564) < 0.2          # its w^ - w is ~0, not -10.564
+    real = run_scenario(sig_path, out_root=tmp_path, rerun_mode="off")
+    assert real.verdict == "pass"
+
+
 def test_a_mutant_edit_that_no_longer_matches_the_firmware_fails_loudly():
     with pytest.raises(AssertionError, match="found 0 times"):
         _apply("def firmware_step(): pass\n", [("s[S_THETA] = 0", "pass")], "stale mutant")

@@ -98,8 +98,10 @@ def test_freeze_speed_est_holds_the_slip_estimator(loaded_run):
     d.set_enabled(True)
     d.set_speed_ref(1500 * RPM)
     d.step(5000)
+    slip_int = d.firmware_state[fw.S_SLIP_INT]
     d.set_hook("freeze_speed_est", 1)
     slip0 = d.firmware_state[fw.S_SLIP]
+    assert slip0 == slip_int                       # held at the PI's integral: no proportional term on noise
     d.set_load(LOAD_BRAKE, 4.0)
     out = d.step(5000)
     assert d.firmware_state[fw.S_SLIP] == slip0

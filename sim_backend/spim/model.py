@@ -163,6 +163,8 @@ class SpimDrive:
         elif name == "pos_est_offset_rad":
             self._fs[fw.S_THETA] = wrap_angle(self._fs[fw.S_THETA] + value)
         elif name == "freeze_speed_est":
+            if value and self._fs[fw.S_FREEZE_SLIP] == 0.0:
+                self._fs[fw.S_SLIP] = self._fs[fw.S_SLIP_INT]
             self._fs[fw.S_FREEZE_SLIP] = 1.0 if value else 0.0
         elif name == "freeze_flux_est":
             self._fs[fw.S_FREEZE_FLUX] = 1.0 if value else 0.0
