@@ -181,7 +181,6 @@ def main() -> int:
     # 3) CPU time of this process (all its threads: simulator, links, Rerun's encoder, the journal flusher)
     cpu_base = statistics.median(base_cpu)
     cpu_extra = statistics.median(f - b for f, b in zip(full_cpu, base_cpu))   # paired by round
-    cpu_full = cpu_base + cpu_extra
     cpu_diff_pct = 100.0 * cpu_extra / cpu_base
     print(f"process CPU per run: baseline {['%.2f' % c for c in base_cpu]} s, full {['%.2f' % c for c in full_cpu]} s")
     print(f"  median paired extra {cpu_extra:.3f} s on a median baseline of {cpu_base:.2f} s -> {cpu_diff_pct:+.1f} % "

@@ -220,21 +220,21 @@ def render(kind: str) -> str:
     for title, group in (("MandatoryObjects", mandatory), ("OptionalObjects", optional),
                          ("ManufacturerObjects", manufacturer)):
         out += [f"[{title}]", f"SupportedObjects={len(group)}"]
-        out += [f"{k + 1}=0x{o.index:04X}" for k, o in enumerate(group)] + [""]
-        for o in group:
-            if o.var is not None:
-                lines = _var_lines(f"{o.index:04X}", o.var)
-                if o.description and not o.var.description:
-                    lines.insert(-1, f"Description={o.description}")
+        out += [f"{k + 1}=0x{entry.index:04X}" for k, entry in enumerate(group)] + [""]
+        for entry in group:
+            if entry.var is not None:
+                lines = _var_lines(f"{entry.index:04X}", entry.var)
+                if entry.description and not entry.var.description:
+                    lines.insert(-1, f"Description={entry.description}")
                 out += lines
             else:
-                out += [f"[{o.index:04X}]", f"ParameterName={o.name}", "ObjectType=0x9",
-                        f"SubNumber=0x{len(o.subs):X}"]
-                if o.description:
-                    out.append(f"Description={o.description}")
+                out += [f"[{entry.index:04X}]", f"ParameterName={entry.name}", "ObjectType=0x9",
+                        f"SubNumber=0x{len(entry.subs):X}"]
+                if entry.description:
+                    out.append(f"Description={entry.description}")
                 out.append("")
-                for sub, var in o.subs.items():
-                    out += _var_lines(f"{o.index:04X}sub{sub:X}", var)
+                for sub, var in entry.subs.items():
+                    out += _var_lines(f"{entry.index:04X}sub{sub:X}", var)
     return "\n".join(out)
 
 

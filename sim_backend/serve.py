@@ -15,10 +15,13 @@ import signal
 import sys
 import threading
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from bench.errors import InputError
 from drivers.toml_file import TomlFileError, read_toml_file
 
+if TYPE_CHECKING:
+    from sim_backend.rig import RigSpec
 
 
 class ServeError(InputError):

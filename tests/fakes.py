@@ -12,7 +12,7 @@ from typing import Sequence
 import numpy as np
 
 from drivers.api import DriveIdentity, DriveStatus, LinkError, LiveSample, LoadFeedback, LoadMode
-from drivers.signals import SIGNAL_INDEX, SIGNAL_NAMES, TIME_COLUMN
+from drivers.signals import SIGNAL_INDEX, TIME_COLUMN
 from sim_backend.toy import ToyDrive
 
 

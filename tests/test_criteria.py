@@ -60,8 +60,8 @@ def test_pos_error_wraps_angles():
     true_angle = wrap_angle(100.0 * T)
     est_angle = wrap_angle(100.0 * T - 0.2)     # lags by 0.2 rad, crossing the wrap many times
     cols = {"pos_est_elec_rad": est_angle, "pos_err_elec_rad": true_angle}
-    r = both("pos_error_max", "pos_err_elec_rad", cols, 0.2, reference="pos_est_elec_rad")
-    r = both("pos_error_rms", "pos_err_elec_rad", cols, 0.2, reference="pos_est_elec_rad")
+    both("pos_error_max", "pos_err_elec_rad", cols, 0.2, reference="pos_est_elec_rad")
+    both("pos_error_rms", "pos_err_elec_rad", cols, 0.2, reference="pos_est_elec_rad")
     # settled after a start-up error of 1.2 rad decaying with tau = 0.1 s
     err = 1.2 * np.exp(-T / 0.1)
     both("pos_error_max", "pos_err_elec_rad", {"pos_err_elec_rad": err}, 1.2 * math.exp(-10), window=(1.0, 10.0))

@@ -6,12 +6,10 @@ exit 2, every stderr line `file-or-option: field: reason`, no traceback, no run 
 from __future__ import annotations
 
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
-import pytest
 from click.testing import CliRunner
 
 from bench.cli import cli

@@ -117,7 +117,6 @@ def _drop_rows(monkeypatch, link_cls, method="fetch_trace"):
     def fetch(self):
         block = real(self)
         if block is not None and len(block.get("t_s", ())):
-            t = block["t_s"] - block["t_s"][0] if not hasattr(self, "_t0") else block["t_s"]
             keep = np.ones(len(block["t_s"]), dtype=bool)
             keep[len(keep) // 2:len(keep) // 2 + 30] = False        # 30 rows lost from the middle of one upload
             block = {k: v[keep] for k, v in block.items()}

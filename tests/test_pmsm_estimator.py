@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from drivers.signals import SIGNAL_INDEX as COL
-from sim_backend.drive import load_motor_config, make_drive
+from sim_backend.drive import make_drive
 from sim_backend.mechanics import LOAD_TORQUE, LOAD_VISCOUS
 
 CONFIG = "config/motors/pmsm-paper.toml"

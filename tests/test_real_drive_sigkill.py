@@ -14,7 +14,6 @@ import time
 from pathlib import Path
 
 import canopen
-import pytest
 from pymodbus.client import ModbusTcpClient
 
 from drivers import cia402

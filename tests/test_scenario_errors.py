@@ -8,7 +8,7 @@ import pytest
 
 from bench.errors import InputError
 from bench.scenario import load_scenario
-from tests.scenario_fixtures import BASE, write_bench, write_scenario
+from tests.scenario_fixtures import write_bench, write_scenario
 
 
 @pytest.fixture

@@ -3,17 +3,13 @@ as recording `run-ID` while teeing to their run.rrd."""
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
 import urllib.request
 
 import pytest
 
 pytest.importorskip("fastapi", reason="the [service] extra is not installed")
 
-from tests.service_fixtures import (REPO, SCENARIOS, SHORT, free_port, make_settings, make_tokens,  # noqa: E402
+from tests.service_fixtures import (SHORT, free_port, make_settings, make_tokens,  # noqa: E402
                                     serve_process, stop_process)
 
 
