@@ -118,7 +118,8 @@ CATALOGUE: tuple[Parameter, ...] = (
               "estimated flux magnitude <- f * estimated flux, once (PMSM paper Fig. 7)"),
     Parameter("pos_est_offset_rad", H, "rad", ANY, _BOTH,
               "estimated field angle <- estimated angle + a, once (PMSM paper Fig. 10)"),
-    Parameter("freeze_speed_est", H, "1", HOLD, _BOTH, "1: hold the speed (PMSM) / slip (SPIM) estimator output"),
+    Parameter("freeze_speed_est", H, "1", HOLD, _BOTH,
+              "1: hold the speed estimator (PMSM: w^ as it is) / slip estimator (SPIM: w^_sl at its PI's integral)"),
     Parameter("freeze_flux_est", H, "1", HOLD, _BOTH, "1: hold the flux-magnitude estimator output"),
     # firmware model parameters (absolute values, SI units)
     Parameter("fw_rs_ohm", F, "ohm", POSITIVE_SI, _P, "stator resistance in the estimators"),
