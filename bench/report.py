@@ -354,7 +354,7 @@ def write_report(run_dirs: Sequence[Path], out_md: Path = Path("docs/validation.
                              f"Why: {md_cell(c['known_gap'])}")
             lines.append("")
 
-    lines += mutation_section(sorted({Path(d).parent for d in run_dirs}))
+    lines += mutation_section(sorted({d.parent for d in run_dirs}))
     lines += ["## Deviations from the papers", "", "### In the simulated drives", ""]
     docs_dir = out_md.parent if any(out_md.parent.glob("firmware*.md")) else REPO_ROOT / "docs"
     found = firmware_deviations(docs_dir)

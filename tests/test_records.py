@@ -247,9 +247,7 @@ def test_the_heap_is_frozen_once_per_process_not_before_every_run():
     """freeze_long_lived freezes at a process's second run only: freezing before every run would keep each earlier
     run's cyclic garbage for good."""
     import gc
-    import subprocess
-    import sys
-    code = ("import gc, bench.records as r\n"
+    code = ("import gc, json, bench.records as r\n"
             "counts, keep = [], []\n"
             "for k in range(4):\n"
             "    r.freeze_long_lived()\n"
@@ -258,9 +256,9 @@ def test_the_heap_is_frozen_once_per_process_not_before_every_run():
             "    for a, b in zip(junk, junk[1:]): a.append(b); b.append(a)   # cyclic garbage of this 'run'\n"
             "    del junk, a, b\n"
             "    counts.append(gc.get_freeze_count())\n"
-            "print(counts)\n")
+            "print(json.dumps(counts))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
                          cwd=Path(__file__).resolve().parents[1])
-    counts = eval(out.stdout.strip())
+    counts = json.loads(out.stdout)
     assert counts[0] == 0 and counts[1] > 0 and counts[1] == counts[2] == counts[3], (counts, out.stderr)
     assert gc.isenabled()

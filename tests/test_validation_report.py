@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -175,7 +176,7 @@ def test_mutation_table_beside_the_runs_goes_into_the_report(tmp_path, capsys):
     run = make_run(tmp_path, "pmsm", "pmsm-good", pos_err=0.01, flux_err=0.5, i_sy=3.03)
     mutants = run.parent / "mutants"
     mutants.mkdir()
-    (mutants / "pmsm-encoder_cheat.json").write_text(__import__("json").dumps(
+    (mutants / "pmsm-encoder_cheat.json").write_text(json.dumps(
         {"drive": "pmsm", "name": "encoder_cheat", "what": "angle from an encoder",
          "killed_by": {"sig-isx-rs-step-eq15a": ["position error = eq. (15a)"]}}))
     (mutants / "spim-lazy.json").write_text('{"drive": "spim", "name": "lazy", "what": "does nothing", "killed_by": {}}')
