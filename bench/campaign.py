@@ -29,6 +29,7 @@ import hashlib
 import itertools
 import json
 import math
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -236,7 +237,7 @@ def points(campaign: Campaign, out_dir: Path) -> list[Point]:
         text = scenario.read_text()
         rig = rig_of(scenario)
         for axes in axis_points(campaign):
-            run_file = scenario if not axes else _derived(scenario, text, axes, out_dir)
+            run_file = scenario if not axes else derived_scenario(scenario, text, axes, out_dir)
             for seed in campaign.seeds:
                 digest = hashlib.sha256(text.encode())
                 digest.update(json.dumps([list(a) for a in axes]).encode())
@@ -256,15 +257,15 @@ def rig_of(scenario: Path) -> str | None:
     return None if cfg.services_start else cfg.bench.name
 
 
-def _derived(scenario: Path, text: str, axes: tuple[tuple[str, float], ...], out_dir: Path) -> Path:
+def derived_scenario(scenario: Path, text: str, axes: tuple[tuple[str, float], ...], out_dir: Path) -> Path:
+    """A copy of the scenario (its text) under out_dir/scenarios with each axis added as an injection at 0 s: what a
+    campaign point with parameter axes runs."""
     root = find_repo_root(scenario)
     tag = hashlib.sha256(json.dumps([list(a) for a in axes]).encode()).hexdigest()[:10]
     target = out_dir / "scenarios" / f"{scenario.stem}-{tag}.toml"
     target.parent.mkdir(parents=True, exist_ok=True)
     lines = text.splitlines()
     # the bench path of the original is relative to the repository root: make it absolute for the copy
-    import tomllib
-
     bench = tomllib.loads(text).get("bench")
     if isinstance(bench, str) and not Path(bench).is_absolute():
         lines = [f'bench = "{(root / bench).as_posix()}"' if line.strip().startswith("bench =") else line

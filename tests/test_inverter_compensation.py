@@ -10,7 +10,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from bench.campaign import _derived
+from bench.campaign import derived_scenario
 from bench.orchestrator import run_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -20,7 +20,7 @@ PMSM_IGBT = (("inverter_dead_time_s", 2e-6), ("inverter_device_drop_v", 1.5))
 
 
 def run_with(scenario: Path, axes, tmp_path: Path):
-    derived = _derived(scenario, scenario.read_text(), tuple(axes), tmp_path)
+    derived = derived_scenario(scenario, scenario.read_text(), tuple(axes), tmp_path)
     result = run_scenario(derived, out_root=tmp_path / "runs", seed=1, rerun_mode="off")
     columns = pq.read_table(result.run_dir / "telemetry.parquet").to_pydict()
     return result, {k: np.asarray(v) for k, v in columns.items()}
