@@ -84,17 +84,13 @@ class Campaign:
 
 def wilson_interval(passes: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
     """Wilson score interval of a binomial proportion (E. B. Wilson, JASA 22(158), 1927): good at the extremes
-    (0 or n passes) where the normal approximation breaks down. (0, 1) without trials."""
+    (0 or n passes) where the normal approximation breaks down. (0, 1) without trials. scipy's implementation."""
     if n <= 0:
         return 0.0, 1.0
-    from statistics import NormalDist
+    from scipy.stats import binomtest
 
-    z = NormalDist().inv_cdf(0.5 + confidence / 2.0)
-    p = passes / n
-    denom = 1.0 + z * z / n
-    centre = (p + z * z / (2 * n)) / denom
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return max(0.0, centre - half), min(1.0, centre + half)
+    ci = binomtest(passes, n).proportion_ci(confidence_level=confidence, method="wilson")
+    return max(0.0, float(ci.low)), min(1.0, float(ci.high))
 
 
 def load_campaign(path: str | Path) -> Campaign:
