@@ -19,19 +19,25 @@ EXIT_ACCEPTED, EXIT_NOT_ACCEPTED, EXIT_ERROR = 0, 1, 2
 @click.option("--address", default=None, help="Ray: the cluster's address (default: start or join a local one).")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Results directory (default: campaigns/out/NAME). An existing one is resumed.")
-def campaign(campaign_file: Path, workers: int, engine: str, address: str | None, out_dir: Path | None) -> None:
+@click.option("--dry-run", is_flag=True, help="List the points (scenario, seed, axes) and which a resume would "
+                                              "skip; run nothing.")
+def campaign(campaign_file: Path, workers: int, engine: str, address: str | None, out_dir: Path | None,
+             dry_run: bool) -> None:
     """Run a campaign: scenarios x seeds x parameter axes, pass rates with their confidence intervals.
 
     Exit 0 accepted, 1 not accepted (or a run errored), 2 bad input."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     from bench.campaign import load_campaign
-    from bench.campaign_run import run_campaign, write_results
+    from bench.campaign_run import done_ids, run_campaign, write_results
     from bench.cli import _fail
 
     try:
         camp = load_campaign(campaign_file)
         out = out_dir or Path("campaigns") / "out" / camp.name
+        if dry_run:
+            sys.exit(_dry_run(camp, out))
+        resumed = len(done_ids(out)) if out.is_dir() else 0
         started = time.monotonic()
         with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                       TextColumn("[green]{task.fields[passed]} pass[/] [red]{task.fields[other]} other[/]"),
@@ -47,6 +53,27 @@ def campaign(campaign_file: Path, workers: int, engine: str, address: str | None
     except Exception as exc:
         sys.exit(_fail(exc))
     wall = time.monotonic() - started
-    click.echo(f"{camp.name}: {result['runs']} runs in {wall:.1f} s; "
+    ran = f"{result['runs'] - resumed} run now, {resumed} resumed from {out}" if resumed else "all run now"
+    click.echo(f"{camp.name}: {result['runs']} runs ({ran}) in {wall:.1f} s; "
                f"{'accepted' if result['accepted'] else 'NOT accepted'}; report {out / 'report.md'}")
     sys.exit(EXIT_ACCEPTED if result["accepted"] else EXIT_NOT_ACCEPTED)
+
+
+def _dry_run(camp, out: Path) -> int:
+    """One line per point; the derived scenarios go to a scratch directory, not into the results."""
+    import tempfile
+
+    from bench.campaign import points
+    from bench.campaign_run import done_ids
+
+    finished = done_ids(out) if out.is_dir() else {}
+    with tempfile.TemporaryDirectory() as scratch:
+        todo = points(camp, Path(scratch))
+        for p in todo:
+            axes = ", ".join(f"{k}={v:g}" for k, v in p.axes) or "-"
+            state = "done (a resume skips it)" if p.point_id in finished else "to run"
+            click.echo(f"{p.point_id}  {p.source.name}  seed {p.seed}  {axes}  {state}")
+    skipped = sum(p.point_id in finished for p in todo)
+    click.echo(f"{camp.name}: {len(todo)} points, {len(todo) - skipped} to run, {skipped} done in {out}; "
+               "nothing run (--dry-run)")
+    return EXIT_ACCEPTED

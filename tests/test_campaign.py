@@ -115,6 +115,9 @@ def test_a_campaign_runs_every_point_like_drivebench_run_and_resumes(tmp_path):
                            'seeds = [1, 2, 3]\n[acceptance]\nrule = "every_run"\n')
     camp = load_campaign(path)
     out = tmp_path / "out"
+    dry = CliRunner().invoke(cli, ["campaign", str(path), "--out", str(out), "--dry-run"])
+    assert dry.exit_code == 0 and dry.output.count(" to run\n") == 6, dry.output
+    assert "6 points, 6 to run, 0 done" in dry.output and not (out / "results.jsonl").exists()
     rows = run_campaign(camp, out, workers=2)
     summary = write_results(camp, out, rows)
     table = pq.read_table(out / "results.parquet")
@@ -134,6 +137,10 @@ def test_a_campaign_runs_every_point_like_drivebench_run_and_resumes(tmp_path):
     assert len(rows_again) == 6 and (out / "results.jsonl").read_text().splitlines() == lines
     assert sorted((out / "runs").iterdir()) == run_dirs
     assert json.loads(lines[0])["point_id"] in {r["point_id"] for r in rows_again}
+    dry = CliRunner().invoke(cli, ["campaign", str(path), "--out", str(out), "--dry-run"])
+    assert "6 points, 0 to run, 6 done" in dry.output and dry.output.count("a resume skips it") == 6
+    resumed = CliRunner().invoke(cli, ["campaign", str(path), "--out", str(out)])
+    assert resumed.exit_code == 0 and "6 runs (0 run now, 6 resumed from" in resumed.output, resumed.output
 
 
 def _pool_workers() -> list[int]:
