@@ -262,19 +262,44 @@ class _progress:
         return False
 
 
-def _is_bench_config(path: Path) -> bool:
+def _file_kind(path: Path) -> str:
+    """"bench", "campaign" or "scenario": what a TOML file given to `validate` is, by its top-level keys."""
     from bench.benchconfig import read_toml
 
     raw = read_toml(path)
-    return isinstance(raw.get("bench"), dict) and "drive" in raw
+    if isinstance(raw.get("bench"), dict) and "drive" in raw:
+        return "bench"
+    if "scenarios" in raw and "duration_s" not in raw:
+        return "campaign"
+    return "scenario"
+
+
+def _validate_campaign(path: Path) -> int:
+    """The campaign file and each of its scenarios on its own bench; the number of problem lines printed."""
+    from bench.campaign import axis_points, load_campaign
+    from bench.orchestrator import prepare
+
+    camp = load_campaign(path)
+    runs = len(camp.scenarios) * len(camp.seeds) * len(axis_points(camp))
+    click.echo(f"{path}: ok (campaign {camp.name!r}, {len(camp.scenarios)} scenarios, {len(camp.seeds)} seeds, "
+               f"{runs} runs)")
+    bad = 0
+    for scenario in camp.scenarios:
+        try:
+            prepare(scenario, None)
+        except (InputError, FileNotFoundError, tomllib.TOMLDecodeError, OSError) as exc:
+            for line in _problem_lines(exc):
+                click.echo(line, err=True)
+                bad += 1
+    return bad
 
 
 @cli.command()
 @click.argument("files", nargs=-1, required=True)
 @click.option("--bench", "bench_path", type=click.Path(), help="Validate scenarios against this bench config.")
 def validate(files, bench_path) -> None:
-    """Check scenario and bench config FILEs; one line per problem, exit 2 if any. For a scenario, also the criteria
-    its bench cannot judge (signals it does not measure)."""
+    """Check scenario, campaign and bench config FILEs; one line per problem, exit 2 if any. For a scenario, also the
+    criteria its bench cannot judge (signals it does not measure); for a campaign, each of its scenarios."""
     from bench.benchconfig import load_bench_config, measurable_signals
     from bench.criteria import signals_of
     from bench.orchestrator import prepare
@@ -283,7 +308,10 @@ def validate(files, bench_path) -> None:
     for name in files:
         path = Path(name)
         try:
-            if _is_bench_config(path):
+            kind = _file_kind(path)
+            if kind == "campaign":
+                bad = _validate_campaign(path) > 0 or bad
+            elif kind == "bench":
                 cfg = load_bench_config(path)
                 load = f"load over {cfg.load['transport']}" if cfg.load else "no load machine"
                 click.echo(f"{path}: ok (bench config {cfg.bench.name!r}, drive over {cfg.drive['transport']}, "

@@ -152,6 +152,20 @@ def test_validate_good_files_exit_0():
     assert proc.stdout.count(": ok") == len(files)
 
 
+def test_validate_knows_a_campaign_file_and_checks_its_scenarios(tmp_path):
+    proc = drivebench("validate", REPO / "campaigns/inverter-pmsm.toml")
+    assert proc.returncode == 0, proc.stderr
+    assert "ok (campaign 'inverter-pmsm', 3 scenarios, 3 seeds, 45 runs)" in proc.stdout
+    bad_scenario = tmp_path / "bad.toml"
+    bad_scenario.write_text((REPO / "scenarios/examples/pmsm-rs-step.toml").read_text().replace(
+        "duration_s = ", "duration_s = -", 1).replace('bench = "', f'bench = "{REPO}/', 1))
+    camp = tmp_path / "camp.toml"
+    camp.write_text(f'schema_version = 1\nname = "c"\nscenarios = ["{bad_scenario}"]\nseeds = [1]\n')
+    proc = drivebench("validate", camp)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert proc.stderr.startswith(f"{bad_scenario}: duration_s:"), proc.stderr
+
+
 def test_show_not_a_run_dir_exit_2(tmp_path):
     proc = drivebench("show", tmp_path)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
