@@ -120,7 +120,8 @@ def criteria_table(title: str, criteria: Iterable[Any]) -> Table:
             result = "[red]FAIL[/red]"
         value = c.get("value")
         table.add_row(str(c.get("name")), str(c.get("signal")), _fmt(c.get("window_s")),
-                      "n/a" if value is None else _fmt(value), _fmt(c.get("limit")), result)
+                      "n/a" if value is None else _fmt(value),
+                      " ".join(filter(None, (_fmt(c.get("limit")), c.get("unit")))), result)
     if gaps:
         table.caption = "\n".join(f"({n}) {gap}" for n, gap in enumerate(gaps, start=1))
         table.caption_justify = "left"

@@ -46,6 +46,7 @@ class CriterionResult:
     known_gap: str | None
     detail: str
     status: str = ""               # "pass" | "fail" | "not_judged"
+    unit: str = ""                 # of value and limit ("%", "s", the signal's unit); "" where it has none
 
     def __post_init__(self) -> None:
         if not self.status:
@@ -494,8 +495,23 @@ def evaluate(specs, t_s: np.ndarray, columns: dict[str, np.ndarray], *, measured
         if not passed and math.isfinite(value):
             detail = f"value {value:.6g} > limit {spec.limit:g}; {detail}"
         results.append(CriterionResult(spec.name, spec.kind, spec.signal, tuple(spec.window_s), float(value),
-                                       float(spec.limit), passed, spec.known_gap, detail, status))
+                                       float(spec.limit), passed, spec.known_gap, detail, status, unit_of(spec)))
     return results
+
+
+def unit_of(spec: CriterionSpec) -> str:
+    """The unit of a criterion's value and limit: its kind's ("%", "s", "rad"), or its signal's (drivers.signals),
+    or "%" for a kind that judges in percent when asked (`percent = true`)."""
+    from drivers.signals import SIGNALS
+
+    kind = KINDS.get(spec.kind)
+    if kind is None:
+        return ""
+    if kind.unit != "signal":
+        return kind.unit
+    if spec.params.get("percent"):
+        return "%"
+    return next((s.unit for s in SIGNALS if s.name == spec.signal), "")
 
 
 VERDICTS = ("pass", "fail", "incomplete", "aborted", "error")

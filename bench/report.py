@@ -130,6 +130,8 @@ def read_run(run_dir: Path) -> Run:
 # -- formatting ----------------------------------------------------------------------------------------------
 
 def unit_of(criterion: dict, params: dict | None = None) -> str:
+    if criterion.get("unit"):                      # records since the unit was recorded; older ones: inferred
+        return str(criterion["unit"]).replace("N*m", "N·m")
     kind = criterion.get("kind", "")
     if kind in KIND_UNITS:
         return KIND_UNITS[kind]

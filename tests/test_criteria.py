@@ -242,3 +242,18 @@ def test_smoothing_angles_on_the_circle():
     r = run("pos_error_max", "pos_err_elec_rad", {"pos_err_elec_rad": wrap_angle(err - np.pi)}, 0.2,
             window=(1.0, 2.0), smooth_s=0.05)
     assert r.passed and r.value < 0.2, r.detail
+
+
+def test_every_result_carries_the_unit_of_its_value_and_limit():
+    t = np.arange(0.0, 1.0, 0.001)
+    cols = {"i_sx_a": np.zeros_like(t), "speed_est_mech_rad_s": np.full_like(t, 10.0),
+            "speed_true_mech_rad_s": np.full_like(t, 10.0), "speed_ref_mech_rad_s": np.full_like(t, 10.0)}
+    specs = [CriterionSpec("a", "peak_abs", "i_sx_a", (0.0, 1.0), 1.0),
+             CriterionSpec("b", "speed_error_max_pct", "speed_est_mech_rad_s", (0.0, 1.0), 1.0),
+             CriterionSpec("c", "steady_state_error", "speed_est_mech_rad_s", (0.0, 1.0), 1.0,
+                           {"reference": "speed_true_mech_rad_s", "percent": True}),
+             CriterionSpec("d", "steady_state_error", "speed_est_mech_rad_s", (0.0, 1.0), 1.0,
+                           {"reference": "speed_true_mech_rad_s"}),
+             CriterionSpec("e", "settling_time", "speed_est_mech_rad_s", (0.0, 1.0), 1.0,
+                           {"reference": "speed_ref_mech_rad_s"})]
+    assert [r.unit for r in evaluate(specs, t, cols)] == ["A", "%", "%", "rad/s", "s"]

@@ -34,7 +34,8 @@ def block(k: int, n: int = 100) -> dict[str, np.ndarray]:
 
 
 def result(name, value, limit, passed, gap=None):
-    return CriterionResult(name, "peak_abs", "i_sx_a", (0.0, 1.0), value, limit, passed, gap, f"detail of {name}")
+    return CriterionResult(name, "peak_abs", "i_sx_a", (0.0, 1.0), value, limit, passed, gap, f"detail of {name}",
+                           unit="A")
 
 
 def test_record_lifecycle_parquet_and_junit(tmp_path):
@@ -65,7 +66,7 @@ def test_record_lifecycle_parquet_and_junit(tmp_path):
     by_name = {c["name"]: c for c in record["criteria"]}
     assert by_name["bad"] == {"name": "bad", "kind": "peak_abs", "signal": "i_sx_a", "window_s": [0.0, 1.0],
                               "value": 2.0, "limit": 1.0, "passed": False, "known_gap": None,
-                              "detail": "detail of bad", "status": "fail"}
+                              "detail": "detail of bad", "status": "fail", "unit": "A"}
     assert by_name["gap"]["value"] is None and by_name["gap"]["known_gap"] == "eq. 15b offset"   # inf -> null
     assert record["telemetry"]["rows"] == 1001
 
@@ -80,7 +81,14 @@ def test_record_lifecycle_parquet_and_junit(tmp_path):
     assert suite.get("tests") == "3" and suite.get("failures") == "1" and suite.get("skipped") == "1"
     cases = {c.get("name"): c for c in suite.findall("testcase")}
     failure = cases["bad"].find("failure")
-    assert "value 2" in failure.get("message") and "limit 1" in failure.get("message")
+    assert "value 2 A" in failure.get("message") and "limit 1 A" in failure.get("message")
+    assert all(c.get("time") == "1" for c in cases.values())           # the window's drive seconds
+    assert {p.get("name"): p.get("value") for p in cases["bad"].iter("property")} == {
+        "kind": "peak_abs", "signal": "i_sx_a", "unit": "A", "value": "2", "limit": "1", "status": "fail"}
+    props = {p.get("name"): p.get("value") for p in suite.find("properties").iter("property")}
+    assert props["seed"] == "42" and props["scenario.sha256"] == "ab" * 32 and props["verdict"] == "fail"
+    assert props["drive.firmware_version"] == "1.2.3" and "software.git_revision" in props
+    assert float(suite.get("time")) >= 0.0
     assert cases["gap"].find("skipped").get("message") == "known gap: eq. 15b offset"
     assert cases["ok"].find("failure") is None and cases["ok"].find("skipped") is None
 
