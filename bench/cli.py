@@ -509,19 +509,16 @@ def _json_default(value: Any) -> Any:
 
 @cli.command()
 @click.argument("run_dirs", nargs=-1, required=True)
-@click.option("--out", "out_md", type=click.Path(), default="docs/validation.md", show_default=True,
-              help="Markdown report to write (plots go beside it).")
-def report(run_dirs, out_md) -> None:
-    """Validation report over RUN_DIRs (bench/report.py)."""
-    try:
-        from bench import report as report_module
-    except ImportError:
-        report_module = None
-    entry = getattr(report_module, "main", None)
-    if entry is None:
-        click.echo("drivebench report: not yet implemented", err=True)
-        sys.exit(EXIT_ERROR)
-    sys.exit(_guarded(lambda: int(entry(list(run_dirs), out_md))))
+@click.option("--out", "out_md", type=click.Path(dir_okay=False), default=None,
+              help="Markdown report to write, plots in a folder beside it (default: report.md beside the runs).")
+@click.option("--suites", type=click.Path(dir_okay=False), default=None,
+              help="Paper-suites file: its scenario folders are reported as the papers' claims "
+                   "(config/report/paper-suites.toml makes docs/validation.md).")
+def report(run_dirs, out_md, suites) -> None:
+    """Report over RUN_DIRs: every criterion with its limit, basis and measured value, a plot per run."""
+    from bench import report as report_module
+
+    sys.exit(_guarded(lambda: int(report_module.main(list(run_dirs), out_md, suites))))
 
 
 def _add_plugin_commands() -> None:

@@ -1,9 +1,11 @@
-"""Validation report: `drivebench report RUN_DIR...` -> docs/validation.md with plots in docs/validation/.
+"""Report: `drivebench report RUN_DIR... [--out FILE] [--suites FILE]` -> a Markdown file (default report.md beside
+the runs) with plots in a folder of the same name.
 
-Per paper (PMSM: scenarios/pmsm, SPIM: scenarios/spim, anything else: "other runs"), a table of every
-criterion of every run: test, the paper's claim or the stated basis (the criterion's comments in the
-scenario file), the measured value, the verdict (pass, FAIL, known gap). One PNG per run beside it, and the
-deviations from the papers (collected from docs/firmware*.md and the suite's own choices).
+A table of every criterion of every run: test, the limit and the stated basis (the criterion's comments in the
+scenario file), the measured value, the verdict (pass, FAIL, known gap), and a PNG per run. With a suites file
+(config/report/paper-suites.toml: this repository's paper suites; docs/validation.md is made so) the runs of its
+folders are grouped per paper, their criteria read as the paper's claims, and the deviations from the papers
+(docs/firmware*.md and the suite's own choices) follow; any other run is reported as what it is.
 """
 
 from __future__ import annotations
@@ -22,36 +24,64 @@ import numpy as np
 from bench.errors import InputError
 from bench.records import load_run
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-PAPERS: dict[str, str] = {
-    "pmsm": "PMSM — Rashed, MacConnell, Stronach, Acarnley: sensorless IRFOC with MRAS speed and flux "
-            "estimators, Proc. 44th IEEE CDC-ECC 2005",
-    "spim": "SPIM — Jemli, Ben Azza, Boussak, Gossa: sensorless ISFOC of a single-phase induction motor, "
-            "IEEE TPEL 24(6) 2009, doi:10.1109/TPEL.2009.2014867",
-    "other": "Other runs",
-}
+OTHER = "other"
 
-# The acceptance suite's own departures from the papers (the scenario files say the same at each place).
-SUITE_DEVIATIONS: tuple[str, ...] = (
-    "Speeds are mechanical everywhere (docs/scenarios.md); the PMSM paper's ±2, 10, 20 rad/s are read as "
-    "mechanical (its Figs. 9–11 label them so), the SPIM paper's r/min are mechanical.",
-    "Where the papers give no time, the scenarios choose it: reversals are steps of the reference (the drives' "
-    "ramp limiters shape them), holds last as long as the windows need (CI time), the R_r-sensitivity run "
-    "holds the load 4 s instead of Fig. 6's 10 s (the plant has no thermal model).",
-    "Loads: PMSM Figs. 7–8 active torque (paper: \"constant load torque\"); Fig. 10's DC generator into a "
-    "resistor is viscous 0.1 N·m·s/rad (paper: no data); Fig. 9's crane drum radius 0.024 m follows from "
-    "\"i_sy higher than 3 A\" with K_t = 1.5·p·ψ; SPIM loads are the paper's magnetic powder brake (passive).",
-    "The crane model is m·g·r only: no pulley friction, so the paper's \"i_sy below 3 A while lowering\" "
-    "cannot appear (kept as a known gap).",
-    "PMSM Fig. 10: the paper's \"+1.2 rad\" is read with its own sign convention (error = true − estimated): "
-    "pos_est_offset_rad = −1.2, pos_err starts at +1.2 rad (the sign that converged in 14 of 20 seeds in "
-    "docs/firmware-pmsm.md); a mirror scenario starts at −1.2 rad.",
-    "Numbers the papers do not give (position tolerance 0.05 rad, π/4 stability bound, recovery and reversal "
-    "times) are derived in the scenario files from eq. (13)'s poles, the drives' configured loops, or the "
-    "papers' 1 % accuracy figure.",
-    "The PMSM flux-recovery claim is judged on window averages (the per-sample estimate at 6 elec rad/s carries "
-    "~6.6 % rms noise from the 5 mA current noise; the criteria have no filter).",
-)
+
+@dataclass(frozen=True)
+class Suites:
+    """A suites file (config/report/paper-suites.toml): scenario folders that are a paper's validation suite. Without
+    one every run is reported as what it is: a scenario with its stated basis, no paper's claim."""
+    title: str = "Test report"
+    regenerate: str = ""
+    folders: tuple[tuple[str, Path, str], ...] = ()      # (key, folder, heading)
+    firmware_docs: Path | None = None
+    deviations: tuple[str, ...] = ()
+
+    def key_of(self, scenario_path: Path | None) -> str:
+        if scenario_path is not None:
+            for key, folder, _ in self.folders:
+                if scenario_path.resolve().parent == folder:
+                    return key
+        return OTHER
+
+    def heading(self, key: str) -> str:
+        own = {k: title for k, _, title in self.folders}
+        if key in own:
+            return own[key]
+        return "Other scenarios (not paper claims)" if self.folders else "Runs"
+
+    @property
+    def keys(self) -> list[str]:
+        return [k for k, _, _ in self.folders] + [OTHER]
+
+
+def load_suites(path: str | Path | None) -> Suites:
+    """The suites file, folders resolved against the repository root that holds it; InputError when unreadable."""
+    if path is None:
+        return Suites()
+    from bench.benchconfig import read_toml
+    from bench.errors import find_repo_root
+
+    path = Path(path)
+    raw = read_toml(path)
+    root = find_repo_root(path)
+    problems = []
+    folders = []
+    for i, entry in enumerate(raw.get("suite") or []):
+        folder, title = entry.get("folder"), entry.get("title")
+        if not isinstance(folder, str) or not isinstance(title, str) or not (root / folder).is_dir():
+            problems.append(f"{path}: suite[{i}]: needs a folder (an existing directory) and a title")
+            continue
+        folders.append((Path(folder).name, (root / folder).resolve(), title))
+    docs = raw.get("firmware_docs")
+    deviations = raw.get("deviations") or []
+    if not isinstance(deviations, list) or not all(isinstance(d, str) for d in deviations):
+        problems.append(f"{path}: deviations: must be a list of strings")
+    if problems:
+        raise InputError(problems)
+    return Suites(str(raw.get("title") or "Validation report"), str(raw.get("regenerate") or ""), tuple(folders),
+                  (root / docs) if isinstance(docs, str) else None, tuple(deviations))
+
 
 KIND_UNITS = {
     "speed_error_max_pct": "%", "speed_error_rms_pct": "%", "flux_error_max_pct": "%",
@@ -80,26 +110,13 @@ class Run:
     record: dict[str, Any]
     columns: dict[str, np.ndarray]
     complete: bool
-    paper: str
+    paper: str                  # the suite key (a paper's scenario folder) or OTHER
     name: str
     scenario_path: Path | None
     basis: dict[str, str] = field(default_factory=dict)
 
 
 # -- reading -------------------------------------------------------------------------------------------------
-
-def paper_of(record: dict) -> str:
-    path = str((record.get("scenario") or {}).get("path") or "")
-    parts = Path(path).parts
-    for kind in ("pmsm", "spim"):
-        if len(parts) >= 2 and parts[-2] == kind:
-            return kind
-    bench = str((record.get("bench") or {}).get("name") or "")
-    for kind in ("pmsm", "spim"):
-        if kind in bench.lower() and f"/{kind}/" in path:
-            return kind
-    return "other"
-
 
 def criteria_comments(scenario_text: str) -> dict[str, str]:
     """criterion name -> its comment lines in the scenario file (the stated basis), joined."""
@@ -114,7 +131,7 @@ def criteria_comments(scenario_text: str) -> dict[str, str]:
     return out
 
 
-def read_run(run_dir: Path) -> Run:
+def read_run(run_dir: Path, suites: Suites = Suites()) -> Run:
     record, columns, complete = load_run(run_dir)
     scenario = record.get("scenario") or {}
     name = str(scenario.get("name") or run_dir.name)
@@ -124,7 +141,7 @@ def read_run(run_dir: Path) -> Run:
         data = path.read_bytes()
         if hashlib.sha256(data).hexdigest() == scenario.get("sha256"):  # the file the run used
             basis = criteria_comments(data.decode("utf-8"))
-    return Run(run_dir, record, columns, complete, paper_of(record), name, path, basis)
+    return Run(run_dir, record, columns, complete, suites.key_of(path), name, path, basis)
 
 
 # -- formatting ----------------------------------------------------------------------------------------------
@@ -289,15 +306,24 @@ def _safe_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "-", name).strip("-.") or "run"
 
 
-def write_report(run_dirs: Sequence[Path], out_md: Path = Path("docs/validation.md")) -> Path:
-    """Write the validation report for `run_dirs` to `out_md` and its plots beside it; returns out_md.
+def default_out(run_dirs: Sequence[Path]) -> Path:
+    """Beside the runs: report.md in the directory that holds them (their common parent)."""
+    import os
+
+    parents = [str(Path(d).resolve().parent) for d in run_dirs] or ["."]
+    return Path(os.path.commonpath(parents)) / "report.md"
+
+
+def write_report(run_dirs: Sequence[Path], out_md: Path | None = None, suites: Suites = Suites()) -> Path:
+    """Write the report for `run_dirs` to `out_md` (default: beside the runs) and its plots beside it; returns the
+    path. With `suites` (a paper-suites file) runs of its folders are grouped under their paper.
 
     Raises InputError when a run directory cannot be read.
     """
-    out_md = Path(out_md)
-    plot_dir = out_md.parent / out_md.stem
     run_dirs = [Path(d) for d in run_dirs if Path(d).name != MUTANTS_DIR]   # `report DIR/*` also names the table
-    all_runs = [read_run(d) for d in run_dirs]
+    out_md = Path(out_md) if out_md is not None else default_out(run_dirs)
+    plot_dir = out_md.parent / out_md.stem
+    all_runs = [read_run(d, suites) for d in run_dirs]
     if not all_runs:
         raise InputError(["report: no run directories given"])
     latest: dict[str, Run] = {}
@@ -305,23 +331,20 @@ def write_report(run_dirs: Sequence[Path], out_md: Path = Path("docs/validation.
         latest[r.name] = r  # one section per scenario: the latest of its runs
     runs = list(latest.values())
     superseded = [r for r in all_runs if latest[r.name] is not r]
-    runs.sort(key=lambda r: (list(PAPERS).index(r.paper), r.name))
+    runs.sort(key=lambda r: (suites.keys.index(r.paper), r.name))
     out_md.parent.mkdir(parents=True, exist_ok=True)
 
-    lines = ["# Validation against the papers", ""]
+    lines = [f"# {suites.title}", ""]
     revisions = sorted({str((r.record.get("software") or {}).get("git_revision")) for r in runs})
     dirty = any((r.record.get("software") or {}).get("git_dirty") for r in runs)
     started = sorted(str(r.record.get("started_utc")) for r in runs)
     lines += [
         f"Generated by `drivebench report` from {len(runs)} run(s), {started[0]} to {started[-1]} UTC, "
         f"software {', '.join(revisions)}{' (work tree with uncommitted changes)' if dirty else ''}.",
-        "Each test is a criterion of a scenario file (`scenarios/pmsm`, `scenarios/spim`); its claim column "
-        "gives the limit, the window and the basis written in the scenario file. A **known gap** keeps the "
-        "paper's limit and fails without failing the run (tests/known_gaps.toml lists them).",
-        "Regenerate: `pytest tests/test_acceptance_suite.py tests/test_mutants.py -n 2 --drivebench-out "
-        "runs/acceptance` then `drivebench report runs/acceptance/*`.",
-        "",
+        "Each test is a criterion of a scenario file; its claim column gives the limit, the window and the basis "
+        "written in the scenario file. A **known gap** keeps its limit and fails without failing the run.",
     ]
+    lines += [suites.regenerate, ""] if suites.regenerate else [""]
     counts = {"pass": 0, SEED_DEPENDENT: 0, "known gap": 0, "**FAIL**": 0, "not judged": 0}
     for r in runs:
         for c in r.record.get("criteria") or []:
@@ -334,11 +357,11 @@ def write_report(run_dirs: Sequence[Path], out_md: Path = Path("docs/validation.
         lines += ["Older runs of the same scenarios, not reported: "
                   + ", ".join(f"`{r.run_dir.name}` ({r.record.get('verdict')})" for r in superseded) + ".", ""]
 
-    for paper in PAPERS:
+    for paper in suites.keys:
         group = [r for r in runs if r.paper == paper]
         if not group:
             continue
-        lines += [f"## {PAPERS[paper]}", "", "| scenario | verdict | pass | known gap | fail |", "|---|---|---|---|---|"]
+        lines += [f"## {suites.heading(paper)}", "", "| scenario | verdict | pass | known gap | fail |", "|---|---|---|---|---|"]
         for r in group:
             verdicts = [verdict_of(c) for c in r.record.get("criteria") or []]
             passed = verdicts.count("pass") + verdicts.count(SEED_DEPENDENT)
@@ -356,28 +379,33 @@ def write_report(run_dirs: Sequence[Path], out_md: Path = Path("docs/validation.
                              f"Why: {md_cell(c['known_gap'])}")
             lines.append("")
 
-    lines += mutation_section(sorted({d.parent for d in run_dirs}))
-    lines += ["## Deviations from the papers", "", "### In the simulated drives", ""]
-    docs_dir = out_md.parent if any(out_md.parent.glob("firmware*.md")) else REPO_ROOT / "docs"
-    found = firmware_deviations(docs_dir)
+    lines += mutation_section(sorted({d.parent for d in run_dirs}), suites)
+    if suites.folders:
+        lines += _deviations(suites, out_md)
+    out_md.write_text("\n".join(lines), encoding="utf-8")
+    return out_md
+
+
+def _deviations(suites: Suites, out_md: Path) -> list[str]:
+    lines = ["## Deviations from the papers", "", "### In the simulated drives", ""]
+    found = firmware_deviations(suites.firmware_docs) if suites.firmware_docs else []
     if not found:
-        lines.append("- (no `docs/firmware*.md` with a deviations section found)")
+        lines.append("- (no `firmware*.md` with a deviations section found)")
     for doc, items in found:
-        lines.append(f"From [{doc}]({_rel(docs_dir / doc, out_md.parent)}):")
+        lines.append(f"From [{doc}]({_rel(suites.firmware_docs / doc, out_md.parent)}):")
         lines.append("")
         lines += [f"{i}. {md_cell(item)}" for i, item in enumerate(items, 1)]
         lines.append("")
     lines += ["### In the acceptance suite", ""]
-    lines += [f"- {d}" for d in SUITE_DEVIATIONS]
+    lines += [f"- {d}" for d in suites.deviations]
     lines.append("")
-    out_md.write_text("\n".join(lines), encoding="utf-8")
-    return out_md
+    return lines
 
 
 MUTANTS_DIR = "mutants"
 
 
-def mutation_section(dirs: Sequence[Path]) -> list[str]:
+def mutation_section(dirs: Sequence[Path], suites: Suites = Suites()) -> list[str]:
     """The kill table tests/test_mutants.py leaves beside the runs (DIR/mutants/<drive>-<name>.json), if any."""
     table: dict[str, Any] = {}
     for path in sorted(p for d in dirs for p in (d / MUTANTS_DIR).glob("*.json")):
@@ -396,8 +424,9 @@ def mutation_section(dirs: Sequence[Path]) -> list[str]:
              "through their drive's scenarios above by `tests/test_mutants.py`; a mutant must fail a criterion the "
              "real firmware passes (known gaps do not count) or end aborted. A surviving mutant fails the suite.", "",
              "| mutant | what it does | rejected by |", "|---|---|---|"]
-    for key in sorted(table, key=lambda k: (list(PAPERS).index(k.split("/")[0]) if k.split("/")[0] in PAPERS
-                                            else len(PAPERS), k)):
+    order = suites.keys
+    for key in sorted(table, key=lambda k: (order.index(k.split("/")[0]) if k.split("/")[0] in order
+                                            else len(order), k)):
         m = table[key]
         by = "; ".join(f"**{scenario}**: " + ", ".join(md_cell(str(w)) for w in why)
                        for scenario, why in sorted(m["killed_by"].items()))
@@ -422,7 +451,8 @@ def _run_section(r: Run, out_md: Path, plot_dir: Path) -> list[str]:
         plot = write_plot(r, plot_dir / f"{_safe_name(r.name)}.png")
     except Exception as exc:  # a plot must not cost the table
         lines += [f"(plot failed: {type(exc).__name__}: {exc})", ""]
-    lines += ["| test | paper's claim / basis | measured | verdict |", "|---|---|---|---|"]
+    claim = "paper's claim / basis" if r.paper != OTHER else "limit / basis"
+    lines += [f"| test | {claim} | measured | verdict |", "|---|---|---|---|"]
     for c in rec.get("criteria") or []:
         lines.append(f"| {md_cell(c.get('name', ''))} | {md_cell(claim_text(r, c))} | {md_cell(measured_text(c))} "
                      f"| {verdict_of(c)} |")
@@ -432,10 +462,10 @@ def _run_section(r: Run, out_md: Path, plot_dir: Path) -> list[str]:
     return lines
 
 
-def main(run_dirs: Sequence[str | Path], out_md: str | Path = "docs/validation.md") -> int:
+def main(run_dirs: Sequence[str | Path], out_md: str | Path | None = None, suites: str | Path | None = None) -> int:
     """CLI entry: 0 written, 2 bad input (one line per problem on stderr)."""
     try:
-        path = write_report([Path(d) for d in run_dirs], Path(out_md))
+        path = write_report([Path(d) for d in run_dirs], Path(out_md) if out_md else None, load_suites(suites))
     except InputError as exc:
         for problem in exc.problems:
             print(problem, file=sys.stderr)

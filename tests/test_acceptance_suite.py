@@ -3,8 +3,8 @@
 Each scenario's criteria carry the paper's claims (or a physical basis stated in the file). The test fails
 when a criterion fails that is not a listed known gap, and when a known gap closes: the list in
 tests/known_gaps.toml, the `known_gap` markings in the scenario files and the failing criteria must all be
-the same set. Runs go where `--drivebench-out` says (default runs/); `drivebench report DIR/*` turns them
-into docs/validation.md. Parametrised per scenario so `pytest -n 2` spreads it over two workers.
+the same set. Runs go where `--drivebench-out` says (default runs/); `drivebench report DIR/* --suites
+config/report/paper-suites.toml --out docs/validation.md` turns them into the validation page. Parametrised per scenario so `pytest -n 2` spreads it over two workers.
 """
 
 from __future__ import annotations

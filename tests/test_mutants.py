@@ -2,8 +2,8 @@
 scenarios must be rejected by at least one criterion that the real firmware passes (a known gap does not count), or
 by the run ending aborted or in error. A surviving mutant fails the suite.
 
-With --drivebench-out DIR the kill table is written to DIR/mutants/ (a file per mutant); `drivebench report DIR/*` puts it in
-docs/validation.md.
+With --drivebench-out DIR the kill table is written to DIR/mutants/ (a file per mutant); `drivebench report DIR/* --suites
+config/report/paper-suites.toml --out docs/validation.md` puts it in the validation page.
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ import pytest
 from bench.benchconfig import BenchConfig, BenchSection
 from bench.criteria import evaluate, verdict
 from bench.records import RunRecorder
-from bench.report import criteria_comments, firmware_deviations, main, write_report
+from bench.report import criteria_comments, firmware_deviations, load_suites, main, write_report
 from bench.scenario import load_scenario
 from drivers.signals import SIGNAL_NAMES
 
@@ -85,6 +85,18 @@ def make_run(tmp_path: Path, kind: str, name: str, pos_err: float, flux_err: flo
     return recorder.run_dir
 
 
+def suites(tmp_path: Path) -> Path:
+    """The repository's paper-suites file with its folders moved to tmp/scenarios/{pmsm,spim}."""
+    for kind in ("pmsm", "spim"):
+        (tmp_path / "scenarios" / kind).mkdir(parents=True, exist_ok=True)
+    (tmp_path / "pyproject.toml").write_text("")                  # the root the suites file's paths start from
+    path = tmp_path / "config" / "paper-suites.toml"
+    path.parent.mkdir(exist_ok=True)
+    path.write_text((ROOT / "config/report/paper-suites.toml").read_text().replace('firmware_docs = "docs"',
+                                                                                    f'firmware_docs = "{ROOT}/docs"'))
+    return path
+
+
 def table_rows(md: str, section: str) -> dict[str, list[str]]:
     """test name -> cells of its row in the table under '### section'."""
     body = md.split(f"### {section}\n", 1)[1].split("\n### ", 1)[0]
@@ -99,8 +111,9 @@ def table_rows(md: str, section: str) -> dict[str, list[str]]:
 def test_report_tables_plots_and_gaps(tmp_path):
     good = make_run(tmp_path, "pmsm", "pmsm-good", pos_err=0.01, flux_err=0.5, i_sy=3.03)
     bad = make_run(tmp_path, "spim", "spim-bad", pos_err=0.2, flux_err=2.0, i_sy=2.5)
-    out = write_report([bad, good], tmp_path / "docs" / "validation.md")
+    out = write_report([bad, good], tmp_path / "docs" / "validation.md", load_suites(suites(tmp_path)))
     md = out.read_text()
+    assert md.startswith("# Validation against the papers")
 
     # per paper, PMSM first
     assert md.index("## PMSM") < md.index("### pmsm-good") < md.index("## SPIM") < md.index("### spim-bad")
@@ -133,6 +146,22 @@ def test_report_tables_plots_and_gaps(tmp_path):
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert f"![{name}](validation/{name}.png)" in md
     assert "## Deviations from the papers" in md and "### In the acceptance suite" in md
+    assert "From [firmware-pmsm.md](" in md and "Speeds are mechanical everywhere" in md
+
+
+def test_without_a_suites_file_runs_are_reported_as_what_they_are_beside_the_runs(tmp_path):
+    """A user's scenario is no paper claim: no paper heading, no deviations, 'limit / basis'; report.md by default
+    beside the runs, not in docs/."""
+    run = make_run(tmp_path, "pmsm", "pmsm-good", pos_err=0.01, flux_err=0.5, i_sy=3.03)
+    assert main([run]) == 0
+    md = (run.parent / "report.md").read_text()
+    assert md.startswith("# Test report") and "## Runs" in md and "paper" not in md.lower()
+    assert "| test | limit / basis | measured | verdict |" in md
+    assert (run.parent / "report" / "pmsm-good.png").is_file()
+    # with the suites file, a scenario outside its folders is "other", not a paper's claim
+    other = make_run(tmp_path, "mine", "my-test", pos_err=0.01, flux_err=0.5, i_sy=3.03)
+    md = write_report([run, other], tmp_path / "v.md", load_suites(suites(tmp_path))).read_text()
+    assert md.index("## PMSM") < md.index("## Other scenarios (not paper claims)") < md.index("### my-test")
 
 
 def test_latest_run_per_scenario_is_reported(tmp_path):
@@ -180,7 +209,7 @@ def test_mutation_table_beside_the_runs_goes_into_the_report(tmp_path, capsys):
         {"drive": "pmsm", "name": "encoder_cheat", "what": "angle from an encoder",
          "killed_by": {"sig-isx-rs-step-eq15a": ["position error = eq. (15a)"]}}))
     (mutants / "spim-lazy.json").write_text('{"drive": "spim", "name": "lazy", "what": "does nothing", "killed_by": {}}')
-    md = write_report([run, mutants], tmp_path / "v.md").read_text()   # as `report DIR/*`
+    md = write_report([run, mutants], tmp_path / "v.md", load_suites(suites(tmp_path))).read_text()  # `report DIR/*`
     assert md.index("## Mutation testing") < md.index("## Deviations from the papers")
     assert ("| pmsm/encoder_cheat | angle from an encoder | **sig-isx-rs-step-eq15a**: position error = eq. (15a) |"
             in md)
