@@ -16,7 +16,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from bench.campaign import Campaign, Point, points, wilson_interval
+from bench.campaign import Acceptance, Campaign, Point, points, wilson_interval
 
 RESULTS_JSONL = "results.jsonl"
 RESULTS_PARQUET = "results.parquet"
@@ -263,7 +263,7 @@ def _write_report(campaign: Campaign, out_dir: Path, rows: list[dict], summary: 
         _plot_heatmap(grid, out_dir / "heatmap.png")
         lines += ["", f"Where it fails: `heatmap.png`, the share of passing runs over {grid.x_name} x {grid.y_name}."]
     (out_dir / "report.md").write_text("\n".join(lines) + "\n")
-    _plot(summary, out_dir / "pass_rates.png")
+    _plot(summary, out_dir / "pass_rates.png", acc)
 
 
 HEATMAP_BINS = 5    # a sampled axis (low..high) is cut into this many equal bins
@@ -332,26 +332,38 @@ def _plot_heatmap(grid: PassRateGrid, path: Path) -> None:
     fig.savefig(path, dpi=100)
 
 
-def _plot(summary: list[dict], path: Path) -> None:
+def _plot(summary: list[dict], path: Path, acc: Acceptance) -> None:
+    """Pass rate and interval per criterion, green when accepted, grey a known gap, red not; the acceptance bound as
+    a dashed line; labels whole (wrapped, never clipped: the figure grows to hold them)."""
+    import textwrap
+
     import matplotlib
 
     matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
-    items = sorted((s for s in summary if s["runs"]), key=lambda s: (s["scenario"], s["criterion"]))
+    items = sorted((s for s in summary if s["runs"]), key=lambda s: (s["scenario"], s["criterion"]), reverse=True)
     if not items:
         return
-    fig = Figure(figsize=(10, max(2.0, 0.25 * len(items) + 1)))
+    labels = ["\n".join(textwrap.wrap(f"{Path(s['scenario']).stem}: {s['criterion']}", 60)) for s in items]
+    height = sum(0.16 * (label.count("\n") + 1) + 0.1 for label in labels) + 1.2
+    fig = Figure(figsize=(11, max(2.5, height)), layout="constrained")
     ax = fig.subplots()
-    y = range(len(items))
-    rates = [s["pass_rate"] for s in items]
-    err = [[max(0.0, s["pass_rate"] - s["wilson_low"]) for s in items],
-           [max(0.0, s["wilson_high"] - s["pass_rate"]) for s in items]]
-    ax.errorbar(rates, list(y), xerr=err, fmt="o", capsize=3)
-    ax.set_yticks(list(y), [f"{Path(s['scenario']).stem}: {s['criterion']}"[:70] for s in items], fontsize=6)
+    for i, s in enumerate(items):
+        colour = "tab:gray" if s["known_gap"] else ("tab:green" if s["accepted"] else "tab:red")
+        err = [[max(0.0, s["pass_rate"] - s["wilson_low"])], [max(0.0, s["wilson_high"] - s["pass_rate"])]]
+        ax.errorbar([s["pass_rate"]], [i], xerr=err, fmt="o", capsize=3, color=colour)
+    ax.set_yticks(range(len(items)), labels, fontsize=7)
+    ax.set_ylim(-0.7, len(items) - 0.3)
     ax.set_xlim(-0.02, 1.02)
-    ax.set_xlabel("pass rate (Wilson interval)")
-    fig.subplots_adjust(left=0.45, right=0.98)
+    if acc.rule == "wilson":
+        ax.axvline(acc.min_pass_rate, ls="--", color="black", lw=0.8)
+        ax.text(acc.min_pass_rate, len(items) - 0.3, f" accepted when the interval's\n lower end >= "
+                f"{acc.min_pass_rate:.0%}", fontsize=7, va="bottom", ha="right")
+        ax.set_xlabel(f"pass rate, Wilson {acc.confidence:.0%} interval (green accepted, red not, grey known gap)")
+    else:
+        ax.set_xlabel("pass rate (every run must pass; green accepted, red not, grey known gap)")
+    ax.grid(True, axis="x", lw=0.3)
     fig.savefig(path, dpi=100)
 
 
