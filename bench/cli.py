@@ -521,6 +521,24 @@ def report(run_dirs, out_md, suites) -> None:
     sys.exit(_guarded(lambda: int(report_module.main(list(run_dirs), out_md, suites))))
 
 
+@cli.command()
+@click.argument("run_dir", type=click.Path(file_okay=False))
+@click.option("--format", "fmt", type=click.Choice(["mf4", "csv"]), required=True,
+              help="mf4: ASAM MDF 4 (asammdf, CANape, INCA, DIAdem); csv: a spreadsheet.")
+@click.option("--out", type=click.Path(dir_okay=False), default=None,
+              help="File to write (default: RUN_DIR/telemetry.mf4 or .csv).")
+def export(run_dir, fmt, out) -> None:
+    """A run's telemetry for other tools: the drive clock t_s as the master channel, one channel per measured
+    signal with its unit, the record attached (mf4)."""
+    from bench.export import export_run
+
+    def go() -> int:
+        click.echo(f"wrote {export_run(run_dir, fmt, out)}")
+        return EXIT_PASS
+
+    sys.exit(_guarded(go))
+
+
 def _add_plugin_commands() -> None:
     """Commands other packages register under the entry-point group `drivebench.commands` (the simulator's `sim`
     and `design-check` come from sim_backend this way: the bench itself never imports the simulator)."""
