@@ -539,6 +539,58 @@ def export(run_dir, fmt, out) -> None:
     sys.exit(_guarded(go))
 
 
+@cli.command()
+@click.argument("run_a", type=click.Path(file_okay=False))
+@click.argument("run_b", type=click.Path(file_okay=False))
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
+              help="PNG of the signals overlaid on the drive clock (default: none).")
+@click.option("--json", "as_json", is_flag=True, help="Print the comparison as one JSON document.")
+def compare(run_a, run_b, plot_path, as_json) -> None:
+    """Two runs side by side: what differs in what ran, each criterion in both with its delta, each signal's
+    difference over the drive-clock span both cover."""
+    from bench.compare import compare_runs, write_plot
+
+    def go() -> int:
+        result = compare_runs(run_a, run_b)
+        if plot_path:
+            result["plot"] = str(write_plot(run_a, run_b, Path(plot_path)))
+        if as_json:
+            click.echo(json.dumps(result, default=str))
+        else:
+            _print_comparison(result)
+        return EXIT_PASS
+
+    sys.exit(_guarded(go))
+
+
+def _print_comparison(result: dict) -> None:
+    console = make_console()
+    console.print(f"A: {result['a']}\nB: {result['b']}")
+    ident = Table(title="what ran", title_justify="left")
+    for col in ("", "A", "B", ""):
+        ident.add_column(col)
+    for row in result["identity"]:
+        ident.add_row(row["field"], _fmt(row["a"]), _fmt(row["b"]), "" if row["same"] else "[yellow]differs[/]")
+    console.print(ident)
+    crit = Table(title="criteria", title_justify="left")
+    for col, justify in (("criterion", "left"), ("A", "right"), ("B", "right"), ("B - A", "right"),
+                         ("unit", "left"), ("A / B", "left")):
+        crit.add_column(col, justify=justify)
+    for row in result["criteria"]:
+        crit.add_row(str(row["name"]), _fmt(row["value_a"]), _fmt(row["value_b"]), _fmt(row["delta"]), row["unit"],
+                     f"{row['status_a']} / {row['status_b']}")
+    console.print(crit)
+    sig = Table(title="signals (B - A over the common drive-clock span)", title_justify="left")
+    for col, justify in (("signal", "left"), ("rms", "right"), ("max |B - A|", "right"), ("at [s]", "right"),
+                         ("unit", "left")):
+        sig.add_column(col, justify=justify)
+    for row in result["signals"]:
+        sig.add_row(row["signal"], _fmt(row["rms_diff"]), _fmt(row["max_abs_diff"]), _fmt(row["at_s"]), row["unit"])
+    console.print(sig)
+    if result.get("plot"):
+        console.print(f"plot: {result['plot']}")
+
+
 def _add_plugin_commands() -> None:
     """Commands other packages register under the entry-point group `drivebench.commands` (the simulator's `sim`
     and `design-check` come from sim_backend this way: the bench itself never imports the simulator)."""
