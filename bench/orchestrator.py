@@ -26,7 +26,7 @@ from bench.links import make_links, started_services
 from bench.records import RunRecord, RunRecorder, freeze_long_lived, json_safe, release_freed_memory
 from bench.rerun_view import RerunStream
 from bench.scenario import load_scenario
-from bench.summary_plot import BUCKETS as PLOT_BUCKETS, PLOT_SIGNALS, write_summary_png
+from bench.summary_plot import BUCKETS as PLOT_BUCKETS, PLOT_SIGNALS, events_of, write_summary_png
 from bench.supervisor import SafeStop, Supervisor, UnitCheck, check_status
 from bench.run_thread import LoopThread
 from bench.telemetry import TelemetryWorker
@@ -624,7 +624,9 @@ class _Run:
             t_env, envelope = self.recorder.read_back_envelope(PLOT_SIGNALS, PLOT_BUCKETS)
             if len(t_env):
                 write_summary_png(self.recorder.run_dir / "summary.png", t_env, envelope,
-                                  title=f"{self.scenario.name} - {verdict}")
+                                  title=f"{self.scenario.name} - {verdict}", criteria=[r.to_dict() for r in results],
+                                  params={c.name: c.params for c in specs},
+                                  events=events_of({"trips": self.trips, **self.recorder.record}))
         except Exception as exc:
             self.recorder.note("summary_png_error", f"{type(exc).__name__}: {exc}")
         release_freed_memory()

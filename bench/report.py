@@ -15,6 +15,7 @@ import json
 import math
 import re
 import sys
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -90,18 +91,6 @@ KIND_UNITS = {
 }
 SIGNAL_UNITS = (("_rad_s", "rad/s"), ("_rad", "rad"), ("_wb", "Wb"), ("_a", "A"), ("_nm", "N·m"), ("_v", "V"))
 
-SPEED_ERROR = "speed_est_minus_true_mech_rad_s"   # derived for the plot (the papers' Figs. 6(c), 7c)
-PLOT_PANELS: tuple[tuple[str, str, tuple[tuple[str, str], ...]], ...] = (
-    ("speed", "rad/s (mech)", (("speed_ref_mech_rad_s", "reference"), ("speed_est_mech_rad_s", "estimated"),
-                               ("speed_true_mech_rad_s", "true"))),
-    ("speed estimate error", "rad/s (mech)", ((SPEED_ERROR, "estimated − true"),)),
-    ("position error", "rad (elec)", (("pos_err_elec_rad", "true − estimated"),)),
-    ("flux", "Wb", (("flux_est_wb", "estimated"), ("flux_true_wb", "true"))),
-    ("currents", "A", (("i_sx_a", "i_sx"), ("i_sy_a", "i_sy"))),
-    ("load", "N·m", (("torque_load_nm", "load torque"),)),
-)
-SMOOTH_S = 0.01          # the plots draw a 10 ms moving average over the raw (light) trace
-PLOT_POINTS = 4000
 
 
 @dataclass
@@ -114,6 +103,7 @@ class Run:
     name: str
     scenario_path: Path | None
     basis: dict[str, str] = field(default_factory=dict)
+    params: dict[str, dict] = field(default_factory=dict)      # criterion name -> its parameters (scenario file)
 
 
 # -- reading -------------------------------------------------------------------------------------------------
@@ -137,11 +127,17 @@ def read_run(run_dir: Path, suites: Suites = Suites()) -> Run:
     name = str(scenario.get("name") or run_dir.name)
     path = Path(scenario["path"]) if scenario.get("path") else None
     basis: dict[str, str] = {}
+    params: dict[str, dict] = {}
     if path is not None and path.is_file():
         data = path.read_bytes()
         if hashlib.sha256(data).hexdigest() == scenario.get("sha256"):  # the file the run used
             basis = criteria_comments(data.decode("utf-8"))
-    return Run(run_dir, record, columns, complete, suites.key_of(path), name, path, basis)
+            try:
+                params = {str(c.get("name")): c for c in tomllib.loads(data.decode("utf-8")).get("criteria") or []
+                          if isinstance(c, dict)}
+            except (tomllib.TOMLDecodeError, UnicodeDecodeError):
+                params = {}
+    return Run(run_dir, record, columns, complete, suites.key_of(path), name, path, basis, params)
 
 
 # -- formatting ----------------------------------------------------------------------------------------------
@@ -207,53 +203,17 @@ def claim_text(run: Run, criterion: dict) -> str:
 
 # -- plots ---------------------------------------------------------------------------------------------------
 
-def _moving_average(y: np.ndarray, n: int) -> np.ndarray:
-    if n <= 1 or len(y) < n:
-        return y
-    c = np.cumsum(np.insert(np.nan_to_num(y.astype(float)), 0, 0.0))
-    out = (c[n:] - c[:-n]) / n
-    return np.concatenate([np.full(n - 1, np.nan), out])
-
-
 def write_plot(run: Run, path: Path) -> Path | None:
-    import matplotlib
+    """The run's verdict figure (bench.summary_plot: the same as its summary.png), criteria and markers included."""
+    from bench.summary_plot import events_of, write_summary_png
 
-    matplotlib.use("Agg")
-    from matplotlib.figure import Figure
-
-    columns = dict(run.columns)
-    if "speed_est_mech_rad_s" in columns and "speed_true_mech_rad_s" in columns:
-        columns[SPEED_ERROR] = np.asarray(columns["speed_est_mech_rad_s"], float) - columns["speed_true_mech_rad_s"]
-    t = np.asarray(columns.get("t_s", np.zeros(0)), dtype=float)
+    t = np.asarray(run.columns.get("t_s", np.zeros(0)), dtype=float)
     if len(t) < 2:
         return None
-    dt = float(np.median(np.diff(t))) if len(t) > 1 else 1e-4
-    n_avg = max(1, int(round(SMOOTH_S / dt))) if dt > 0 else 1
-    stride = max(1, len(t) // PLOT_POINTS)
-    panels = [p for p in PLOT_PANELS if any(s in columns and np.isfinite(columns[s]).any() for s, _ in p[2])]
-    fig = Figure(figsize=(9, 1.9 * len(panels) + 0.6))
-    axes = fig.subplots(len(panels), 1, sharex=True, squeeze=False)[:, 0]
-    for ax, (title, unit, signals) in zip(axes, panels):
-        for signal, label in signals:
-            if signal not in columns:
-                continue
-            y = np.asarray(columns[signal], dtype=float)
-            if not np.isfinite(y).any():
-                continue
-            smooth = _moving_average(y, n_avg)
-            line, = ax.plot(t[::stride], smooth[::stride], lw=1.0, label=label)
-            ax.plot(t[::stride], y[::stride], lw=0.4, alpha=0.25, color=line.get_color())
-        ax.set_ylabel(f"{title}\n{unit}", fontsize=8)
-        ax.grid(True, lw=0.3)
-        ax.legend(fontsize=7, loc="upper right")
-        ax.tick_params(labelsize=7)
-    axes[-1].set_xlabel("drive time, s", fontsize=8)
-    fig.suptitle(f"{run.name} — {run.record.get('verdict')} (light: raw samples, solid: {SMOOTH_S * 1e3:g} ms mean)",
-                 fontsize=9)
-    fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    return path
+    return write_summary_png(path, t, run.columns, title=f"{run.name} - {run.record.get('verdict')}",
+                             criteria=run.record.get("criteria") or [], params=run.params,
+                             events=events_of(run.record))
 
 
 # -- deviations ----------------------------------------------------------------------------------------------
