@@ -354,6 +354,8 @@ class _Run:
         self._tell_trip(self.trips[-1])
 
     def _tell_trip(self, trip: dict) -> None:
+        if isinstance(trip.get("t_s"), (int, float)):
+            self.rerun.log_event(float(trip["t_s"]), "trip", f"{trip.get('reason')}: {trip.get('message', '')}")
         if self.on_trip is not None:
             try:
                 self.on_trip(json_safe(trip))
@@ -481,6 +483,7 @@ class _Run:
             inj = injections.pop(0)
             self.drive.write_parameter(inj.name, inj.value)
             applied.append({"at_s": inj.at_s, "name": inj.name, "value": inj.value, "applied_t_s": t_cmd})
+            self.rerun.log_event(t_cmd, "injection", f"{inj.name} = {inj.value}")
             self.recorder.note("injections_applied", applied)
         ref = self.scenario.speed_ref_at(t_cmd)
         if ref != self._speed_ref:
@@ -620,6 +623,7 @@ class _Run:
         del columns, t
         self.recorder.note("time_axis", judged.time_axis)
         verdict, reason, results, error = judged.verdict, judged.reason, judged.results, judged.error
+        self.rerun.log_judgement([r.to_dict() for r in results], {c.name: c.params for c in specs})
         try:
             t_env, envelope = self.recorder.read_back_envelope(PLOT_SIGNALS, PLOT_BUCKETS)
             if len(t_env):

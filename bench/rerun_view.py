@@ -4,6 +4,9 @@ Entity paths are the signal names (`/speed_est_mech_rad_s`); the timeline `t_s` 
 `/flux_vector/true` and `/flux_vector/estimated` are 2D arrows derived from the flux magnitudes and
 field angles, in per unit of the true flux magnitude (the true arrow has length 1 for either motor), for a
 phasor view of how far the estimate is off in magnitude and angle.
+`/events` holds trips and injections as text logs at their drive time, `/criteria/<n>` each criterion's result at
+its window's start and end, and `/limits/<signal>/<n>/{low,high}` its limit band over its window where the limit is
+in the signal's unit (shown in that signal's plot).
 """
 
 from __future__ import annotations
@@ -70,6 +73,9 @@ def display_available() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
+EVENT_COLOURS = {"trip": (214, 39, 40), "injection": (148, 103, 189)}
+RGB = {"tab:green": (44, 160, 44), "tab:red": (214, 39, 40), "tab:orange": (255, 127, 14)}
+
 FLUX_VECTOR_STYLE = {  # entity -> (colour, label)
     "flux_vector/true": ((170, 170, 170), "true"),
     "flux_vector/estimated": ((255, 140, 0), "estimated"),
@@ -77,18 +83,24 @@ FLUX_VECTOR_STYLE = {  # entity -> (colour, label)
 
 
 def default_blueprint(recorded: Sequence[str] | None = None):
-    """Time series of the recorded signals (all of PLOTS when not given) and the flux phasor view."""
+    """Time series of the recorded signals (all of PLOTS when not given) with their criteria's limit bands, the
+    flux phasor view (only where flux and angles are recorded), and the events and verdicts as a text log."""
     import rerun.blueprint as rrb
 
     plots = []
     for title, names in PLOTS:
         shown = [name for name in names if recorded is None or name in recorded]
         if shown:
-            plots.append(rrb.TimeSeriesView(name=title, origin="/", contents=[f"/{name}" for name in shown]))
-    phasor = rrb.Spatial2DView(name="flux vector, p.u. of true flux (grey true, orange estimated)",
-                               origin="/flux_vector",
-                               visual_bounds=rrb.VisualBounds2D(x_range=[-1.3, 1.3], y_range=[-1.3, 1.3]))
-    return rrb.Blueprint(rrb.Grid(*plots, phasor), collapse_panels=True)
+            contents = [f"/{name}" for name in shown] + [f"/limits/{name}/**" for name in shown]
+            plots.append(rrb.TimeSeriesView(name=title, origin="/", contents=contents))
+    views = list(plots)
+    if recorded is None or {"flux_est_wb", "flux_true_wb", "pos_est_elec_rad", "pos_err_elec_rad"} <= set(recorded):
+        views.append(rrb.Spatial2DView(name="flux vector, p.u. of true flux (grey true, orange estimated)",
+                                       origin="/flux_vector",
+                                       visual_bounds=rrb.VisualBounds2D(x_range=[-1.3, 1.3], y_range=[-1.3, 1.3])))
+    views.append(rrb.TextLogView(name="trips, injections, criteria", origin="/",
+                                 contents=["/events/**", "/criteria/**"]))
+    return rrb.Blueprint(rrb.Grid(*views), collapse_panels=True)
 
 
 def _warn(message: str) -> None:
@@ -127,6 +139,7 @@ class RerunStream:
         self._last_arrow_bin = -math.inf
         self.sinks: list[str] = []   # what the stream really goes to: "file", "viewer"
         self._styled: set[str] = set()
+        self._recorded = tuple(recorded) if recorded is not None else None
         if mode == "off":
             return
 
@@ -174,13 +187,63 @@ class RerunStream:
         return self._rec is not None
 
     def _style(self) -> None:
+        """Series names for the signals this run records (no entity declared that nothing fills); the phasor's
+        arrows coloured, unlabelled (two labels at one origin overlap: the view's title names the colours)."""
         rr = self._rr
         for _, names in PLOTS:
             for name in names:
-                self._rec.log(name, rr.SeriesLines(names=name), static=True)
-        for entity, (colour, label) in FLUX_VECTOR_STYLE.items():
-            self._rec.log(entity, rr.Arrows2D.from_fields(colors=[colour], labels=[label], show_labels=True),
-                          static=True)
+                if self._recorded is None or name in self._recorded:
+                    self._rec.log(name, rr.SeriesLines(names=name), static=True)
+        if self._recorded is None or "flux_est_wb" in self._recorded:
+            for entity, (colour, _label) in FLUX_VECTOR_STYLE.items():
+                self._rec.log(entity, rr.Arrows2D.from_fields(colors=[colour], show_labels=False), static=True)
+
+    def log_event(self, t_s: float, kind: str, text: str) -> None:
+        """A trip ("trip") or an injection ("injection") at its drive time."""
+        if self._rec is None or not math.isfinite(t_s):
+            return
+        try:
+            rr = self._rr
+            self._rec.set_time("t_s", duration=float(t_s))
+            self._rec.log(f"events/{kind}", rr.TextLog(text, level="ERROR" if kind == "trip" else "INFO",
+                                                       color=EVENT_COLOURS.get(kind)))
+        except Exception as exc:
+            self._warn(f"rerun: logging stopped ({type(exc).__name__}: {exc}); run.rrd may be incomplete")
+            self._drop()
+
+    def log_judgement(self, criteria: Sequence[Mapping], params: Mapping[str, Mapping] | None = None) -> None:
+        """Each criterion's result at its window's start and end, and its limit band on its signal's plot."""
+        if self._rec is None:
+            return
+        from bench.summary_plot import COLOURS, _band, _status
+
+        try:
+            rr = self._rr
+            for n, c in enumerate(criteria):
+                window = c.get("window_s") or ()
+                if len(window) != 2:
+                    continue
+                status = _status(c)
+                colour = RGB.get(COLOURS[status], (200, 200, 200))
+                unit = f" {c.get('unit')}" if c.get("unit") else ""
+                text = (f"{c.get('name')}: {status.replace('_', ' ')}, value {c.get('value')} / limit "
+                        f"{c.get('limit')}{unit} ({c.get('kind')} of {c.get('signal')})")
+                level = {"pass": "INFO", "fail": "ERROR"}.get(status, "WARN")
+                for t, what in ((float(window[0]), "window opens"), (float(window[1]), "window closes")):
+                    self._rec.set_time("t_s", duration=t)
+                    self._rec.log(f"criteria/{n}", rr.TextLog(f"{what}: {text}", level=level, color=colour))
+                band = _band(c, (params or {}).get(str(c.get("name"))) or {})
+                if band is None:
+                    continue
+                for edge, value in zip(("low", "high"), band):
+                    entity = f"limits/{c.get('signal')}/{n}/{edge}"
+                    self._rec.log(entity, rr.SeriesLines(names=f"limit: {c.get('name')}", colors=[colour]),
+                                  static=True)
+                    self._rec.send_columns(entity, indexes=[rr.TimeColumn("t_s", duration=[*map(float, window)])],
+                                           columns=rr.Scalars.columns(scalars=[value, value]))
+        except Exception as exc:
+            self._warn(f"rerun: logging stopped ({type(exc).__name__}: {exc}); run.rrd may be incomplete")
+            self._drop()
 
     def log_rows(self, t_s: Sequence[float], values: Sequence[Mapping[str, float]]) -> None:
         """Append samples (one mapping of signal -> value per time) and send once a batch is full."""

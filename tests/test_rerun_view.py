@@ -117,14 +117,40 @@ def test_blueprint_shows_every_recorded_signal_once_and_the_flux_phasors():
     from bench.rerun_view import PLOTS
 
     views = default_blueprint().root_container.contents
-    shown = [entity for view in views[:-1] for entity in view.contents]
+    shown = [entity for view in views[:-2] for entity in view.contents if not entity.startswith("/limits/")]
     assert sorted(shown) == sorted(f"/{name}" for _, names in PLOTS for name in names)
-    assert views[-1].origin == "/flux_vector"
-    # a run that records only some signals gets views of those only (no empty plots)
+    assert views[-2].origin == "/flux_vector"
+    assert views[-1].contents == ["/events/**", "/criteria/**"]          # trips, injections, verdicts
+    # a run that records only some signals gets views of those only (no empty plots, no phasor without flux)
     few = default_blueprint(["speed_ref_mech_rad_s", "speed_est_mech_rad_s"]).root_container.contents
-    assert [v.contents for v in few[:-1]] == [["/speed_ref_mech_rad_s", "/speed_est_mech_rad_s"]]
+    assert [v.contents for v in few[:-1]] == [["/speed_ref_mech_rad_s", "/speed_est_mech_rad_s",
+                                               "/limits/speed_ref_mech_rad_s/**", "/limits/speed_est_mech_rad_s/**"]]
 
 
 def test_bad_mode():
     with pytest.raises(ValueError):
         RerunStream("live", None)
+
+
+def test_trips_injections_and_the_judgement_are_in_the_recording(tmp_path):
+    path = tmp_path / "run.rrd"
+    recorded = ("speed_est_mech_rad_s", "i_sx_a")
+    stream = RerunStream("save", path, recorded=recorded)
+    t = np.arange(1, 1001) * 1e-3
+    stream.log_columns(t, {"speed_est_mech_rad_s": np.sin(t), "i_sx_a": np.zeros_like(t)})
+    stream.log_event(0.5, "injection", "plant_rs = 0.8")
+    stream.log_event(0.9, "trip", "overspeed: 31 > 30 rad/s")
+    stream.log_judgement([
+        {"name": "i_sx held", "kind": "peak_abs", "signal": "i_sx_a", "window_s": [0.2, 0.8], "value": 0.01,
+         "limit": 0.1, "passed": True, "status": "pass", "unit": "A"},
+        {"name": "speed", "kind": "speed_error_max_pct", "signal": "speed_est_mech_rad_s", "window_s": [0.2, 0.8],
+         "value": 5.0, "limit": 1.0, "passed": False, "status": "fail", "unit": "%"}], params={})
+    stream.close()
+    paths = rrd_entity_paths(path)
+    assert {"/events/injection", "/events/trip", "/criteria/0", "/criteria/1"} <= paths
+    assert {"/limits/i_sx_a/0/low", "/limits/i_sx_a/0/high"} <= paths          # a band in the signal's unit
+    assert not any(p.startswith("/limits/speed_est_mech_rad_s") for p in paths)  # a % limit: no band
+    # nothing declared that this bench never fills: no empty reference currents, estimated torque or phasor
+    assert not {"/i_sx_ref_a", "/i_sy_ref_a", "/torque_est_nm", "/flux_vector/true"} & paths
+    store = read_store(path).summary()
+    assert "/criteria/1" in store and "/events/trip" in store
