@@ -18,7 +18,7 @@ import pytest
 
 pytest.importorskip("fastapi", reason="the [service] extra is not installed")
 
-from tests.service_fixtures import (REPO, SCENARIOS, SHORT, fresh_pg_database, free_port,  # noqa: E402
+from tests.service_fixtures import (LONG, REPO, SCENARIOS, SHORT, fresh_pg_database, free_port,  # noqa: E402
                                     make_settings, make_tokens, pg_url, stop_process, wait_until, write_rigs)
 
 __all__ = ["pg_url"]
@@ -33,14 +33,22 @@ def _database(kind: str, request, tmp_path: Path, name: str) -> str | None:
     return fresh_pg_database(request.getfixturevalue("pg_url"), name)
 
 
-def _serve(tmp_path: Path, db_url: str | None, *extra: str) -> tuple[subprocess.Popen, int]:
+def _serve(tmp_path: Path, db_url: str | None, *extra: str, capture: bool = False) -> tuple[subprocess.Popen, int]:
+    """`drivebench serve` on a free port; its output in serve-PORT.log (or piped, for a process that exits)."""
     port = free_port()
     args = [sys.executable, "-m", "bench", "serve", "--data", str(tmp_path / "data"), "--port", str(port),
             "--rigs", str(tmp_path / "rigs.toml"), "--scenarios", str(SCENARIOS), "--lease-ttl", str(TTL_S), *extra]
     if db_url:
         args += ["--db", db_url]
-    proc = subprocess.Popen(args, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+    if capture:
+        out = err = subprocess.PIPE
+    else:
+        out = open(tmp_path / f"serve-{port}.log", "ab")
+        err = subprocess.STDOUT
+    proc = subprocess.Popen(args, cwd=REPO, stdout=out, stderr=err, text=capture, start_new_session=True)
+    proc.log = tmp_path / f"serve-{port}.log"
+    if not capture:
+        out.close()
     return proc, port
 
 
@@ -48,7 +56,7 @@ def _up(proc: subprocess.Popen, port: int) -> None:
     import urllib.request
 
     def answers():
-        assert proc.poll() is None, f"serve exited {proc.returncode}: {proc.stderr.read()[-2000:]}"
+        assert proc.poll() is None, f"serve exited {proc.returncode}: {proc.log.read_text()[-2000:]}"
         try:
             with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/health", timeout=1):
                 return True
@@ -108,7 +116,7 @@ def test_two_services_race_for_one_real_rig_through_startups_kills_and_restarts(
 
         # B with the same default --host-id while A lives: refused at start-up with one line, exit 2;
         # A's live run goes on untouched
-        dup, _ = _serve(tmp_path, db_url)
+        dup, _ = _serve(tmp_path, db_url, capture=True)
         out, err = dup.communicate(timeout=60)
         lines = [line for line in err.splitlines() if line.strip()]
         assert dup.returncode == 2 and len(lines) == 1 and "--host-id" in lines[0] and "live service instance" \
@@ -120,7 +128,7 @@ def test_two_services_race_for_one_real_rig_through_startups_kills_and_restarts(
         # B as another instance: both schedule from one queue on one rig
         servers["b"] = _serve(tmp_path, db_url, "--host-id", "race-b")
         _up(*servers["b"])
-        submit(7)
+        submit(5)
 
         # SIGKILL the holder of the rig three times (alternating as it happens), restart it at once
         for round_ in range(3):
@@ -155,15 +163,12 @@ def test_two_services_race_for_one_real_rig_through_startups_kills_and_restarts(
         stop_process(proc)
         servers["a"] = _serve(tmp_path, db_url)
         _up(*servers["a"])
-        submit(2)
+        submit(1)
         wait_until(lambda: all(r.state not in ("queued", "running") for r in _runs(db)), 180, 0.2,
                    "every run to end")
     finally:
         for proc, _ in servers.values():
             stop_process(proc)
-            for stream in (proc.stdout, proc.stderr):
-                if stream:
-                    stream.close()
 
     runs = [r for r in _runs(db) if r.started_ts is not None]
     with db.session() as s:
@@ -176,13 +181,13 @@ def test_two_services_race_for_one_real_rig_through_startups_kills_and_restarts(
           f"instances={len(instances)} takeovers=" + "; ".join(
               f"run {t['run']} ({t['instance']}): expiry +{t['kill_to_expiry_s']:.2f} s, process end "
               f"+{t['kill_to_process_end_s']:.2f} s, takeover +{t['kill_to_takeover_s']:.2f} s" for t in takeovers))
-    assert len(runs) == 10 and not overlaps, overlaps
+    assert len(runs) == 8 and not overlaps, overlaps
     # aborted: the three SIGKILLed holders' runs (taken over) and whatever ran at the graceful restart; never a
     # run of an instance that was alive
     assert {r.id for r in aborted if "taken over" in r.reason} == {t["run"] for t in takeovers}
     for r in aborted:
         assert r.instance_id in killed_instances or "taken over" not in r.reason
-    assert sum(r.state == "pass" for r in runs) >= 6
+    assert sum(r.state == "pass" for r in runs) >= 4
 
 
 @pytest.mark.parametrize("kind", ["sqlite", "postgresql"])
@@ -263,3 +268,67 @@ def test_serve_numbers_out_of_range_give_one_line_and_exit_2(args, field, tmp_pa
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert result.exit_code == 2 and len(lines) == 1 and lines[0].startswith(f"serve: {field}: "), result.output
     assert not (tmp_path / "data").exists()          # refused before anything was opened or started
+
+
+def test_a_frozen_holder_keeps_its_run_and_fences_itself_when_it_wakes(tmp_path):
+    """SIGSTOP the service holding the real rig for three TTLs: its lease expires, but its process and its run's
+    process live, so the other instance takes nothing over and starts nothing on the rig. SIGCONT: the woken
+    instance finds its lease gone, stops its run (SIGTERM, safe stop), registers anew; then the queue goes on."""
+    from bench.service.client import Client
+    from bench.service.core import Service
+    from bench.service.db import Instance, open_database
+    from bench.service.instances import process_alive
+
+    write_rigs(tmp_path)
+    service = Service(make_settings(tmp_path, lease_ttl_s=TTL_S))
+    tokens = make_tokens(service.db)
+    url = service.db.url
+    service.db.dispose()
+    db = open_database(url)
+    servers = {"frozen-a": _serve(tmp_path, None, "--host-id", "frozen-a"),
+               "other-b": _serve(tmp_path, None, "--host-id", "other-b")}
+    try:
+        for proc, port in servers.values():
+            _up(proc, port)
+        client = Client(f"http://127.0.0.1:{servers['other-b'][1]}", tokens.operator)
+        first = client.request("POST", "/api/runs", {"scenario": LONG, "rig": RIG})["id"]
+        run = wait_until(lambda: (r := _running(db)) and (r.progress_s or 0) > 0 and r, 60, 0.05, "the run")
+        second = client.request("POST", "/api/runs", {"scenario": SHORT, "rig": RIG})["id"]
+        holder = servers[run.host][0]
+        os.kill(holder.pid, signal.SIGSTOP)        # the service and its run process (its own session)
+        os.kill(run.pid, signal.SIGSTOP)
+        frozen = time.time()
+        try:
+            time.sleep(3 * TTL_S)
+            runs = {r.id: r for r in _runs(db)}
+            with db.session() as s:
+                assert s.get(Instance, run.instance_id).expires_ts < time.time()      # its lease expired ...
+            assert runs[first].state == "running" and runs[second].state == "queued"  # ... nothing taken over
+        finally:
+            os.kill(run.pid, signal.SIGCONT)
+            os.kill(holder.pid, signal.SIGCONT)
+        ended = wait_until(lambda: (r := {r.id: r for r in _runs(db)}[first]).state != "running" and r, 60, 0.1,
+                           "the woken instance to stop its run")
+        assert ended.state == "aborted" and "SIGTERM" in (ended.reason or ""), ended.reason
+        assert "taken over" not in ended.reason and not process_alive(run.pid, run.pid_start)
+        nxt = wait_until(lambda: (r := {r.id: r for r in _runs(db)}[second]).state not in ("queued", "running")
+                         and r, 60, 0.1, "the queued run")
+        assert nxt.state == "pass" and nxt.started_ts >= ended.ended_ts
+        with db.session() as s:
+            names = [i.name for i in s.execute(select_instances()).scalars()]
+        assert names.count(run.host) == 2            # it registered anew after fencing
+        print(f"\nFROZEN holder: stopped {3 * TTL_S:.0f} s (TTL {TTL_S:g} s): no takeover; woken, its run ended "
+              f"{ended.ended_ts - frozen:.2f} s after the freeze; the next run started "
+              f"{nxt.started_ts - ended.ended_ts:.2f} s after that")
+    finally:
+        for proc, _ in servers.values():
+            stop_process(proc)
+        db.dispose()
+
+
+def select_instances():
+    from sqlalchemy import select
+
+    from bench.service.db import Instance
+
+    return select(Instance).order_by(Instance.id)

@@ -102,16 +102,17 @@ def refused(inst: Instance) -> InputError:
                        f"another --host-id"])
 
 
-def register(db: Database, name: str, ttl_s: float) -> int:
+def register(db: Database, name: str, ttl_s: float, replacing: int | None = None) -> int:
     """This process's instance under `name`; an earlier instance of that name that is gone is marked stopped
-    (its runs stay its own until its lease has expired). Raises InputError if one lives."""
+    (its runs stay its own until its lease has expired). Raises InputError if one lives. `replacing`: this
+    process's own earlier incarnation, fenced and with its runs ended, which may be replaced though it lives."""
     here = me()
     for _ in range(3):
         t = now()
         with db.session() as s:
             old = s.execute(select(Instance).where(Instance.name == name, Instance.stopped_ts.is_(None))).scalar()
             if old is not None:
-                if instance_lives(old, t, here):
+                if old.id != replacing and instance_lives(old, t, here):
                     raise refused(old)
                 s.execute(update(Instance).where(Instance.id == old.id, Instance.stopped_ts.is_(None))
                           .values(stopped_ts=t, stopped_by=f"{name} (pid {here.pid}) at start-up: found gone"))

@@ -144,6 +144,7 @@ class Runner:
         self._thread: threading.Thread | None = None
         self._last_extend = 0.0
         self._last_sweep = 0.0
+        self._last_rejoin = 0.0
         self.root = find_repo_root()
         self.on_tick: Callable[[], None] | None = None
         self.instance_id: int | None = None
@@ -152,14 +153,27 @@ class Runner:
 
     # -- lifecycle ----------------------------------------------------------------------------------------
 
-    def register(self) -> int:
+    def register(self, replacing: int | None = None) -> int:
         """This instance's liveness lease; InputError (one line) if a live instance has the same --host-id."""
         if self.instance_id is None:
             t = now()
-            self.instance_id = instances.register(self.db, self.settings.host_id, self.settings.lease_ttl_s)
+            self.instance_id = instances.register(self.db, self.settings.host_id, self.settings.lease_ttl_s,
+                                                  replacing)
             self.lease_until = t + self.settings.lease_ttl_s
             self._last_extend = t
         return self.instance_id
+
+    def _rejoin(self) -> None:
+        """A fenced instance whose runs have all ended registers anew (a new incarnation) once the database lets it."""
+        old, self.instance_id = self.instance_id, None
+        try:
+            self.register(replacing=old)
+        except Exception:
+            self.instance_id = old
+            raise
+        self.fenced = None
+        print(f"drivebench serve: instance {self.settings.host_id}: registered again (incarnation "
+              f"{self.instance_id}); starting runs again", file=sys.stderr)
 
     def start(self) -> None:
         self.register()
@@ -254,6 +268,10 @@ class Runner:
 
     def tick(self) -> None:
         self._reap()
+        if (self.fenced and not self.children and not self._stop.is_set()
+                and time.monotonic() - self._last_rejoin >= self.settings.lease_ttl_s):
+            self._last_rejoin = time.monotonic()
+            self._rejoin()
         self._heartbeat()
         self._handle_aborts()
         self._write_progress()
@@ -272,6 +290,7 @@ class Runner:
                     child.reader.join(timeout=5)
                 self._finish(child)
                 del self.children[run_id]
+                self._heartbeat()     # finishing a run reads its record: keep the lease renewed meanwhile
 
     def _heartbeat(self) -> None:
         """Every TTL/3: this instance's lease and its live runs' leases, in one transaction. An instance whose lease
