@@ -149,7 +149,8 @@ class Instance(Base):
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     name: Mapped[str] = mapped_column(String(200), index=True)
     hostname: Mapped[str] = mapped_column(String(255))
-    boot_id: Mapped[str | None] = mapped_column(String(64))   # same host name + boot: its pids can be checked
+    boot_id: Mapped[str | None] = mapped_column(String(64))   # boot id/pid namespace: with the host name, where its
+                                                               # pids can be checked
     pid: Mapped[int] = mapped_column(Integer)
     pid_start: Mapped[int | None] = mapped_column(BigInteger)
     started_ts: Mapped[float] = mapped_column(Float, default=now)

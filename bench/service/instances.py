@@ -32,7 +32,14 @@ def _read(path: str) -> str | None:
 
 
 def boot_id() -> str | None:
-    return _read("/proc/sys/kernel/random/boot_id")
+    """Where pids can be compared: this boot of the kernel and this pid namespace (two containers on one host
+    may share a host name, not their pids)."""
+    boot = _read("/proc/sys/kernel/random/boot_id")
+    try:
+        namespace = os.readlink("/proc/self/ns/pid")
+    except OSError:
+        namespace = None
+    return f"{boot}/{namespace}" if boot and namespace else boot
 
 
 def process_start(pid: int) -> int | None:
@@ -71,7 +78,7 @@ def process_alive(pid: int | None, start: int | None = None) -> bool:
 @dataclass(frozen=True)
 class Me:
     hostname: str
-    boot_id: str | None
+    boot_id: str | None          # boot id and pid namespace
     pid: int
     pid_start: int | None
 

@@ -42,6 +42,7 @@ TICK_S = 0.2
 ABORT_KILL_AFTER_S = 60.0     # SIGTERM runs the safe stop; a run process still alive after this gets SIGKILL
 STOP_WAIT_S = 30.0            # service shutdown: how long to wait for runs to finish their safe stop
 PROGRESS_DB_PERIOD_S = 1.0
+LOG_REPEAT_S = 30.0           # the same runner error is logged at most this often
 SWEEP_PERIOD_S = 1.0          # how often a live instance looks for runs of gone instances to take over
 NICE = shutil.which("nice")
 VERDICT_STATE = {"pass": "pass", "fail": "fail", "incomplete": "fail", "aborted": "aborted", "error": "error"}
@@ -258,11 +259,18 @@ class Runner:
     # -- the loop -----------------------------------------------------------------------------------------
 
     def _loop(self) -> None:
+        said: dict[str, float] = {}
         while not self._stop.is_set():
             try:
                 self.tick()
             except Exception as exc:  # the loop must survive a database hiccup; the next tick retries
-                print(f"drivebench serve: runner: {type(exc).__name__}: {exc}", file=sys.stderr)
+                first = (str(exc).splitlines() or [""])[0]
+                line = f"drivebench serve: runner: {type(exc).__name__}: {first}"
+                if time.monotonic() - said.get(line, -LOG_REPEAT_S) >= LOG_REPEAT_S:   # not 5 lines a second
+                    if len(said) > 100:
+                        said.clear()
+                    said[line] = time.monotonic()
+                    print(line, file=sys.stderr)
             self._wake.wait(TICK_S)
             self._wake.clear()
 
