@@ -14,7 +14,7 @@ from bench.service.auth import Principal, TokenCache
 from bench.service.db import FINAL_STATES, STATES, CriterionValue, Database, Rig, Run, Token, iso, now, open_database
 from bench.service.errors import ApiError, bad_input, not_found
 from bench.service.events import EventHub
-from bench.service.leases import rig_view, rig_views, active_leases
+from bench.service.leases import active_leases, held_rigs, rig_view, rig_views
 from bench.service.rigs import RigConfig, load_rigs
 from bench.service.runner import Runner, RunnerSettings, run_event
 
@@ -130,7 +130,7 @@ class Service:
             row = s.get(Rig, name)
             if row is None:
                 raise not_found(f"rig {name}")
-            view = rig_view(row, active_leases(s, name)).contract()
+            view = rig_view(row, active_leases(s, name), name in held_rigs(s)).contract()
             view["bench"] = row.bench
             view["enabled"] = row.enabled
             return view

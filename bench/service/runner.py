@@ -35,7 +35,7 @@ from sqlalchemy.exc import IntegrityError
 from bench.errors import find_repo_root
 from bench.service import instances
 from bench.service.db import CriterionValue, Database, Instance, Lease, Rig, Run, RunCandidate, iso, now
-from bench.service.leases import active_leases
+from bench.service.leases import active_leases, held_rigs
 from bench.service.events import EventHub
 
 TICK_S = 0.2
@@ -371,8 +371,7 @@ class Runner:
     def _open_rigs(self, s, t: float) -> dict[str, tuple[Rig, int, str | None]]:
         """Rigs a run could start on now: name -> (rig, free slots, the only owner whose runs may go there)."""
         leases = active_leases(s, at=t)
-        held = set(s.execute(select(Lease.rig).where(Lease.kind == "run", Lease.exclusive_rig.is_(True),
-                                                     Lease.released_ts.is_(None))).scalars())
+        held = held_rigs(s)
         found = {}
         for rig in s.execute(select(Rig).where(Rig.enabled.is_(True)).order_by(Rig.name)).scalars():
             mine = [l for l in leases if l.rig == rig.name]
