@@ -172,8 +172,11 @@ while True:
                    "the long run to start")
         with db.session() as s:
             child_pid, out_dir = s.get(Run, long_id).pid, Path(s.get(Run, long_id).run_dir)
-        # the run process has its record (under load its imports alone can take seconds): now the service dies
+        # the run is under way (under load its imports alone can take seconds; a SIGTERM before the run's own
+        # handler is installed, which comes after its first record.json is written, ends it without closing the
+        # record): now the service dies
         wait_until(lambda: any(out_dir.glob("*/record.json")), 60, 0.1, "the long run's record")
+        wait_until(lambda: (db.sessions().get(Run, long_id).progress_s or 0) > 0, 60, 0.1, "the long run's progress")
         time.sleep(0.5)
         server.kill()
         server.wait(timeout=10)

@@ -61,9 +61,13 @@ def serve(db_url, data_dir, host, port, rigs_path, scenario_root, lease_ttl_s, m
         import uvicorn
 
         from bench.service.app import create_app
-        from bench.service.core import Service, ServiceSettings
+        from bench.service.core import Service, ServiceSettings, serve_option_problems
     except ImportError as exc:
         _bad([f"drivebench serve: (install): {exc.name} is missing: pip install 'drivebench[service]'"])
+    problems = serve_option_problems(port=port, lease_ttl_s=lease_ttl_s, max_parallel=max_parallel, host_id=host_id,
+                                     live_grpc_port=live_grpc_port, live_web_port=live_web_port)
+    if problems:
+        _bad(problems)
     settings = ServiceSettings(data_dir=Path(data_dir), db_url=db_url, rigs_path=Path(rigs_path) if rigs_path else None,
                                scenario_root=Path(scenario_root) if scenario_root else None, lease_ttl_s=lease_ttl_s,
                                max_parallel=max_parallel, host_id=host_id)
@@ -72,6 +76,7 @@ def serve(db_url, data_dir, host, port, rigs_path, scenario_root, lease_ttl_s, m
         settings.live_grpc_url, settings.live_viewer_url = start_live(live_grpc_port, live_web_port)
     try:
         service = Service(settings)
+        service.register()        # this instance's liveness lease: refused while one with its --host-id lives
     except InputError as exc:
         _bad(exc.problems)
     except Exception as exc:

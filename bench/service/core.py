@@ -3,23 +3,48 @@
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from sqlalchemy import select, update
 
-from bench.errors import find_repo_root
+from bench.errors import InputError, find_repo_root
 from bench.service.auth import Principal, TokenCache
 from bench.service.db import FINAL_STATES, STATES, CriterionValue, Database, Rig, Run, Token, iso, now, open_database
 from bench.service.errors import ApiError, bad_input, not_found
 from bench.service.events import EventHub
-from bench.service.leases import rig_view, rig_views, active_leases
+from bench.service.leases import active_leases, held_rigs, rig_view, rig_views
 from bench.service.rigs import RigConfig, load_rigs
 from bench.service.runner import Runner, RunnerSettings, run_event
 
 RUN_FILES = ("record.json", "summary.png", "run.rrd", "telemetry.parquet", "junit.xml", "service.log")
 MEDIA = {".json": "application/json", ".png": "image/png", ".rrd": "application/octet-stream",
          ".parquet": "application/vnd.apache.parquet", ".xml": "application/xml", ".log": "text/plain"}
+
+
+MAX_LEASE_TTL_S = 3600.0
+MIN_LEASE_TTL_S = 1.0        # renewed every TTL/3 by a loop that ticks every 0.2 s
+MAX_PARALLEL = 256
+
+
+def serve_option_problems(port: int | None = None, lease_ttl_s: float | None = None, max_parallel: int | None = None,
+                          host_id: str | None = None, **ports: int | None) -> list[str]:
+    """`drivebench serve`'s numbers and names, checked before anything starts: one line each."""
+    problems = []
+    for name, value in {"port": port, **ports}.items():
+        if value is not None and not 1 <= value <= 65535:
+            problems.append(f"serve: --{name.replace('_', '-')}: must be a TCP port in 1..65535, got {value}")
+    if lease_ttl_s is not None and not (math.isfinite(lease_ttl_s)
+                                        and MIN_LEASE_TTL_S <= lease_ttl_s <= MAX_LEASE_TTL_S):
+        problems.append(f"serve: --lease-ttl: must be seconds in [{MIN_LEASE_TTL_S:g}, {MAX_LEASE_TTL_S:g}], "
+                        f"got {lease_ttl_s}")
+    if max_parallel is not None and not 1 <= max_parallel <= MAX_PARALLEL:
+        problems.append(f"serve: --max-parallel: must be an integer in 1..{MAX_PARALLEL}, got {max_parallel}")
+    if host_id is not None and not (0 < len(host_id) <= 200 and host_id.isprintable() and host_id.strip() == host_id):
+        problems.append(f"serve: --host-id: must be 1-200 printable characters without surrounding spaces, "
+                        f"got {host_id!r}")
+    return problems
 
 
 @dataclass
@@ -37,6 +62,10 @@ class ServiceSettings:
     rigs: list[RigConfig] = field(default_factory=list)
 
     def resolved(self) -> "ServiceSettings":
+        problems = serve_option_problems(lease_ttl_s=self.lease_ttl_s, max_parallel=self.max_parallel,
+                                         host_id=self.host_id)
+        if problems:
+            raise InputError(problems)
         root = find_repo_root()
         self.data_dir = Path(self.data_dir).resolve()
         self.rigs_path = Path(self.rigs_path or root / "config" / "rigs.toml")
@@ -63,6 +92,11 @@ class Service:
         if self.settings.host_id:
             runner_settings.host_id = self.settings.host_id
         self.runner = Runner(self.db, runner_settings, self.events)
+
+    def register(self) -> None:
+        """Take this instance's liveness lease (before serving): InputError if a live one has the same id."""
+        if self.settings.run_queue:
+            self.runner.register()
 
     def start(self) -> None:
         if self.settings.run_queue:
@@ -96,7 +130,7 @@ class Service:
             row = s.get(Rig, name)
             if row is None:
                 raise not_found(f"rig {name}")
-            view = rig_view(row, active_leases(s, name)).contract()
+            view = rig_view(row, active_leases(s, name), name in held_rigs(s)).contract()
             view["bench"] = row.bench
             view["enabled"] = row.enabled
             return view

@@ -12,8 +12,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
 
-from sqlalchemy import (JSON, BigInteger, Boolean, Float, ForeignKey, Integer, String, Text, create_engine, event,
-                        inspect, update)
+from sqlalchemy import (JSON, BigInteger, Boolean, Float, ForeignKey, Index, Integer, String, Text, create_engine,
+                        event, inspect, text, update)
 from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
 
@@ -79,8 +79,10 @@ class Run(Base):
     duration_s: Mapped[float | None] = mapped_column(Float)
     progress_s: Mapped[float | None] = mapped_column(Float)
     scenario_duration_s: Mapped[float | None] = mapped_column(Float)
-    host: Mapped[str | None] = mapped_column(String(200))   # the service instance that runs it
+    host: Mapped[str | None] = mapped_column(String(200))   # the service instance that runs it (its --host-id)
+    instance_id: Mapped[int | None] = mapped_column(Integer, index=True)   # that instance's incarnation
     pid: Mapped[int | None] = mapped_column(Integer)
+    pid_start: Mapped[int | None] = mapped_column(BigInteger)   # the run process's start time (tells pid reuse)
     run_dir: Mapped[str | None] = mapped_column(Text)
     reason: Mapped[str | None] = mapped_column(Text)
     abort_requested_by: Mapped[str | None] = mapped_column(String(200))
@@ -90,6 +92,13 @@ class Run(Base):
     revision: Mapped[str | None] = mapped_column(String(64), index=True)
     software: Mapped[dict | None] = mapped_column(JSON)
     criteria: Mapped[list | None] = mapped_column(JSON)
+
+
+class RunCandidate(Base):
+    """A rig a queued run submitted by tag may start on (the scheduler asks per free rig, in SQL)."""
+    __tablename__ = "run_candidates"
+    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id", ondelete="CASCADE"), primary_key=True)
+    rig: Mapped[str] = mapped_column(String(200), primary_key=True, index=True)
 
 
 class CriterionValue(Base):
@@ -105,6 +114,10 @@ class CriterionValue(Base):
     status: Mapped[str | None] = mapped_column(String(20))
 
 
+ONE_RUN_WHERE = "kind = 'run' AND exclusive_rig AND released_ts IS NULL"
+LIVE_INSTANCE_WHERE = "stopped_ts IS NULL"
+
+
 class Lease(Base):
     """A hold of a rig that ends at expires_ts unless extended: a run's or a person's (kind manual)."""
     __tablename__ = "leases"
@@ -118,9 +131,36 @@ class Lease(Base):
     expires_ts: Mapped[float] = mapped_column(Float, index=True)
     released_ts: Mapped[float | None] = mapped_column(Float)
     released_by: Mapped[str | None] = mapped_column(String(200))
+    # a run's lease on a real rig: until released (not merely expired) no other run may claim the rig, and the
+    # database itself refuses a second one (unique index below), whatever two services decide at once
+    exclusive_rig: Mapped[bool] = mapped_column(Boolean, default=False, server_default=text("false"))
+
+    __table_args__ = (Index("ux_leases_one_run_per_real_rig", "rig", unique=True,
+                            sqlite_where=text(ONE_RUN_WHERE), postgresql_where=text(ONE_RUN_WHERE)),)
 
     def active(self, at: float | None = None) -> bool:
         return self.released_ts is None and self.expires_ts > (now() if at is None else at)
+
+
+class Instance(Base):
+    """One start of `drivebench serve` (an incarnation): its own liveness lease, renewed by the runner loop.
+    At most one live instance per name (--host-id): the unique index refuses a second one even under a race."""
+    __tablename__ = "service_instances"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    name: Mapped[str] = mapped_column(String(200), index=True)
+    hostname: Mapped[str] = mapped_column(String(255))
+    boot_id: Mapped[str | None] = mapped_column(String(64))   # boot id/pid namespace: with the host name, where its
+                                                               # pids can be checked
+    pid: Mapped[int] = mapped_column(Integer)
+    pid_start: Mapped[int | None] = mapped_column(BigInteger)
+    started_ts: Mapped[float] = mapped_column(Float, default=now)
+    heartbeat_ts: Mapped[float] = mapped_column(Float)
+    expires_ts: Mapped[float] = mapped_column(Float)
+    stopped_ts: Mapped[float | None] = mapped_column(Float)
+    stopped_by: Mapped[str | None] = mapped_column(String(200))
+
+    __table_args__ = (Index("ux_instances_live_name", "name", unique=True, sqlite_where=text(LIVE_INSTANCE_WHERE),
+                            postgresql_where=text(LIVE_INSTANCE_WHERE)),)
 
 
 # --- engine --------------------------------------------------------------------------------------------

@@ -51,7 +51,14 @@ def active_leases(s: Session, rig: str | None = None, at: float | None = None) -
     return list(s.execute(q.order_by(Lease.id)).scalars())
 
 
-def rig_view(rig: Rig, leases: list[Lease]) -> RigView:
+def held_rigs(s: Session) -> set[str]:
+    """Real rigs whose run lease is unreleased, expired or not: its run may still drive the rig until a live
+    instance has taken it over (docs/service.md, "One holder per rig")."""
+    return set(s.execute(select(Lease.rig).where(Lease.kind == "run", Lease.exclusive_rig.is_(True),
+                                                 Lease.released_ts.is_(None))).scalars())
+
+
+def rig_view(rig: Rig, leases: list[Lease], held: bool = False) -> RigView:
     runs = [l for l in leases if l.kind == "run"]
     manual = [l for l in leases if l.kind == "manual"]
     if not rig.enabled:
@@ -60,7 +67,7 @@ def rig_view(rig: Rig, leases: list[Lease]) -> RigView:
         state = "reserved"
     elif runs and len(runs) >= rig.max_concurrent:
         state = "full" if rig.simulated else "busy"
-    elif runs:
+    elif runs or (held and not rig.simulated):
         state = "busy"
     else:
         state = "free"
@@ -74,7 +81,9 @@ def rig_views(s: Session) -> list[RigView]:
     by_rig: dict[str, list[Lease]] = {}
     for lease in leases:
         by_rig.setdefault(lease.rig, []).append(lease)
-    return [rig_view(r, by_rig.get(r.name, [])) for r in s.execute(select(Rig).order_by(Rig.name)).scalars()]
+    held = held_rigs(s)
+    return [rig_view(r, by_rig.get(r.name, []), r.name in held)
+            for r in s.execute(select(Rig).order_by(Rig.name)).scalars()]
 
 
 def check_ttl(ttl_s, field: str = "ttl_s") -> float:
@@ -100,6 +109,9 @@ def reserve(db: Database, rig_name: str, who: Principal, ttl_s: float, reason: s
         if other is not None:
             raise ApiError(409, f"rig {rig_name}: leased by {other.holder} until {iso(other.expires_ts)}"
                                 + (f" ({other.reason})" if other.reason else ""))
+        if not rig.simulated and rig_name in held_rigs(s):
+            raise ApiError(409, f"rig {rig_name}: its last run's lease expired but is not released: the run may "
+                                f"still drive the rig until its service is found gone and the run taken over")
         t = now()
         lease = Lease(rig=rig_name, holder=who.name, kind="manual", reason=reason or "", created_ts=t,
                       expires_ts=t + ttl_s)

@@ -12,7 +12,7 @@ from sqlalchemy import select
 
 from bench.errors import InputError
 from bench.service.auth import Principal
-from bench.service.db import Database, Rig, Run, iso
+from bench.service.db import Database, Rig, Run, RunCandidate, iso
 from bench.service.errors import ApiError, bad_input
 from bench.service.leases import active_leases, blocking_holder
 
@@ -176,4 +176,5 @@ def submit(db: Database, who: Principal, body: Submission, scenario_root: Path, 
                   owner_token_id=who.token_id)
         s.add(run)
         s.flush()
+        s.add_all(RunCandidate(run_id=run.id, rig=name) for name in dict.fromkeys(fitting or []))
         return run

@@ -1,8 +1,15 @@
 """The run queue's worker: claims queued runs for free rigs, runs each in its own `drivebench run` process, keeps
 the run's lease alive while the process lives, indexes the record when it ends, and reconciles after a crash.
 
-One thread does all of it (one loop, no locks between schedulers); a service instance only touches the runs it
-started (`host`), so several instances can share one PostgreSQL database.
+One thread does all of it (one loop, no locks between schedulers). Each service instance holds a liveness lease of
+its own (bench/service/instances.py), renewed by this loop; it touches the runs it started, and takes over another
+instance's run only when that instance's lease has expired and the run's process is gone. A real rig's run lease
+stays until released, and the database refuses a second unreleased one on the rig (a partial unique index), so
+two instances cannot both claim a real rig, whatever they decide at the same moment.
+
+Scheduling: each tick, for every rig with room, the oldest queued run that may start there (pinned to it, or
+submitted by tag with the rig among its candidates; on a reserved real rig only the holder's own runs); of these
+heads the oldest starts first. What is queued for other rigs costs nothing (docs/service.md, "Queue order").
 """
 
 from __future__ import annotations
@@ -22,17 +29,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from sqlalchemy import select, update
+from sqlalchemy import and_, or_, select, update
+from sqlalchemy.exc import IntegrityError
 
 from bench.errors import find_repo_root
-from bench.service.db import CriterionValue, Database, Lease, Rig, Run, now
-from bench.service.leases import active_leases
+from bench.service import instances
+from bench.service.db import CriterionValue, Database, Instance, Lease, Rig, Run, RunCandidate, iso, now
+from bench.service.leases import active_leases, held_rigs
 from bench.service.events import EventHub
 
 TICK_S = 0.2
 ABORT_KILL_AFTER_S = 60.0     # SIGTERM runs the safe stop; a run process still alive after this gets SIGKILL
 STOP_WAIT_S = 30.0            # service shutdown: how long to wait for runs to finish their safe stop
 PROGRESS_DB_PERIOD_S = 1.0
+LOG_REPEAT_S = 30.0           # the same runner error is logged at most this often
+SWEEP_PERIOD_S = 1.0          # how often a live instance looks for runs of gone instances to take over
 NICE = shutil.which("nice")
 VERDICT_STATE = {"pass": "pass", "fail": "fail", "incomplete": "fail", "aborted": "aborted", "error": "error"}
 
@@ -133,12 +144,40 @@ class Runner:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._last_extend = 0.0
+        self._last_sweep = 0.0
+        self._last_rejoin = 0.0
         self.root = find_repo_root()
         self.on_tick: Callable[[], None] | None = None
+        self.instance_id: int | None = None
+        self.lease_until = 0.0            # this instance's lease as last renewed (epoch s)
+        self.fenced: str | None = None     # why this instance no longer holds anything
 
     # -- lifecycle ----------------------------------------------------------------------------------------
 
+    def register(self, replacing: int | None = None) -> int:
+        """This instance's liveness lease; InputError (one line) if a live instance has the same --host-id."""
+        if self.instance_id is None:
+            t = now()
+            self.instance_id = instances.register(self.db, self.settings.host_id, self.settings.lease_ttl_s,
+                                                  replacing)
+            self.lease_until = t + self.settings.lease_ttl_s
+            self._last_extend = t
+        return self.instance_id
+
+    def _rejoin(self) -> None:
+        """A fenced instance whose runs have all ended registers anew (a new incarnation) once the database lets it."""
+        old, self.instance_id = self.instance_id, None
+        try:
+            self.register(replacing=old)
+        except Exception:
+            self.instance_id = old
+            raise
+        self.fenced = None
+        print(f"drivebench serve: instance {self.settings.host_id}: registered again (incarnation "
+              f"{self.instance_id}); starting runs again", file=sys.stderr)
+
     def start(self) -> None:
+        self.register()
         self.reconcile()
         self._thread = threading.Thread(target=self._loop, name="drivebench-runner", daemon=True)
         self._thread.start()
@@ -164,46 +203,90 @@ class Runner:
                 child.proc.wait(timeout=10)
             self._finish(child, forced_reason=reason)
         self.children.clear()
+        if self.instance_id is not None and not self.fenced:
+            instances.stop(self.db, self.instance_id)
+
+    def _orphaned(self, run: Run, inst: Instance | None, t: float, here: instances.Me) -> bool:
+        """May this instance take `run` over: its instance is gone (lease expired, and on this machine its process
+        too) and so is the run's process (on this machine: pid and start time; elsewhere: a grace period after
+        expiry, in which a service's death reaches its run processes)."""
+        if inst is None:      # a run from before instances were recorded: by --host-id, as before, and its pid
+            return (run.host in (self.settings.host_id, None)) and not instances.process_alive(run.pid)
+        if inst.id == self.instance_id or inst.expires_ts > t:
+            return False
+        if instances.same_machine(inst, here):
+            if inst.stopped_ts is None and instances.process_alive(inst.pid, inst.pid_start):
+                return False     # frozen or cut off from the database, but alive: it still holds its runs
+            return not instances.process_alive(run.pid, run.pid_start)
+        return t >= inst.expires_ts + instances.REMOTE_TAKEOVER_GRACE_S
 
     def reconcile(self) -> list[int]:
-        """After a crash: this instance's runs still marked running become aborted, with the reason and whatever
-        record their run process left; their leases are released. Queued runs stay queued."""
-        done = []
+        """Runs still marked running whose instance and process are gone become aborted, with the reason and
+        whatever record their run process left; their leases are released. Queued runs stay queued. Each takeover
+        is a conditional update, so two instances never both take one run."""
+        t, here = now(), instances.me()
         with self.db.session() as s:
-            stale = s.execute(select(Run).where(Run.state == "running",
-                                                (Run.host == self.settings.host_id) | Run.host.is_(None))).scalars()
-            for run in stale:
+            rows = s.execute(select(Run, Instance).outerjoin(Instance, Instance.id == Run.instance_id)
+                             .where(Run.state == "running")).all()
+        orphans = [(run.id, run.instance_id, inst) for run, inst in rows if self._orphaned(run, inst, t, here)]
+        done = []
+        me_ = self.settings.host_id
+        for run_id, instance_id, inst in orphans:
+            with self.db.session() as s:
+                took = s.execute(update(Run).where(Run.id == run_id, Run.state == "running",
+                                                   Run.instance_id.is_(None) if instance_id is None
+                                                   else Run.instance_id == instance_id)
+                                 .values(state="aborted", ended_ts=now())).rowcount
+                if took != 1:
+                    continue
+                run = s.get(Run, run_id)
                 run_dir, record = _record_of(Path(run.run_dir) if run.run_dir else None)
                 index_record(s, run, record, run_dir)
-                run.state = "aborted"
+                gone = (f"its service instance {inst.name} (pid {inst.pid} on {inst.hostname}) lease expired at "
+                        f"{iso(inst.expires_ts)}" if inst is not None else "its service instance was gone")
                 run.reason = ("the service stopped while the run was running (its run process was stopped with "
-                              "it, SIGTERM: safe stop); reconciled at restart"
+                              f"it, SIGTERM: safe stop); taken over by {me_}: {gone} and the run process had ended"
                               + (f"; the record says: {record.get('verdict')}"
                                  + (f" ({record.get('abort_reason')})" if record.get("abort_reason") else "")
                                  if record else "; no record"))
-                run.ended_ts = run.ended_ts or now()
-                s.execute(update(Lease).where(Lease.run_id == run.id, Lease.released_ts.is_(None))
-                          .values(released_ts=now(), released_by="reconcile"))
-                done.append(run.id)
+                s.execute(update(Lease).where(Lease.run_id == run_id, Lease.released_ts.is_(None))
+                          .values(released_ts=now(), released_by=f"takeover by {me_}"))
+                event = run_event(run)
+            self.events.publish(event)
+            done.append(run_id)
         return done
 
     # -- the loop -----------------------------------------------------------------------------------------
 
     def _loop(self) -> None:
+        said: dict[str, float] = {}
         while not self._stop.is_set():
             try:
                 self.tick()
             except Exception as exc:  # the loop must survive a database hiccup; the next tick retries
-                print(f"drivebench serve: runner: {type(exc).__name__}: {exc}", file=sys.stderr)
+                first = (str(exc).splitlines() or [""])[0]
+                line = f"drivebench serve: runner: {type(exc).__name__}: {first}"
+                if time.monotonic() - said.get(line, -LOG_REPEAT_S) >= LOG_REPEAT_S:   # not 5 lines a second
+                    if len(said) > 100:
+                        said.clear()
+                    said[line] = time.monotonic()
+                    print(line, file=sys.stderr)
             self._wake.wait(TICK_S)
             self._wake.clear()
 
     def tick(self) -> None:
         self._reap()
-        self._extend_leases()
+        if (self.fenced and not self.children and not self._stop.is_set()
+                and time.monotonic() - self._last_rejoin >= self.settings.lease_ttl_s):
+            self._last_rejoin = time.monotonic()
+            self._rejoin()
+        self._heartbeat()
         self._handle_aborts()
         self._write_progress()
-        if not self._stop.is_set():
+        if time.monotonic() - self._last_sweep >= SWEEP_PERIOD_S:
+            self._last_sweep = time.monotonic()
+            self.reconcile()
+        if not self._stop.is_set() and not self.fenced:
             self._schedule()
         if self.on_tick:
             self.on_tick()
@@ -215,21 +298,48 @@ class Runner:
                     child.reader.join(timeout=5)
                 self._finish(child)
                 del self.children[run_id]
+                self._heartbeat()     # finishing a run reads its record: keep the lease renewed meanwhile
 
-    def _extend_leases(self) -> None:
+    def _heartbeat(self) -> None:
+        """Every TTL/3: this instance's lease and its live runs' leases, in one transaction. An instance whose lease
+        ran out (a stalled loop, a lost database) holds nothing any more: it fences itself."""
         t = now()
-        if not self.children or t - self._last_extend < self.settings.lease_ttl_s / 3:
+        if self.instance_id is not None and not self.fenced and t >= self.lease_until:
+            self._fence(f"its lease ran out at {iso(self.lease_until)} without renewal")
+        if self.fenced or t - self._last_extend < self.settings.lease_ttl_s / 3:
             return
+        ttl = self.settings.lease_ttl_s
         alive = [c.lease_id for c in self.children.values() if c.proc.poll() is None]
-        if alive:
-            with self.db.session() as s:
-                s.execute(update(Lease).where(Lease.id.in_(alive), Lease.released_ts.is_(None))
-                          .values(expires_ts=t + self.settings.lease_ttl_s))
+        with self.db.session() as s:
+            if self.instance_id is not None and not instances.renew(s, self.instance_id, t, ttl):
+                renewed = False
+            else:
+                renewed = True
+                if alive:
+                    s.execute(update(Lease).where(Lease.id.in_(alive), Lease.released_ts.is_(None))
+                              .values(expires_ts=t + ttl))
+        if not renewed:
+            self._fence("its lease was found expired or taken over")
+            return
+        self.lease_until = t + ttl
         self._last_extend = t
+
+    def _fence(self, why: str) -> None:
+        self.fenced = why
+        print(f"drivebench serve: instance {self.settings.host_id}: {why}; its runs get SIGTERM (safe stop) and it "
+              f"starts no more runs; restart it", file=sys.stderr)
+        for child in self.children.values():
+            if child.proc.poll() is None and child.term_sent is None:
+                child.proc.send_signal(signal.SIGTERM)
+                child.term_sent = time.monotonic()
 
     def _handle_aborts(self) -> None:
         if not self.children:
             return
+        for child in self.children.values():
+            if (child.term_sent is not None and child.proc.poll() is None
+                    and time.monotonic() - child.term_sent > ABORT_KILL_AFTER_S):
+                child.proc.kill()
         with self.db.session() as s:
             wanted = s.execute(select(Run.id).where(Run.id.in_(list(self.children)),
                                                     Run.abort_requested_by.is_not(None))).scalars().all()
@@ -258,51 +368,107 @@ class Runner:
 
     # -- scheduling ---------------------------------------------------------------------------------------
 
+    def _open_rigs(self, s, t: float) -> dict[str, tuple[Rig, int, str | None]]:
+        """Rigs a run could start on now: name -> (rig, free slots, the only owner whose runs may go there)."""
+        leases = active_leases(s, at=t)
+        held = held_rigs(s)
+        found = {}
+        for rig in s.execute(select(Rig).where(Rig.enabled.is_(True)).order_by(Rig.name)).scalars():
+            mine = [l for l in leases if l.rig == rig.name]
+            runs = sum(l.kind == "run" for l in mine)
+            if rig.simulated:
+                if runs < rig.max_concurrent:
+                    found[rig.name] = (rig, rig.max_concurrent - runs, None)
+                continue
+            holders = {l.holder for l in mine if l.kind == "manual"}
+            if rig.name in held or runs or len(holders) > 1:
+                continue
+            found[rig.name] = (rig, 1, holders.pop() if holders else None)
+        return found
+
+    @staticmethod
+    def _head(s, rig: str, owner: str | None, skip: set[int]) -> Run | None:
+        """The oldest queued run that may start on `rig`: pinned to it, or by tag with the rig a candidate."""
+        q = select(Run).where(Run.state == "queued", or_(
+            Run.rig == rig, and_(Run.rig.is_(None), Run.id.in_(select(RunCandidate.run_id)
+                                                                 .where(RunCandidate.rig == rig)))))
+        if owner is not None:
+            q = q.where(Run.owner == owner)
+        if skip:
+            q = q.where(Run.id.not_in(skip))
+        return s.execute(q.order_by(Run.id).limit(1)).scalar()
+
     def _schedule(self) -> None:
-        if len(self.children) >= self.settings.max_parallel:
+        """Fill this host's free slots: of the rigs with room, each one's oldest startable run is its head; the
+        oldest head starts first (on the least busy of the rigs it may take). Nothing queued for a rig that cannot
+        take a run is read."""
+        room = self.settings.max_parallel - len(self.children)
+        if room <= 0:
             return
         with self.db.session() as s:
-            queued = s.execute(select(Run).where(Run.state == "queued").order_by(Run.id).limit(100)).scalars().all()
-            rigs = {r.name: r for r in s.execute(select(Rig).where(Rig.enabled.is_(True))).scalars()}
-        busy: set[str] = set()
-        for run in queued:
-            if len(self.children) >= self.settings.max_parallel:
+            if s.execute(select(Run.id).where(Run.state == "queued").limit(1)).first() is None:
                 return
-            names = [run.rig] if run.rig else sorted(n for n, r in rigs.items() if run.tag in r.tags
-                                                     and (run.candidates is None or n in run.candidates))
-            names = [n for n in names if n in rigs and n not in busy]
-            names.sort(key=lambda n: sum(c.rig == n for c in self.children.values()))
-            for name in names:
-                lease_id = self._claim(run, rigs[name])
-                if lease_id is not None:
-                    self._spawn(run, rigs[name], lease_id)
-                    break
-                busy.add(name)
+            open_rigs = self._open_rigs(s, now())
+        load = {name: info[0].max_concurrent - info[1] for name, info in open_rigs.items()}
+        tried: set[int] = set()
+        while room > 0 and open_rigs:
+            with self.db.session() as s:
+                heads = {name: head for name, (_, _, owner) in open_rigs.items()
+                         if (head := self._head(s, name, owner, tried)) is not None}
+            if not heads:
+                return
+            run = min(heads.values(), key=lambda r: r.id)
+            tried.add(run.id)
+            for name in sorted((n for n, h in heads.items() if h.id == run.id), key=lambda n: (load[n], n)):
+                rig, free, owner = open_rigs[name]
+                lease_id = self._claim(run, rig)
+                if lease_id is None:
+                    open_rigs.pop(name)        # taken meanwhile (another instance, a reservation): next tick
+                    continue
+                self._spawn(run, rig, lease_id)
+                room -= 1
+                load[name] += 1
+                if free > 1:
+                    open_rigs[name] = (rig, free - 1, owner)
+                else:
+                    open_rigs.pop(name)
+                break
 
     def _claim(self, run: Run, rig: Rig) -> int | None:
-        """In one transaction holding the rig's lock: is there room, is the run still queued; then mark it
-        running and give it a lease."""
+        """In one transaction holding the rig's lock: does this instance still hold its lease, is there room, is the
+        run still queued; then mark it running and give it a lease. On a real rig the database refuses a second
+        unreleased run lease (IntegrityError) even if two services got here at once."""
         t = now()
-        with self.db.session() as s:
-            if not self.db.lock_rig(s, rig.name):
-                return None
-            leases = active_leases(s, rig.name, at=t)
-            runs = [l for l in leases if l.kind == "run"]
-            if rig.simulated:
-                if len(runs) >= rig.max_concurrent:
+        try:
+            with self.db.session() as s:
+                if not self.db.lock_rig(s, rig.name):
                     return None
-            elif any(l.kind == "run" or l.holder != run.owner for l in leases):
-                return None
-            claimed = s.execute(update(Run).where(Run.id == run.id, Run.state == "queued").values(
-                state="running", rig=rig.name, started_ts=t, host=self.settings.host_id)).rowcount
-            if claimed != 1:
-                return None
-            lease = Lease(rig=rig.name, holder=f"run {run.id} ({run.owner})", kind="run", run_id=run.id,
-                          reason=run.scenario_name or run.scenario, created_ts=t,
-                          expires_ts=t + self.settings.lease_ttl_s)
-            s.add(lease)
-            s.flush()
-            return lease.id
+                if self.instance_id is not None and s.execute(select(Instance.id).where(
+                        Instance.id == self.instance_id, Instance.stopped_ts.is_(None),
+                        Instance.expires_ts > t)).first() is None:
+                    return None
+                leases = active_leases(s, rig.name, at=t)
+                runs = [l for l in leases if l.kind == "run"]
+                if rig.simulated:
+                    if len(runs) >= rig.max_concurrent:
+                        return None
+                elif any(l.kind == "run" or l.holder != run.owner for l in leases) or s.execute(
+                        select(Lease.id).where(Lease.rig == rig.name, Lease.kind == "run",
+                                               Lease.exclusive_rig.is_(True), Lease.released_ts.is_(None))).first():
+                    return None
+                claimed = s.execute(update(Run).where(Run.id == run.id, Run.state == "queued").values(
+                    state="running", rig=rig.name, started_ts=t, host=self.settings.host_id,
+                    instance_id=self.instance_id)).rowcount
+                if claimed != 1:
+                    return None
+                lease = Lease(rig=rig.name, holder=f"run {run.id} ({run.owner})", kind="run", run_id=run.id,
+                              reason=run.scenario_name or run.scenario, created_ts=t,
+                              expires_ts=t + self.settings.lease_ttl_s, exclusive_rig=not rig.simulated)
+                s.add(lease)
+                s.flush()
+                return lease.id
+        except IntegrityError:
+            return None
 
     def _spawn(self, run: Run, rig: Rig, lease_id: int) -> None:
         out_dir = self.settings.data_dir / "runs" / f"{run.id:06d}"
@@ -337,7 +503,7 @@ class Runner:
         self.children[run.id] = child
         with self.db.session() as s:
             row = s.get(Run, run.id)
-            row.pid, row.run_dir = proc.pid, str(out_dir)
+            row.pid, row.pid_start, row.run_dir = proc.pid, instances.process_start(proc.pid), str(out_dir)
             self.events.publish(run_event(row))
 
     def _read_stderr(self, child: Child) -> None:
@@ -375,6 +541,11 @@ class Runner:
         t = now()
         with self.db.session() as s:
             run = s.get(Run, child.run_id)
+            if run.state != "running" or run.instance_id != self.instance_id:
+                # taken over meanwhile (only possible once this instance had lost its lease): not ours to write
+                s.execute(update(Lease).where(Lease.id == child.lease_id, Lease.released_ts.is_(None))
+                          .values(released_ts=t, released_by="runner"))
+                return
             index_record(s, run, record, run_dir)
             verdict = (record or {}).get("verdict")
             if run.abort_requested_by and (child.term_sent is not None or verdict not in VERDICT_STATE):
