@@ -92,7 +92,8 @@ class UnitCheck:
     reference sensor, one sample per SYNC. A wrong velocity unit, encoder resolution, gear ratio or gear side makes the
     two differ by a constant factor k (rpm taken for rad/s 9.55, a 3:2 gear on the wrong side 1.5, an 11:10 one 1.1);
     a sensorless estimate differs by noise, and by a lag in hard acceleration that comes and goes. Two tests, from the
-    first sample where either shows the shaft turning (`moving_mech_rad_s`), for `window_s`:
+    first sample where either shows the shaft turning (`moving_mech_rad_s`), for `window_s` and until the reference has
+    travelled `min_travel_rad` (enough for a 1.1 factor to show through the allowances), at most `max_window_s`:
 
     - angle: the angles both have travelled since then (sums of speed x SYNC period) must agree,
       |A_est - A_true| <= rel_tol x max(|A_est|, |A_true|) + angle_noise_rad + skew_s x |speed_true|
@@ -108,6 +109,8 @@ class UnitCheck:
 
     moving_mech_rad_s: float = 0.5
     window_s: float = 1.0
+    min_travel_rad: float = 20.0
+    max_window_s: float = 10.0
     rel_tol: float = 0.05
     angle_noise_rad: float = 0.1
     skew_s: float = 0.0
@@ -128,7 +131,8 @@ class UnitCheck:
     done: bool = False
 
     def settings(self) -> dict[str, float]:
-        return {"moving_mech_rad_s": self.moving_mech_rad_s, "window_s": self.window_s, "rel_tol": self.rel_tol,
+        return {"moving_mech_rad_s": self.moving_mech_rad_s, "window_s": self.window_s,
+                "min_travel_rad": self.min_travel_rad, "max_window_s": self.max_window_s, "rel_tol": self.rel_tol,
                 "angle_noise_rad": self.angle_noise_rad, "skew_s": self.skew_s, "hold_samples": self.hold_samples,
                 "gross_ratio": self.gross_ratio, "noise_mech_rad_s": self.noise_mech_rad_s,
                 "gross_hold_samples": self.gross_hold_samples}
@@ -151,7 +155,8 @@ class UnitCheck:
                 self._last_t = t_s
                 return None
             self._start = t_s
-        if t_s - self._start > self.window_s:
+        elapsed = t_s - self._start
+        if elapsed > self.max_window_s or (elapsed > self.window_s and abs(self._angle_true) >= self.min_travel_rad):
             self.done = True
             return None
         dt = t_s - self._last_t if self._last_t is not None else 0.0
@@ -184,7 +189,8 @@ class UnitCheck:
         self._bad = self._bad + 1 if excess > 1.0 else 0
         if self._bad < self.hold_samples and self._gross < self.gross_hold_samples:
             return None
-        what = (f"speeds a factor {ratio:.3g} apart for {self._gross} SYNC periods" if self._gross >= self.gross_hold_samples
+        gross = self._gross >= self.gross_hold_samples
+        what = (f"speeds a factor {ratio:.3g} apart for {self._gross} SYNC periods" if gross
                 else f"angles since first motion {self._angle_est:.3f} rad (drive) and {self._angle_true:.3f} rad "
                      f"(reference), ratio {abs(self._angle_est) / max(abs(self._angle_true), 1e-6):.3g}, outside "
                      f"{self.rel_tol:.0%} + {self.angle_noise_rad:g} rad for {self._bad} SYNC periods")

@@ -154,7 +154,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rigs", default=",".join(RIGS))
     parser.add_argument("--cases", default="1.5,1.1,10,ok-3:2")
-    parser.add_argument("--profile", default="ramp,step", help="ramp: the rig scenario; step: a step at 0.1 s, limit 60")
+    parser.add_argument("--profile", default="ramp,step",
+                        help="ramp: the rig scenario; step: a step at 0.1 s, limit 60")
     args = parser.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

@@ -193,13 +193,13 @@ def test_operator_abort_twice_runs_the_reaction_sequence_once(tmp_path, signals)
     assert device["safe"]["power_stage_on"] is False and device["safe"]["load_enabled"] is False
 
 
-def unit_check_run(k: float, noise=None, nan_at=(), period_s=0.01, ramp_s=0.5, target=20.0):
+def unit_check_run(k: float, noise=None, nan_at=(), period_s=0.01, ramp_s=0.5, target=20.0, check=None, samples=200):
     """The drive's own speed follows a ramp to `target`; the reference sensor sees k times it (a unit error of k).
     Returns (trip, the reference speed when it tripped, the check)."""
     from bench.supervisor import UnitCheck
 
-    check = UnitCheck()
-    for n in range(1, 200):
+    check = check or UnitCheck()
+    for n in range(1, samples):
         t = n * period_s
         est = target * min(1.0, t / ramp_s)
         true = k * est
@@ -253,3 +253,14 @@ def test_a_missing_speed_never_counts_as_agreement():
     plain, _, _ = unit_check_run(1.5)
     with_nan, _, _ = unit_check_run(1.5, nan_at={round(plain.t_s / 0.01) - 1})
     assert with_nan is not None and with_nan.t_s <= plain.t_s
+
+
+def test_a_slow_first_motion_is_judged_until_the_shaft_has_travelled_far_enough():
+    """A ramp to 20 rad/s in 2 s, with a real-time skew allowance of 20 ms: a 1.1 factor shows only after ~1.4 s; the
+    check runs past its 1 s until the reference has travelled 20 rad, and trips."""
+    from bench.supervisor import UnitCheck
+
+    trip, _, check = unit_check_run(1.1, ramp_s=2.0, check=UnitCheck(skew_s=0.02), samples=400)
+    assert trip is not None and trip.reason == "unit_mismatch" and 1.2 < trip.t_s < 1.8
+    trip, _, check = unit_check_run(1.0, ramp_s=2.0, check=UnitCheck(skew_s=0.02), samples=400)
+    assert trip is None and check.done and abs(check._angle_true) >= 20.0

@@ -356,8 +356,9 @@ def test_validate_refuses_a_stated_gear_without_a_side(tmp_path):
     text = (REPO / "config/benches/sim-generic-cia402-slave.toml").read_text()
     bench.write_text(text.replace('velocity_unit = "rpm"            # the EDS', 'gear_ratio = [3, 2]\n'
                                   'velocity_unit = "rpm"            # the EDS', 1))
-    out = subprocess.run([_sys.executable, "-m", "bench", "validate", str(REPO / "scenarios/rig/speed-step-20rads.toml"),
-                          "--bench", str(bench)], capture_output=True, text=True, cwd=REPO)
+    scenario = REPO / "scenarios/rig/speed-step-20rads.toml"
+    out = subprocess.run([_sys.executable, "-m", "bench", "validate", str(scenario), "--bench", str(bench)],
+                         capture_output=True, text=True, cwd=REPO)
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert "drive.velocity_side: rev/min with gear_ratio = [3, 2]" in out.stderr
 
@@ -387,7 +388,8 @@ def test_a_unit_error_trips_unit_mismatch_before_the_shaft_overspeeds(tmp_path, 
     """The drive's unit counts the motor behind a gear the bench does not apply (e35: told "shaft" wrongly; the
     others: gear [1, 1] or none stated): the shaft turns 1.5, 1.1 or 10 times faster than commanded. unit_mismatch
     trips, the drive gets its quick stop, and the shaft never reaches the 40 rad/s overspeed limit (a 10x error:
-    never 20 rad/s). Measured (lockstep, 10 ms SYNC): 1.5x trip at 0.12 s, 1.1x at 0.39 s, 10x at 0.02 s."""
+    never 20 rad/s). Measured (lockstep, 10 ms SYNC): 1.5x trip at 0.14 s, 1.1x at 0.39 s, 10x at 0.03 s
+    (benchmarks/unit_trip.py)."""
     row = unit_case(tmp_path, rig, case)
     assert row["verdict"] == "aborted" and row["reason"] == "unit_mismatch", row
     trip_by, peak_below = {"1.5": (0.2, 15.0), "1.1": (0.5, 25.0), "10": (0.05, 20.0)}[case]
@@ -419,3 +421,65 @@ def test_the_safe_stop_quick_stops_the_drive_before_the_load_is_zeroed_on_the_wi
     syncs_between = [m for m in frames if m.arbitration_id == o.SYNC
                      and quick_stop.timestamp < m.timestamp < row["load_zero_wall"]]
     assert syncs_between == []
+
+
+FREE_SHAFT_SCENARIO = """schema_version = 1
+name = "free-shaft-20rads"
+description = "20 rad/s on a free shaft, judged on the drive's own speed"
+duration_s = 1.5
+seed = 1
+
+[[speed]]
+kind = "ramp"
+start_s = 0.0
+end_s = 0.5
+speed_mech_rad_s = 20.0
+
+[limits]
+overspeed_mech_rad_s = 40.0
+overcurrent_a = 8.0
+
+[[criteria]]
+name = "the drive reports 20 rad/s"
+kind = "steady_state_error"
+signal = "speed_est_mech_rad_s"
+window_s = [1.0, 1.5]
+target = 20.0
+percent = true
+limit = 1.0
+"""
+
+
+def free_shaft_bench(tmp_path, rig: str, confirmed: str | None = None) -> Path:
+    text = (REPO / f"config/benches/sim-generic-{rig}.toml").read_text()
+    head, _, rest = text.partition("\n[load]\n")
+    rest = rest[rest.index("[simulator]"):]                     # no [load], no [reference]: a free shaft
+    if confirmed is not None:
+        head = head.replace("sync_period_s =", f'units_confirmed = "{confirmed}"\nsync_period_s =', 1)
+    bench = tmp_path / f"{rig}-free.toml"
+    bench.write_text(head + rest)
+    return bench
+
+
+def test_a_free_shaft_rig_runs_only_on_units_read_from_the_drive_or_confirmed(tmp_path):
+    """No reference sensor: nothing can check the drive's units at first motion. technosoft's inc/s, resolution and
+    gear are stated (its EDS has no 0x60A9/0x608F/0x6091): refused before anything moves, one line naming
+    units_confirmed; with units_confirmed the run goes on and the record says what was confirmed. e35 reports its
+    unit and a 1:1 gear: nothing to confirm."""
+    from bench.orchestrator import run_scenario
+
+    scenario = tmp_path / "free.toml"
+    scenario.write_text(FREE_SHAFT_SCENARIO)
+    refused = run_scenario(scenario, free_shaft_bench(tmp_path, "technosoft"), out_root=tmp_path / "runs",
+                           rerun_mode="off")
+    assert refused.verdict == "error"
+    assert "drive.units_confirmed: this rig has no reference sensor" in refused.error
+    assert "velocity_unit, encoder_increments_per_rev, gear_ratio" in refused.error
+    assert refused.record["drive_settings"]["stop"]["standstill"]          # never moved: stopped at once
+    confirmed = run_scenario(scenario, free_shaft_bench(tmp_path, "technosoft", "hand tachometer: 191 rpm at 20 rad/s"),
+                             out_root=tmp_path / "runs", rerun_mode="off")
+    assert confirmed.verdict == "pass", confirmed.record["abort_reason"]
+    assert confirmed.record["unit_check"]["units_confirmed"] == "hand tachometer: 191 rpm at 20 rad/s"
+    read = run_scenario(scenario, free_shaft_bench(tmp_path, "e35"), out_root=tmp_path / "runs", rerun_mode="off")
+    assert read.verdict == "pass", read.record["abort_reason"]
+    assert read.record["unit_check"]["velocity_factors_not_read"] == []

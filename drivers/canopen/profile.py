@@ -26,7 +26,8 @@ from drivers import extension
 from drivers.canopen import objects as o
 from drivers.signals import SIGNAL_NAMES
 from drivers.toml_file import known_entries
-from drivers.units import MILLI, PER_MILLE, SIDES, UnitError, VelocityScale, decode_velocity_unit, parse_velocity_unit
+from drivers.units import (MILLI, PER_MILLE, SIDES, UnitError, VelocityScale, VelocityUnit, decode_velocity_unit,
+                           parse_velocity_unit)
 
 PROFILES = ("auto", "cia402", "drivebench")
 
@@ -129,7 +130,7 @@ SIDE_HELP = ("[drive] velocity_side = \"motor\" (the drive's unit counts the mot
              "applied) or \"shaft\" (it counts the driving shaft, CiA 402 user units: not applied)")
 
 
-def _velocity_side(unit, gear: tuple[float, float] | None, stated: str | None, gear_from: str,
+def _velocity_side(unit: VelocityUnit, gear: tuple[float, float] | None, stated: str | None, gear_from: str,
                    notes: dict[str, str]) -> str:
     """Which shaft the drive's velocity unit counts, and where that came from (notes); ProfileError where a gear ratio
     other than 1:1 makes it matter and nothing says."""
@@ -141,12 +142,12 @@ def _velocity_side(unit, gear: tuple[float, float] | None, stated: str | None, g
         notes["velocity_side"] = "motor: increments of the motor encoder (CiA 402 0x608F: increments per motor rev)"
         return "motor"
     if geared:
-        raise ProfileError(f"velocity unit {unit.name} with a gear ratio of {gear[0]:g}:{gear[1]:g} ({gear_from}: motor "
-                           f"revs : driving shaft revs): which shaft does the drive's {unit.name} count? No CiA 402 "
-                           f"object says: state {SIDE_HELP}")
+        raise ProfileError(f"velocity unit {unit.name} with a gear ratio of {gear[0]:g}:{gear[1]:g} ({gear_from}: "
+                           f"motor revs : driving shaft revs): which shaft does the drive's {unit.name} count? No "
+                           f"CiA 402 object says: state {SIDE_HELP}")
     notes["velocity_side"] = ("shaft: no gear (1:1), motor and driving shaft turn alike" if gear is not None else
-                              "shaft: CiA 402 user unit, no gear ratio on the drive or in the bench config (the "
-                              "first-motion cross-check against the reference sensor verifies it)")
+                              "shaft: CiA 402 user unit, no gear ratio on the drive or in the bench config (checked "
+                              "against the reference sensor at first motion; a free shaft needs units_confirmed)")
     return "shaft"
 
 
@@ -291,7 +292,8 @@ def measurable(profile: DriveProfile) -> frozenset[str]:
 
 # -- bench config keys ([drive] of a CANopen drive) -------------------------------------------------------------
 
-PROFILE_KEYS = ("profile", "velocity_unit", "velocity_side", "units_confirmed", "encoder_increments_per_rev", "gear_ratio", "rated_torque_nm",
+PROFILE_KEYS = ("profile", "velocity_unit", "velocity_side", "units_confirmed", "encoder_increments_per_rev",
+                "gear_ratio", "rated_torque_nm",
                 "rated_current_a", "signals", "pdo", "comm_loss", "consumer_time_ms", "abort_option",
                 "error_behaviour", "bench_node_id", "standstill_mech_rad_s", "stop_timeout_s", "can")
 _POSITIVE = ("encoder_increments_per_rev", "rated_torque_nm", "rated_current_a")
@@ -349,7 +351,8 @@ def config_keys(section: dict) -> tuple[dict[str, Any], list[tuple[str, str]]]:
                 continue
         elif key == "velocity_side":
             if value not in SIDES:
-                bad(key, f"must be \"motor\" or \"shaft\" (which shaft the drive's velocity unit counts), got {value!r}")
+                bad(key, f"must be \"motor\" or \"shaft\" (which shaft the drive's velocity unit counts), "
+                         f"got {value!r}")
                 continue
         elif key == "gear_ratio":
             if not (isinstance(value, list) and len(value) == 2 and all(_number(v) and v > 0 for v in value)):

@@ -3,8 +3,8 @@
 The vendor EDS gives the objects, their types and defaults, the identity and the default PDO mappings; the drive
 spec (a rig's [simulator] section) gives what the EDS cannot: the units the simulated drive really uses (where its
 EDS has a 0x60A9 the simulated drive reports the spec's unit there; where it has a 0x6091 the spec's gear ratio; which
-shaft its velocity unit counts is the vendor's choice, `velocity_side`, and no object says it), the motor's rated current and torque, and
-whether its PDO mappings are fixed. No drive clock, no trace recorder, no test hooks: the drivebench extension
+shaft its velocity unit counts is the vendor's choice, `velocity_side`, and no object says it), the motor's rated
+current and torque, and whether its PDO mappings are fixed. No drive clock, no trace recorder, no test hooks: the drivebench extension
 objects are used only on a drive whose identity carries them, and a vendor's 0x2000.. objects mean what the vendor
 says, which is nothing the simulator acts on.
 
