@@ -273,11 +273,12 @@ def wait_standstill(advance: Callable[[], None], speed: Callable[[], float | Non
         try:
             advance()
             current = speed()
+            if current is None or abs(current) <= threshold_mech_rad_s:
+                break
+            by_itself = stopped is not None and stopped()
         except LinkError:
             break
-        if current is None or abs(current) <= threshold_mech_rad_s:
-            break
-        if stopped is not None and stopped():
+        if by_itself:
             return {"standstill": True, "by": "the drive: QUICK STOP ACTIVE ended in SWITCH ON DISABLED (0x605A)",
                     "speed_at_disable_mech_rad_s": abs(current), "wait_s": round(time.monotonic() - started, 4)}
     return {"standstill": current is not None and abs(current) <= threshold_mech_rad_s,
