@@ -371,12 +371,8 @@ class _Run:
     def _configure_and_enable(self) -> None:
         decimation = int(self.cfg.drive["trace_decimation"])
         self.drive.configure(LIVE_SIGNALS, self.trace_signals, decimation)
-        profile = getattr(self.drive, "profile", None)
-        if profile is not None and profile.kind == "cia402" and "speed_true_mech_rad_s" in self.reference_signals:
-            # a drive in its own units with a reference sensor: its speed and the shaft's must agree at first motion
-            self.supervisor.unit_check = UnitCheck()
-            self.recorder.note("unit_check", {"window_s": UnitCheck.window_s, "ratio": UnitCheck.ratio})
         measured = set(getattr(self.drive, "measured_signals", lambda: SIGNAL_NAMES)()) | set(self.reference_signals)
+        self._arm_unit_check(getattr(self.drive, "profile", None), measured)
         self.live_recorded = tuple(n for n in SIGNAL_NAMES if n in measured or (n in LIVE_SIGNALS and
                                                                                 self.data_source == "trace"))
         self.recorder.note("trace_signals", list(self.trace_signals))
@@ -398,6 +394,27 @@ class _Run:
             self._load_call(self.load.set_load, mode, value)
             self._load_call(self.load.enable, True)
         self._load_setting = (mode, value)
+
+    def _arm_unit_check(self, profile, measured: set[str]) -> None:
+        """A drive in its own units: with a reference sensor, its speed and the shaft's must agree at first motion
+        (UnitCheck); on a free shaft nothing can check them, so every velocity factor must have been read from the
+        drive, or the bench config must say how the stated ones were checked (units_confirmed)."""
+        if profile is None or profile.kind != "cia402":
+            return
+        if "speed_true_mech_rad_s" in measured:
+            # lockstep: the reference is read while the drive waits for the next SYNC, at the same instant; real time:
+            # up to a batch and a Modbus round trip later
+            self.supervisor.unit_check = UnitCheck(skew_s=0.0 if not self.realtime else 2 * self.sync_period_s)
+            self.recorder.note("unit_check", self.supervisor.unit_check.settings())
+            return
+        if profile.unread and not profile.units_confirmed:
+            raise InputError([f"{self.cfg.path}: drive.units_confirmed: this rig has no reference sensor to check the "
+                              f"drive's units against at first motion and {', '.join(profile.unread)} were not read "
+                              "from the drive: check them on the rig (hand tachometer, a turn counted by eye at low "
+                              "speed) and say how in units_confirmed = \"...\""])
+        self.recorder.note("unit_check", {"state": "free shaft: no reference sensor",
+                                          "velocity_factors_not_read": list(profile.unread),
+                                          "units_confirmed": profile.units_confirmed})
 
     def _note_link_reports(self) -> None:
         """What each link read from its device and set in it (profile, units, PDOs, comm loss, watchdog)."""
@@ -586,6 +603,8 @@ class _Run:
         if self.signals is not None and self.signals.ignored:
             self.recorder.note("signals_ignored_while_stopping", self.signals.ignored)
         self.recorder.note("safe_stop", {"steps": self.safe_stop.steps, "errors": stop_errors})
+        if self.supervisor.unit_check is not None:
+            self.recorder.note("unit_check", self.supervisor.unit_check.summary())
         self._note_link_reports()          # now with how the stop went (standstill, speed at disable)
         try:
             if not self.telemetry.drain(STALL_TIMEOUT_S):

@@ -7,6 +7,7 @@ orchestrator then runs the safe-stop sequence (once: see SafeStop).
 
 from __future__ import annotations
 
+import math
 import queue
 import threading
 import time
@@ -87,41 +88,117 @@ def check_load(t_s: float | None, feedback: LoadFeedback) -> Trip | None:
 
 @dataclass
 class UnitCheck:
-    """The first second of motion: the drive's own speed, converted through the units the bench read or was told,
-    must agree with the reference sensor. A wrong velocity unit or gear ratio shows as a ratio far from 1 (rpm taken
-    for rad/s is 9.55, mrad/s for rad/s 1000) before it can hurt; a sensorless estimate is never that far off."""
+    """First motion: the drive's own speed, converted through the units the bench read or was told, against the
+    reference sensor, one sample per SYNC. A wrong velocity unit, encoder resolution, gear ratio or gear side makes the
+    two differ by a constant factor k (rpm taken for rad/s 9.55, a 3:2 gear on the wrong side 1.5, an 11:10 one 1.1);
+    a sensorless estimate differs by noise, and by a lag in hard acceleration that comes and goes. Two tests, from the
+    first sample where either shows the shaft turning (`moving_mech_rad_s`), for `window_s` and until the reference has
+    travelled `min_travel_rad` (enough for a 1.1 factor to show through the allowances), at most `max_window_s`:
 
-    moving_mech_rad_s: float = 2.0       # the check starts when the reference sees the shaft turn this fast
-    window_s: float = 1.0                # for this long
-    ratio: float = 2.0                   # |est / true| outside [1/ratio, ratio] ...
-    hold_s: float = 0.02                 # ... for this long trips (a factor of 9.55 or 1000 is never noise)
+    - angle: the angles both have travelled since then (sums of speed x SYNC period) must agree,
+      |A_est - A_true| <= rel_tol x max(|A_est|, |A_true|) + angle_noise_rad + skew_s x |speed_true|
+      (`skew_s`: how far apart in time the two are sampled; 0 in lockstep). A constant factor grows without bound
+      there, a transient lag does not: with 5 % and 0.1 rad, k = 1.5 is seen after 0.3 rad of travel, k = 1.1 after
+      2.4 rad; `hold_samples` consecutive disagreeing samples trip.
+    - gross: one sample's speeds more than a factor `gross_ratio` apart (and more than `noise_mech_rad_s`) for
+      `gross_hold_samples` samples trips at once: a 10x error is stopped within two SYNCs of first motion, before the
+      shaft has much speed (a run-away under the drive's own torque gains ~15 rad/s per 10 ms on the PMSM rig).
+
+    A missing value (NaN, a signal that did not arrive) while the check runs is a disagreeing sample, never an agreeing
+    one: a drive whose speed never arrives cannot pass the check."""
+
+    moving_mech_rad_s: float = 0.5
+    window_s: float = 1.0
+    min_travel_rad: float = 20.0
+    max_window_s: float = 10.0
+    rel_tol: float = 0.05
+    angle_noise_rad: float = 0.1
+    skew_s: float = 0.0
+    hold_samples: int = 3
+    gross_ratio: float = 3.0
+    noise_mech_rad_s: float = 0.5
+    gross_hold_samples: int = 2
     _start: float | None = None
-    _bad_since: float | None = None
+    _last_t: float | None = None
+    _angle_est: float = 0.0
+    _angle_true: float = 0.0
+    _bad: int = 0
+    _gross: int = 0
+    judged: int = 0                      # samples judged (agreeing or not)
+    missing: int = 0                     # of which a value was missing
+    worst_excess: float = 0.0            # max of the angle test's |A_est - A_true| / allowance: > 1 disagrees
+    max_speed: float = 0.0               # the fastest |true| judged
     done: bool = False
 
+    def settings(self) -> dict[str, float]:
+        return {"moving_mech_rad_s": self.moving_mech_rad_s, "window_s": self.window_s,
+                "min_travel_rad": self.min_travel_rad, "max_window_s": self.max_window_s, "rel_tol": self.rel_tol,
+                "angle_noise_rad": self.angle_noise_rad, "skew_s": self.skew_s, "hold_samples": self.hold_samples,
+                "gross_ratio": self.gross_ratio, "noise_mech_rad_s": self.noise_mech_rad_s,
+                "gross_hold_samples": self.gross_hold_samples}
+
+    def summary(self) -> dict:
+        state = ("not started (the shaft never turned)" if self._start is None
+                 else "judging" if not self.done else "agreed")
+        return {**self.settings(), "state": state, "started_t_s": self._start, "judged_samples": self.judged,
+                "missing_samples": self.missing, "worst_angle_excess": round(self.worst_excess, 4),
+                "angle_est_rad": round(self._angle_est, 4), "angle_true_rad": round(self._angle_true, 4),
+                "max_speed_true_mech_rad_s": round(self.max_speed, 4)}
+
     def check(self, t_s: float, values: dict[str, float]) -> Trip | None:
-        est, true = values.get("speed_est_mech_rad_s"), values.get("speed_true_mech_rad_s")
-        if self.done or est is None or true is None or est != est or true != true:
+        if self.done:
             return None
+        est, true = values.get("speed_est_mech_rad_s"), values.get("speed_true_mech_rad_s")
+        known = [abs(v) for v in (est, true) if v is not None and v == v]
         if self._start is None:
-            if abs(true) < self.moving_mech_rad_s and abs(est) < self.moving_mech_rad_s:
+            if not any(v >= self.moving_mech_rad_s for v in known):
+                self._last_t = t_s
                 return None
             self._start = t_s
-        if t_s - self._start > self.window_s:
+        elapsed = t_s - self._start
+        if elapsed > self.max_window_s or (elapsed > self.window_s and abs(self._angle_true) >= self.min_travel_rad):
             self.done = True
             return None
+        dt = t_s - self._last_t if self._last_t is not None else 0.0
+        self._last_t = t_s
+        self.judged += 1
+        if len(known) < 2:
+            self.missing += 1
+            self._bad += 1
+            self._gross = 0
+            if self._bad < self.hold_samples:
+                return None
+            which = " and ".join(n for n, v in (("the drive's speed", est), ("the reference sensor's", true))
+                                 if v is None or v != v)
+            return Trip("unit_mismatch", t_s, {"speed_est_mech_rad_s": math.nan if est is None else est,
+                                               "speed_true_mech_rad_s": math.nan if true is None else true},
+                        f"unit check at t={t_s:.4f} s: {which} missing for {self._bad} SYNC periods while the shaft "
+                        "turns: the drive's units cannot be checked, stopping")
+        self.max_speed = max(self.max_speed, abs(true))
+        self._angle_est += est * dt
+        self._angle_true += true * dt
+        gap = abs(self._angle_est - self._angle_true)
+        allowance = (self.rel_tol * max(abs(self._angle_est), abs(self._angle_true)) + self.angle_noise_rad
+                     + self.skew_s * abs(true))
+        excess = gap / allowance
+        self.worst_excess = max(self.worst_excess, excess)
         ratio = abs(est) / max(abs(true), 1e-3)
-        agree = 1.0 / self.ratio <= ratio <= self.ratio and est * true >= 0
-        if agree:
-            self._bad_since = None
+        gross = (abs(est - true) > self.noise_mech_rad_s
+                 and (est * true < 0 or not 1.0 / self.gross_ratio <= ratio <= self.gross_ratio))
+        self._gross = self._gross + 1 if gross else 0
+        self._bad = self._bad + 1 if excess > 1.0 else 0
+        if self._bad < self.hold_samples and self._gross < self.gross_hold_samples:
             return None
-        self._bad_since = t_s if self._bad_since is None else self._bad_since
-        if t_s - self._bad_since < self.hold_s:
-            return None
-        return Trip("unit_mismatch", t_s, {"speed_est_mech_rad_s": est, "speed_true_mech_rad_s": true},
+        gross = self._gross >= self.gross_hold_samples
+        what = (f"speeds a factor {ratio:.3g} apart for {self._gross} SYNC periods" if gross
+                else f"angles since first motion {self._angle_est:.3f} rad (drive) and {self._angle_true:.3f} rad "
+                     f"(reference), ratio {abs(self._angle_est) / max(abs(self._angle_true), 1e-6):.3g}, outside "
+                     f"{self.rel_tol:.0%} + {self.angle_noise_rad:g} rad for {self._bad} SYNC periods")
+        return Trip("unit_mismatch", t_s, {"speed_est_mech_rad_s": est, "speed_true_mech_rad_s": true,
+                                           "angle_est_rad": self._angle_est, "angle_true_rad": self._angle_true},
                     f"unit mismatch at t={t_s:.4f} s: the drive reports {est:.3f} rad/s, the reference sensor "
-                    f"{true:.3f} rad/s (ratio {ratio:.3g}): check the drive's velocity unit, encoder resolution and "
-                    "gear ratio in the record")
+                    f"{true:.3f} rad/s ({what}): check the drive's velocity unit, encoder resolution, gear ratio "
+                    "and velocity_side in the record")
 
 
 _STOP = object()
@@ -239,7 +316,14 @@ STEP_TIMEOUT_S = 6.0   # one safe-stop step; above a serial link's 4 x 0.5 s ret
 
 
 class SafeStop:
-    """The end-of-run sequence: load to zero torque and disabled, drive quick stop, drive disabled.
+    """The end-of-run sequence: drive quick stop commanded, load to zero torque and disabled, the drive braked to
+    standstill, drive disabled.
+
+    The drive is told first: on a unit or overspeed trip the shaft is running away under the drive's own torque, and
+    the load machine is what brakes it until the drive does; a Modbus write takes milliseconds the drive should
+    already be braking in. A link with `begin_quick_stop` (the quick-stop controlword alone, state confirmed) gets
+    it before the load machine is touched, and its `quick_stop` then only waits for standstill; a link without it
+    gets its quick stop and the load's zero-torque write at once, from two threads, the drive's started first.
 
     Runs at most once however often it is requested (trip, Ctrl-C, SIGTERM, normal end). Every step is
     tried even if an earlier one fails or hangs: each runs in a worker thread and is given up after
@@ -261,36 +345,60 @@ class SafeStop:
             if self.done:
                 return self.errors
             self.done = True
-            steps: list[tuple[str, Callable[[], None]]] = []
-            if self.load is not None:
-                steps.append(("load zero torque and disabled", self.load.zero_and_disable))
+            load_step = ("load zero torque and disabled", self.load.zero_and_disable) if self.load is not None else None
+            begin = getattr(self.drive, "begin_quick_stop", None) if self.drive is not None else None
+            if self.drive is not None and begin is None and load_step is not None:
+                self._at_once([("drive quick stop", self.drive.quick_stop), load_step])
+            else:
+                if begin is not None:
+                    self._step("drive quick stop commanded", begin)
+                if load_step is not None:
+                    self._step(*load_step)
+                if self.drive is not None:
+                    self._step("drive quick stop", self.drive.quick_stop)
             if self.drive is not None:
-                steps.append(("drive quick stop", self.drive.quick_stop))
-                steps.append(("drive disabled", self.drive.disable))
-            for label, action in steps:
-                error = _bounded(action, self.step_timeout_s)
-                if error is None:
-                    self.steps.append(label)
-                else:              # keep going: the remaining steps matter more than this error
-                    self.errors.append(f"{label}: {error}")
+                self._step("drive disabled", self.drive.disable)
             return self.errors
+
+    def _step(self, label: str, action: Callable[[], None]) -> None:
+        self._outcome(label, _bounded(action, self.step_timeout_s))
+
+    def _outcome(self, label: str, error: str | None) -> None:
+        if error is None:
+            self.steps.append(label)
+        else:              # keep going: the remaining steps matter more than this error
+            self.errors.append(f"{label}: {error}")
+
+    def _at_once(self, steps: list[tuple[str, Callable[[], None]]]) -> None:
+        workers = [_Worker(action) for _, action in steps]
+        for (label, _), worker in zip(steps, workers):
+            self._outcome(label, worker.result(self.step_timeout_s))
+
+
+class _Worker:
+    """One safe-stop step in a daemon thread, started at once; result() waits for it (bounded)."""
+
+    def __init__(self, action: Callable[[], None]):
+        self.outcome: list[str | None] = []
+        self.started = time.monotonic()
+
+        def target() -> None:
+            try:
+                action()
+                self.outcome.append(None)
+            except BaseException as exc:
+                self.outcome.append(f"{type(exc).__name__}: {exc}")
+
+        self.thread = threading.Thread(target=target, name="drivebench-safe-stop", daemon=True)
+        self.thread.start()
+
+    def result(self, timeout_s: float) -> str | None:
+        self.thread.join(max(0.0, timeout_s - (time.monotonic() - self.started)))
+        if self.thread.is_alive():
+            return f"no answer within {timeout_s:g} s (step abandoned)"
+        return self.outcome[0]
 
 
 def _bounded(action: Callable[[], None], timeout_s: float) -> str | None:
     """Run action in a daemon thread; None when it returned, else what went wrong (exception or timeout)."""
-    outcome: list[str | None] = []
-
-    def target() -> None:
-        try:
-            action()
-            outcome.append(None)
-        except BaseException as exc:
-            outcome.append(f"{type(exc).__name__}: {exc}")
-
-    worker = threading.Thread(target=target, name="drivebench-safe-stop", daemon=True)
-    worker.start()
-    worker.join(timeout_s)
-    if worker.is_alive():
-        return f"no answer within {timeout_s:g} s (step abandoned)"
-    return outcome[0]
-
+    return _Worker(action).result(timeout_s)

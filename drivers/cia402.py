@@ -252,13 +252,16 @@ LOCKSTEP_WALL_FACTOR = 6.0
 
 
 def wait_standstill(advance: Callable[[], None], speed: Callable[[], float | None], threshold_mech_rad_s: float,
-                    timeout_s: float, max_advances: int | None = None) -> dict:
+                    timeout_s: float, max_advances: int | None = None,
+                    stopped: Callable[[], bool] | None = None) -> dict:
     """After a quick stop: let the drive brake until |speed| <= threshold, bounded in time, so the power stage goes off
     at standstill and not at speed. `advance` lets drive time pass (lockstep: one SYNC; real time: a short sleep);
     `speed` is the drive's speed in mech rad/s (None: unknown, stop waiting). A link error ends the wait: the
     disable step comes next whatever happened. `max_advances` bounds the wait in drive time too (lockstep: a
     simulated drive runs many times faster than the wall clock, and its trace recorder must not overrun while the
-    bench waits). Returns what happened, for the record."""
+    bench waits). `stopped` says the drive has ended its quick stop itself (QUICK STOP ACTIVE -> SWITCH ON DISABLED,
+    0x605A options 1-3: at standstill by its own judgement), which needs no unit: after a unit trip the bench's
+    conversion of the drive's speed is the thing in doubt. Returns what happened, for the record."""
     started = time.monotonic()
     current = None
     advances = 0
@@ -270,10 +273,14 @@ def wait_standstill(advance: Callable[[], None], speed: Callable[[], float | Non
         try:
             advance()
             current = speed()
+            if current is None or abs(current) <= threshold_mech_rad_s:
+                break
+            by_itself = stopped is not None and stopped()
         except LinkError:
             break
-        if current is None or abs(current) <= threshold_mech_rad_s:
-            break
+        if by_itself:
+            return {"standstill": True, "by": "the drive: QUICK STOP ACTIVE ended in SWITCH ON DISABLED (0x605A)",
+                    "speed_at_disable_mech_rad_s": abs(current), "wait_s": round(time.monotonic() - started, 4)}
     return {"standstill": current is not None and abs(current) <= threshold_mech_rad_s,
             "speed_at_disable_mech_rad_s": None if current is None else abs(current),
             "wait_s": round(time.monotonic() - started, 4)}

@@ -43,6 +43,7 @@ class SerialDriveLink:
         self.sync_period_s = float(section.get("sync_period_s", 0.001))
         self.timing = settings.timing
         self.fault_reset_policy = settings.fault_reset
+        self._quick_stop_state: cia402.State | None = None     # set by begin_quick_stop, taken by quick_stop
         self.standstill_mech_rad_s = float(section.get("standstill_mech_rad_s", cia402.STANDSTILL_MECH_RAD_S))
         self.stop_timeout_s = float(section.get("stop_timeout_s", cia402.STOP_TIMEOUT_S))
         self.report: dict = {}                 # what the link read and set, for the record
@@ -305,9 +306,18 @@ class SerialDriveLink:
         return DriveStatus(state=cia402.state_name(statusword), fault=cia402.decode(statusword) in cia402.FAULT_STATES,
                            heartbeat_ok=True, emcy=[(c, fault_text(c)) for c in codes])
 
+    def begin_quick_stop(self) -> None:
+        """The quick-stop command alone, state confirmed: the safe stop's first step, before the load machine is
+        touched; quick_stop() then waits for standstill."""
+        self._quick_stop_state = cia402.quick_stop(self, self._step_timeout_s, self.where)
+
     def quick_stop(self) -> None:
-        """Quick stop, then wait (bounded) until the shaft is below the standstill threshold."""
-        if cia402.quick_stop(self, self._step_timeout_s, self.where) is cia402.State.FAULT:
+        """Quick stop (unless begin_quick_stop gave it), then wait (bounded) until the shaft is below the standstill
+        threshold."""
+        state, self._quick_stop_state = self._quick_stop_state, None
+        if state is None:
+            state = cia402.quick_stop(self, self._step_timeout_s, self.where)
+        if state is cia402.State.FAULT:
             return
         latest: list[LiveSample] = []
 

@@ -106,21 +106,39 @@ INC_PER_S = parse_velocity_unit("inc/s")
 MRAD_PER_S = parse_velocity_unit("mrad/s")
 
 
+SIDES = ("motor", "shaft")
+
+
 @dataclass(frozen=True)
 class VelocityScale:
     """Drive velocity value <-> mechanical rad/s of the bench's shaft (the driving shaft, where the load machine and
-    the reference sensor sit). Increment units refer to the motor encoder, so the gear ratio applies to them; angle
-    units (rad, deg, rev) are CiA 402 user units, already of the driving shaft."""
+    the reference sensor sit).
+
+    CiA 402's factor group: 0x608F position encoder resolution = encoder increments per MOTOR revolution, 0x6091 gear
+    ratio = motor shaft revolutions (sub 1) per driving shaft revolutions (sub 2). `side` says which shaft the unit
+    counts: "motor" goes through the gear ratio (speed of the driving shaft = motor speed x shaft_revs / motor_revs),
+    "shaft" does not. Increments count the motor encoder (0x608F) unless stated otherwise; angle units (rev, rad, deg)
+    are CiA 402 user units of the driving shaft unless the drive or the bench config says they count the motor (many
+    drives report motor rpm). None: that default."""
 
     unit: VelocityUnit
     increments_per_rev: float | None = None
     gear_motor_revs: float = 1.0            # 0x6091 sub 1
     gear_shaft_revs: float = 1.0            # 0x6091 sub 2
+    side: str | None = None                 # "motor" | "shaft"; None: increments motor, angle units shaft
+
+    @property
+    def counts(self) -> str:
+        return self.side or ("motor" if self.unit.needs_encoder else "shaft")
+
+    @property
+    def geared(self) -> bool:
+        return self.gear_motor_revs != self.gear_shaft_revs
 
     @property
     def rad_s_per_unit(self) -> float:
         factor = self.unit.rad_s_per_unit(self.increments_per_rev)
-        if self.unit.needs_encoder:
+        if self.counts == "motor":
             factor *= self.gear_shaft_revs / self.gear_motor_revs
         return factor
 
@@ -131,11 +149,12 @@ class VelocityScale:
         return round(speed_mech_rad_s / self.rad_s_per_unit)
 
     def describe(self) -> str:
-        text = f"{self.unit.name} (0x{self.unit.code:08X}) = {self.rad_s_per_unit:.9g} rad/s per unit"
+        text = f"{self.unit.name} (0x{self.unit.code:08X}) of the {self.counts} = {self.rad_s_per_unit:.9g} rad/s " \
+               "(driving shaft) per unit"
         if self.unit.needs_encoder:
             text += f", {self.increments_per_rev:g} increments/rev"
-            if (self.gear_motor_revs, self.gear_shaft_revs) != (1.0, 1.0):
-                text += f", gear {self.gear_motor_revs:g}:{self.gear_shaft_revs:g}"
+        if self.geared or self.counts == "motor":
+            text += f", gear {self.gear_motor_revs:g}:{self.gear_shaft_revs:g} (motor:shaft revs)"
         return text
 
 

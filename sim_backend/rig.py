@@ -177,7 +177,7 @@ def spec_for_bench(bench_cfg: dict, seed: int) -> RigSpec:
     )
 
 
-GENERIC_KEYS = ("velocity_unit", "encoder_increments_per_rev", "rated_current_a", "rated_torque_nm",
+GENERIC_KEYS = ("velocity_unit", "velocity_side", "encoder_increments_per_rev", "rated_current_a", "rated_torque_nm",
                 "fixed_pdo_mapping")
 
 

@@ -135,6 +135,10 @@ class FakeDriveLink:
             emcy=[(0x2310, "overcurrent (fake)")] if fault else [],
         )
 
+    def begin_quick_stop(self) -> None:
+        self._log("drive.begin_quick_stop")
+        self.rig.model.set_speed_ref(0.0)
+
     def quick_stop(self) -> None:
         self._log("drive.quick_stop")
         self.rig.model.set_speed_ref(0.0)
@@ -185,4 +189,4 @@ class FakeLoadLink:
         self._log("load.close")
 
 
-SAFE_STOP = ["load.zero_and_disable", "drive.quick_stop", "drive.disable"]
+SAFE_STOP = ["drive.begin_quick_stop", "load.zero_and_disable", "drive.quick_stop", "drive.disable"]

@@ -77,3 +77,24 @@ def test_standstill_wait_is_bounded_in_drive_time_too():
     advances.clear()
     report = cia402.wait_standstill(lambda: advances.append(1), lambda: next(speeds), 0.5, timeout_s=30.0, max_advances=500)
     assert len(advances) == 3 and report["standstill"] is True and report["speed_at_disable_mech_rad_s"] == 0.2
+
+
+def test_standstill_wait_ends_when_the_drive_ends_its_quick_stop_itself():
+    """After a unit trip the drive's speed, through the bench's wrong factor, may never read below 0.5 rad/s (here a
+    frozen 12): the drive's own SWITCH ON DISABLED (0x605A 1-3: stopped by its judgement) ends the wait; a link error
+    while asking ends it too, without a standstill claimed."""
+    from drivers import cia402
+    from drivers.api import LinkError
+
+    advances = []
+    report = cia402.wait_standstill(lambda: advances.append(1), lambda: 12.0, 0.5, timeout_s=30.0, max_advances=500,
+                                    stopped=lambda: len(advances) >= 3)
+    assert len(advances) == 3 and report["standstill"] is True and "SWITCH ON DISABLED" in report["by"]
+
+    def dead() -> bool:
+        raise LinkError("node 1: SDO timeout")
+
+    advances.clear()
+    report = cia402.wait_standstill(lambda: advances.append(1), lambda: 12.0, 0.5, timeout_s=30.0, max_advances=500,
+                                    stopped=dead)
+    assert len(advances) == 1 and report["standstill"] is False and "by" not in report

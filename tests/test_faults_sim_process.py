@@ -111,7 +111,7 @@ def test_simulator_process_killed_mid_run(tmp_path, how):
     print(f"sim process {how.name} -> trip after {detection_s:.3f} s")
     assert 0 <= detection_s < 5.0, detection_s                  # serial: 4 attempts x 0.5 s at most
     stop = record["safe_stop"]
-    labels = ("load zero torque and disabled", "drive quick stop", "drive disabled")
+    labels = ("drive quick stop commanded", "load zero torque and disabled", "drive quick stop", "drive disabled")
     assert stop["steps"] == []                                   # nothing could be done...
     assert [e.split(":")[0] for e in stop["errors"]] == list(labels)   # ...but every step was tried, in order
     assert "safe stop incomplete" in record["abort_reason"]

@@ -98,7 +98,8 @@ def test_full_run_passes_and_records_everything(tmp_path):
     assert {"time_axis", "safe_stop", "trips", "drive_settings", "bench"} <= set(rec)
     assert rec["drive"]["firmware_version"] == "toy-1.0"
     assert rec["data_source"] == "trace"
-    assert rec["safe_stop"] == {"steps": ["load zero torque and disabled", "drive quick stop", "drive disabled"],
+    assert rec["safe_stop"] == {"steps": ["drive quick stop commanded", "load zero torque and disabled",
+                                          "drive quick stop", "drive disabled"],
                                 "errors": []}
     assert rec["injections_applied"][0]["name"] == "plant_rs"
     assert rig.model.plant_factors == {"plant_rs": 0.8}
@@ -326,5 +327,6 @@ def test_inprocess_overcurrent_trip_stops_the_drive(tmp_path):
     rec = result.record
     assert result.verdict == "aborted"
     assert rec["supervisor_trip"]["reason"] == "overcurrent"
-    assert rec["safe_stop"] == {"steps": ["load zero torque and disabled", "drive quick stop", "drive disabled"],
+    assert rec["safe_stop"] == {"steps": ["drive quick stop commanded", "load zero torque and disabled",
+                                          "drive quick stop", "drive disabled"],
                                 "errors": []}

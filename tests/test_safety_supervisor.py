@@ -7,6 +7,7 @@ and count what arrived at the simulated drive (controlwords over the CAN bus) an
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -81,7 +82,7 @@ def test_a_hanging_safe_stop_step_is_abandoned_and_the_others_still_run():
     assert time.monotonic() - started < 5.0
     assert rig.names() == SAFE_STOP
     assert len(errors) == 1 and errors[0].startswith("load zero torque and disabled: no answer within 0.3 s")
-    assert stop.steps == ["drive quick stop", "drive disabled"]
+    assert stop.steps == ["drive quick stop commanded", "drive quick stop", "drive disabled"]
     never.set()
 
 
@@ -190,3 +191,76 @@ def test_operator_abort_twice_runs_the_reaction_sequence_once(tmp_path, signals)
     assert counts["controlword 0x0002"] == 1
     assert counts["controlword 0x0000"] == 1
     assert device["safe"]["power_stage_on"] is False and device["safe"]["load_enabled"] is False
+
+
+def unit_check_run(k: float, noise=None, nan_at=(), period_s=0.01, ramp_s=0.5, target=20.0, check=None, samples=200):
+    """The drive's own speed follows a ramp to `target`; the reference sensor sees k times it (a unit error of k).
+    Returns (trip, the reference speed when it tripped, the check)."""
+    from bench.supervisor import UnitCheck
+
+    check = check or UnitCheck()
+    for n in range(1, samples):
+        t = n * period_s
+        est = target * min(1.0, t / ramp_s)
+        true = k * est
+        if noise is not None:
+            est += noise[n]
+        if n in nan_at:
+            est = float("nan")
+        trip = check.check(t, {"speed_est_mech_rad_s": est, "speed_true_mech_rad_s": true})
+        if trip is not None:
+            return trip, true, check
+    return None, None, check
+
+
+def angle_trip_s(k: float, hold_s: float = 0.03) -> float:
+    """When the angle test must have tripped for the ramp below: the drive travels 20 t^2 rad, the shaft 20 k t^2,
+    apart by more than 5 % of the larger + 0.1 rad from t = sqrt(0.1 / (20 |k - 1| - 0.05 x 20 max(k, 1)))."""
+    return math.sqrt(0.1 / (20 * abs(k - 1) - 0.05 * 20 * max(k, 1.0))) + hold_s
+
+
+@pytest.mark.parametrize("k, by_s", [(10.0, 0.02), (0.1, 0.03), (1.5, angle_trip_s(1.5)),
+                                     (1 / 1.5, angle_trip_s(1 / 1.5)), (1.1, angle_trip_s(1.1)),
+                                     (1 / 1.1, angle_trip_s(1 / 1.1))])
+def test_the_unit_check_sees_a_factor_of_1_1_to_10_either_way(k, by_s):
+    """A ramp to 20 rad/s in 0.5 s (40 rad/s^2 commanded; 400 rad/s^2 on the shaft for k = 10), one sample per 10 ms:
+    a factor of 10 either way by the gross test within two samples of first motion, with the shaft still below
+    10 rad/s; 1.5 and 1.1 by the angle test (1.1: after ~0.35 s, the shaft at ~15 rad/s)."""
+    trip, true, _ = unit_check_run(k)
+    assert trip is not None and trip.reason == "unit_mismatch"
+    assert "velocity_side" in trip.message
+    assert by_s - 0.05 < trip.t_s <= by_s + 1e-9
+    if k == 10.0:
+        assert abs(true) < 10.0
+
+
+def test_the_unit_check_passes_a_sensorless_estimate_within_its_noise():
+    import numpy as np
+
+    noise = np.random.default_rng(3).normal(0.0, 0.15, 200)       # sigma 0.15 rad/s, peaks ~0.5 rad/s
+    trip, _, check = unit_check_run(1.0, noise=noise)
+    assert trip is None and check.done and check.summary()["state"] == "agreed"
+    assert check.judged >= 99 and check.worst_excess < 1.0
+    trip, _, _ = unit_check_run(1.04, noise=noise)                 # a 4 % gain error is not a unit error
+    assert trip is None
+
+
+def test_a_missing_speed_never_counts_as_agreement():
+    trip, _, check = unit_check_run(1.0, nan_at=range(10, 200))     # the drive's speed stops arriving
+    assert trip is not None and trip.reason == "unit_mismatch" and "missing" in trip.message
+    assert check.missing == 3
+    # a NaN between two disagreeing samples does not reset the count: 1.5x trips as soon as without the NaN
+    plain, _, _ = unit_check_run(1.5)
+    with_nan, _, _ = unit_check_run(1.5, nan_at={round(plain.t_s / 0.01) - 1})
+    assert with_nan is not None and with_nan.t_s <= plain.t_s
+
+
+def test_a_slow_first_motion_is_judged_until_the_shaft_has_travelled_far_enough():
+    """A ramp to 20 rad/s in 2 s, with a real-time skew allowance of 20 ms: a 1.1 factor shows only after ~1.4 s; the
+    check runs past its 1 s until the reference has travelled 20 rad, and trips."""
+    from bench.supervisor import UnitCheck
+
+    trip, _, check = unit_check_run(1.1, ramp_s=2.0, check=UnitCheck(skew_s=0.02), samples=400)
+    assert trip is not None and trip.reason == "unit_mismatch" and 1.2 < trip.t_s < 1.8
+    trip, _, check = unit_check_run(1.0, ramp_s=2.0, check=UnitCheck(skew_s=0.02), samples=400)
+    assert trip is None and check.done and abs(check._angle_true) >= 20.0

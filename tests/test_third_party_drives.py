@@ -5,6 +5,7 @@ its reaction to a dead bench; the read-only probe and the node scan."""
 from __future__ import annotations
 
 import contextlib
+import math
 import time
 from pathlib import Path
 
@@ -301,3 +302,184 @@ def test_probe_command_reports_and_scans(tmp_path):
     assert report["drive"]["identity"]["device_name"] == "iPOS"
     assert report["drive"]["profile"]["units_from"]["velocity_unit"].startswith("stated in the bench config")
     assert report["nodes"] == [{"node_id": 1, "device_type": "0x00060192", "cia402": True}]
+
+
+# -- gear ratio and which shaft the velocity unit counts (issue 21 item 2) -------------------------------------------
+
+GEARED = DriveSpec(velocity_unit="rpm", gear_ratio=(3, 2), velocity_side="motor", rated_current_a=3.5355,
+                   rated_torque_nm=3.9)
+
+
+def test_a_gear_on_the_motor_side_is_refused_until_the_config_says_which_shaft_the_unit_counts():
+    """e35 reports 0x6091 = 3:2 and rpm (0x60A9); no object says whose rpm. Nothing enabled, one line naming the
+    object and the config line to write."""
+    with generic_link("e35", GEARED) as (link, rig):
+        with pytest.raises(LinkError) as refused:
+            link.open()
+        message = str(refused.value)
+        assert "\n" not in message and "0x6091" in message and "rev/min" in message
+        assert 'velocity_side = "motor"' in message and '"shaft"' in message
+        assert rig.device.device.state.name == "SWITCH_ON_DISABLED"
+
+
+@pytest.mark.parametrize("eds, stated", [("e35", {"velocity_side": "motor"}),
+                                         ("technosoft", {"velocity_unit": "rpm", "velocity_side": "motor",
+                                                         "gear_ratio": [3, 2]})])
+def test_a_gear_on_the_motor_side_runs_the_shaft_at_the_commanded_speed(eds, stated):
+    """With the side said (and the gear read from 0x6091, or stated where the EDS has none) 20 rad/s commanded is
+    20 rad/s on the dynamometer's encoder (the issue saw 13.33), and the drive's motor rpm reads back as shaft
+    speed; the record says where each factor came from."""
+    with generic_link(eds, GEARED, **stated) as (link, rig):
+        link.open()
+        profile = link.report["profile"]
+        assert profile["velocity_side"] == "motor" and profile["gear_ratio_motor_shaft"] == [3.0, 2.0]
+        assert profile["units_from"]["gear_ratio"] == ("read from the drive (0x6091)" if eds == "e35" else
+                                                       "stated in the bench config (the drive has no such object)")
+        assert profile["units_from"]["velocity_side"].startswith("motor: stated in the bench config")
+        assert profile["rad_s_per_unit"] == pytest.approx(2 * math.pi / 60 * 2 / 3)
+        link.configure(LIVE, [], 1)
+        link.enable_velocity_mode()
+        link.set_speed_ref(20.0)
+        samples = sync_for(link, 2.0)
+        assert link._target == round(20.0 * 1.5 * 60 / (2 * math.pi))          # motor rpm on the wire: 286
+        assert rig.device.model.load_feedback()[0] == pytest.approx(20.0, rel=0.01)
+        assert samples[-1].values["speed_est_mech_rad_s"] == pytest.approx(20.0, rel=0.01)
+        link.quick_stop()
+        link.disable()
+
+
+def test_validate_refuses_a_stated_gear_without_a_side(tmp_path):
+    import subprocess
+    import sys as _sys
+
+    bench = tmp_path / "bench.toml"
+    text = (REPO / "config/benches/sim-generic-cia402-slave.toml").read_text()
+    bench.write_text(text.replace('velocity_unit = "rpm"            # the EDS', 'gear_ratio = [3, 2]\n'
+                                  'velocity_unit = "rpm"            # the EDS', 1))
+    scenario = REPO / "scenarios/rig/speed-step-20rads.toml"
+    out = subprocess.run([_sys.executable, "-m", "bench", "validate", str(scenario), "--bench", str(bench)],
+                         capture_output=True, text=True, cwd=REPO)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "drive.velocity_side: rev/min with gear_ratio = [3, 2]" in out.stderr
+
+
+def unit_case(tmp_path, rig, case, scenario=None, on_build=None):
+    import sys as _sys
+
+    _sys.path.insert(0, str(REPO))
+    from benchmarks import unit_trip
+
+    scenario = unit_trip.step_scenario(tmp_path) if scenario == "step" else unit_trip.SCENARIO
+    return unit_trip.run_case(rig, case, tmp_path, scenario, on_build)
+
+
+@pytest.mark.parametrize("rig", ["e35", "technosoft", "cia402-slave"])
+def test_a_told_gear_passes_on_each_third_party_drive(tmp_path, rig):
+    """The simulated drive counts motor rpm (or increments) behind a 3:2 gear; told so (e35: side only, 0x6091 read;
+    the others: gear and side), the rig scenario passes with the shaft at 20 rad/s."""
+    row = unit_case(tmp_path, rig, "ok-3:2")
+    assert row["verdict"] == "pass", row
+    assert row["shaft_error_pct"] < 1.0                     # the dynamometer's encoder at 20 rad/s within 1 %
+
+
+@pytest.mark.parametrize("case", ["1.5", "1.1", "10"])
+@pytest.mark.parametrize("rig", ["e35", "technosoft", "cia402-slave"])
+def test_a_unit_error_trips_unit_mismatch_before_the_shaft_overspeeds(tmp_path, rig, case):
+    """The drive's unit counts the motor behind a gear the bench does not apply (e35: told "shaft" wrongly; the
+    others: gear [1, 1] or none stated): the shaft turns 1.5, 1.1 or 10 times faster than commanded. unit_mismatch
+    trips, the drive gets its quick stop, and the shaft never reaches the 40 rad/s overspeed limit (a 10x error:
+    never 20 rad/s). Measured (lockstep, 10 ms SYNC): 1.5x trip at 0.14 s, 1.1x at 0.39 s, 10x at 0.03 s
+    (benchmarks/unit_trip.py)."""
+    row = unit_case(tmp_path, rig, case)
+    assert row["verdict"] == "aborted" and row["reason"] == "unit_mismatch", row
+    trip_by, peak_below = {"1.5": (0.2, 15.0), "1.1": (0.5, 25.0), "10": (0.05, 20.0)}[case]
+    assert row["trip_t_s"] <= trip_by and row["peak"] < peak_below < 40.0, row
+    assert row["stop_order"] == "drive quick stop/load zero" and row["load_after_qs_steps"] == 0, row
+
+
+def test_the_safe_stop_quick_stops_the_drive_before_the_load_is_zeroed_on_the_wire(tmp_path):
+    """A 10x unit error on a step (the issue's case): the drive's quick-stop controlword (SDO download 0x6040 =
+    0x0002) is on the CAN bus before the load machine's zero-torque Modbus write reaches it, with no SYNC between
+    (the same SYNC period)."""
+    sniffers = []
+
+    def sniff(rig):
+        sniffers.append(can.Bus(interface="virtual", channel=rig.channel, receive_own_messages=False))
+
+    try:
+        row = unit_case(tmp_path, "e35", "10", scenario="step", on_build=sniff)
+        frames = []
+        while (msg := sniffers[0].recv(0)) is not None:
+            frames.append(msg)
+    finally:
+        for bus in sniffers:
+            bus.shutdown()
+    assert row["reason"] == "unit_mismatch" and row["peak"] < 60.0, row
+    quick_stop = next(m for m in frames if m.arbitration_id == o.SDO_RX + 1
+                      and bytes(m.data[:6]) == bytes([0x2B, 0x40, 0x60, 0x00, 0x02, 0x00]))
+    assert quick_stop.timestamp < row["load_zero_wall"]
+    syncs_between = [m for m in frames if m.arbitration_id == o.SYNC
+                     and quick_stop.timestamp < m.timestamp < row["load_zero_wall"]]
+    assert syncs_between == []
+
+
+FREE_SHAFT_SCENARIO = """schema_version = 1
+name = "free-shaft-20rads"
+description = "20 rad/s on a free shaft, judged on the drive's own speed"
+duration_s = 1.5
+seed = 1
+
+[[speed]]
+kind = "ramp"
+start_s = 0.0
+end_s = 0.5
+speed_mech_rad_s = 20.0
+
+[limits]
+overspeed_mech_rad_s = 40.0
+overcurrent_a = 8.0
+
+[[criteria]]
+name = "the drive reports 20 rad/s"
+kind = "steady_state_error"
+signal = "speed_est_mech_rad_s"
+window_s = [1.0, 1.5]
+target = 20.0
+percent = true
+limit = 1.0
+"""
+
+
+def free_shaft_bench(tmp_path, rig: str, confirmed: str | None = None) -> Path:
+    text = (REPO / f"config/benches/sim-generic-{rig}.toml").read_text()
+    head, _, rest = text.partition("\n[load]\n")
+    rest = rest[rest.index("[simulator]"):]                     # no [load], no [reference]: a free shaft
+    if confirmed is not None:
+        head = head.replace("sync_period_s =", f'units_confirmed = "{confirmed}"\nsync_period_s =', 1)
+    bench = tmp_path / f"{rig}-free.toml"
+    bench.write_text(head + rest)
+    return bench
+
+
+def test_a_free_shaft_rig_runs_only_on_units_read_from_the_drive_or_confirmed(tmp_path):
+    """No reference sensor: nothing can check the drive's units at first motion. technosoft's inc/s, resolution and
+    gear are stated (its EDS has no 0x60A9/0x608F/0x6091): refused before anything moves, one line naming
+    units_confirmed; with units_confirmed the run goes on and the record says what was confirmed. e35 reports its
+    unit and a 1:1 gear: nothing to confirm."""
+    from bench.orchestrator import run_scenario
+
+    scenario = tmp_path / "free.toml"
+    scenario.write_text(FREE_SHAFT_SCENARIO)
+    refused = run_scenario(scenario, free_shaft_bench(tmp_path, "technosoft"), out_root=tmp_path / "runs",
+                           rerun_mode="off")
+    assert refused.verdict == "error"
+    assert "drive.units_confirmed: this rig has no reference sensor" in refused.error
+    assert "velocity_unit, encoder_increments_per_rev, gear_ratio" in refused.error
+    assert refused.record["drive_settings"]["stop"]["standstill"]          # never moved: stopped at once
+    confirmed = run_scenario(scenario, free_shaft_bench(tmp_path, "technosoft", "hand tachometer: 191 rpm at 20 rad/s"),
+                             out_root=tmp_path / "runs", rerun_mode="off")
+    assert confirmed.verdict == "pass", confirmed.record["abort_reason"]
+    assert confirmed.record["unit_check"]["units_confirmed"] == "hand tachometer: 191 rpm at 20 rad/s"
+    read = run_scenario(scenario, free_shaft_bench(tmp_path, "e35"), out_root=tmp_path / "runs", rerun_mode="off")
+    assert read.verdict == "pass", read.record["abort_reason"]
+    assert read.record["unit_check"]["velocity_factors_not_read"] == []

@@ -97,6 +97,7 @@ class CanopenDriveLink:
         self._decoder = pdos.TpdoDecoder(self.sync_period_s, None)
         self._controlword = 0
         self._target = 0              # in the drive's velocity unit
+        self._quick_stop_state: cia402.State | None = None     # set by begin_quick_stop, taken by quick_stop
         self._trace_mask = 0
         self._sync: SyncProducer | NativeSync | None = None
         self.commands: collections.deque[dict] = collections.deque(maxlen=10_000)   # realtime: with their SYNC
@@ -517,14 +518,27 @@ class CanopenDriveLink:
             return abs(float(self.sdo.read(var.index, var.subindex)))
         return None
 
+    def begin_quick_stop(self) -> None:
+        """The quick-stop command alone (controlword 0x0002 by SDO, the state confirmed on the statusword): the
+        safe stop's first step, before the load machine is touched; quick_stop() then waits for standstill."""
+        self._quick_stop_state = cia402.quick_stop(self, self._step_timeout_s, self.where)
+
     def quick_stop(self) -> None:
-        """Quick stop, then wait (bounded) until the shaft is below the standstill threshold."""
-        state = cia402.quick_stop(self, self._step_timeout_s, self.where)
+        """Quick stop (unless begin_quick_stop gave it), then wait (bounded) until the shaft is below the standstill
+        threshold."""
+        state, self._quick_stop_state = self._quick_stop_state, None
+        if state is None:
+            state = cia402.quick_stop(self, self._step_timeout_s, self.where)
         if state is cia402.State.FAULT:
             return
         advance = self.sync if self.timing == "lockstep" else (lambda: time.sleep(max(self.sync_period_s, 0.01)))
         self.report["stop"] = cia402.wait_standstill(advance, self._speed_now, self.standstill_mech_rad_s,
-                                                     self.stop_timeout_s, self._stop_advances())
+                                                     self.stop_timeout_s, self._stop_advances(), self._stopped_itself)
+
+    def _stopped_itself(self) -> bool:
+        """The drive ended its quick stop on its own (its statusword, live in lockstep, else by SDO)."""
+        word = self._decoder.statusword if self.timing == "lockstep" else self.read_statusword()
+        return cia402.decode(word) is cia402.State.SWITCH_ON_DISABLED
 
     def _stop_advances(self) -> int | None:
         return math.ceil(self.stop_timeout_s / self.sync_period_s) if self.timing == "lockstep" else None

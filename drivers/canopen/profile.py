@@ -11,7 +11,10 @@ Two kinds:
 
 Units come from the device at connect time (0x60A9 SI unit velocity, 0x608F encoder resolution, 0x6091 gear
 ratio, 0x6075/0x6076 rated current/torque) or from the bench config where the drive has no such object; where
-both exist they must agree, and an unknown velocity unit stops the run before anything moves.
+both exist they must agree, and an unknown velocity unit stops the run before anything moves. Which shaft the
+velocity unit counts (motor or driving shaft) no CiA 402 object says: increments count the motor encoder (0x608F is
+increments per motor revolution); for rev/rad/deg behind a gear ratio other than 1:1 the bench config must say
+(`velocity_side`), or the run is refused.
 """
 
 from __future__ import annotations
@@ -23,7 +26,8 @@ from drivers import extension
 from drivers.canopen import objects as o
 from drivers.signals import SIGNAL_NAMES
 from drivers.toml_file import known_entries
-from drivers.units import MILLI, PER_MILLE, UnitError, VelocityScale, decode_velocity_unit, parse_velocity_unit
+from drivers.units import (MILLI, PER_MILLE, SIDES, UnitError, VelocityScale, VelocityUnit, decode_velocity_unit,
+                           parse_velocity_unit)
 
 PROFILES = ("auto", "cia402", "drivebench")
 
@@ -63,6 +67,8 @@ class DriveProfile:
     rated_torque_nm: float | None = None
     rated_current_a: float | None = None
     notes: dict[str, str] = field(default_factory=dict)     # where each unit came from
+    unread: tuple[str, ...] = ()            # velocity factors the drive did not report: stated or CiA default
+    units_confirmed: str | None = None      # the bench config's word on how the stated ones were checked
 
     @property
     def extension(self) -> bool:
@@ -72,8 +78,11 @@ class DriveProfile:
         return next((s for s in self.sources if s.signal == signal), None)
 
     def as_record(self) -> dict[str, Any]:
-        return {"kind": self.kind, "velocity_unit": self.velocity.describe(), "rated_torque_nm": self.rated_torque_nm,
+        return {"kind": self.kind, "velocity_unit": self.velocity.describe(), "velocity_side": self.velocity.counts,
+                "gear_ratio_motor_shaft": [self.velocity.gear_motor_revs, self.velocity.gear_shaft_revs],
+                "rad_s_per_unit": self.velocity.rad_s_per_unit, "rated_torque_nm": self.rated_torque_nm,
                 "rated_current_a": self.rated_current_a, "units_from": dict(self.notes),
+                "velocity_factors_not_read": list(self.unread), "units_confirmed": self.units_confirmed,
                 "signals": [s.as_dict() for s in self.sources]}
 
 
@@ -85,6 +94,8 @@ class ProfileConfig:
     velocity_unit: str | None = None
     encoder_increments_per_rev: float | None = None
     gear_ratio: tuple[float, float] | None = None       # (motor revolutions, driving shaft revolutions)
+    velocity_side: str | None = None                     # "motor" | "shaft": which shaft the velocity unit counts
+    units_confirmed: str | None = None                   # free shaft: how the stated units were checked on the rig
     rated_torque_nm: float | None = None
     rated_current_a: float | None = None
     signals: dict[str, dict] = field(default_factory=dict)   # signal -> {"object": (index, sub), "scale": ..., "factor": ...}
@@ -93,6 +104,7 @@ class ProfileConfig:
     def from_section(cls, section: dict) -> "ProfileConfig":
         gear = section.get("gear_ratio")
         return cls(profile=section.get("profile", "auto"), velocity_unit=section.get("velocity_unit"),
+                   velocity_side=section.get("velocity_side"), units_confirmed=section.get("units_confirmed"),
                    encoder_increments_per_rev=section.get("encoder_increments_per_rev"),
                    gear_ratio=tuple(gear) if gear else None, rated_torque_nm=section.get("rated_torque_nm"),
                    rated_current_a=section.get("rated_current_a"), signals=dict(section.get("signals") or {}))
@@ -112,6 +124,31 @@ def _agree(what: str, read: float | None, stated: float | None, same: Callable[[
     if stated is not None:
         notes[what] = "stated in the bench config (the drive has no such object)"
     return stated
+
+
+SIDE_HELP = ("[drive] velocity_side = \"motor\" (the drive's unit counts the motor, e.g. motor rpm: the gear ratio is "
+             "applied) or \"shaft\" (it counts the driving shaft, CiA 402 user units: not applied)")
+
+
+def _velocity_side(unit: VelocityUnit, gear: tuple[float, float] | None, stated: str | None, gear_from: str,
+                   notes: dict[str, str]) -> str:
+    """Which shaft the drive's velocity unit counts, and where that came from (notes); ProfileError where a gear ratio
+    other than 1:1 makes it matter and nothing says."""
+    geared = gear is not None and gear[0] != gear[1]
+    if stated is not None:
+        notes["velocity_side"] = f"{stated}: stated in the bench config (velocity_side)"
+        return stated
+    if unit.needs_encoder:
+        notes["velocity_side"] = "motor: increments of the motor encoder (CiA 402 0x608F: increments per motor rev)"
+        return "motor"
+    if geared:
+        raise ProfileError(f"velocity unit {unit.name} with a gear ratio of {gear[0]:g}:{gear[1]:g} ({gear_from}: "
+                           f"motor revs : driving shaft revs): which shaft does the drive's {unit.name} count? No "
+                           f"CiA 402 object says: state {SIDE_HELP}")
+    notes["velocity_side"] = ("shaft: no gear (1:1), motor and driving shaft turn alike" if gear is not None else
+                              "shaft: CiA 402 user unit, no gear ratio on the drive or in the bench config (checked "
+                              "against the reference sensor at first motion; a free shaft needs units_confirmed)")
+    return "shaft"
 
 
 def resolve(cfg: ProfileConfig, vendor_id: int, product_code: int, read: Reader,
@@ -153,14 +190,19 @@ def resolve(cfg: ProfileConfig, vendor_id: int, product_code: int, read: Reader,
     motor_revs, shaft_revs = read(o.GEAR_RATIO, 1), read(o.GEAR_RATIO, 2)
     gear_read = (float(motor_revs), float(shaft_revs)) if motor_revs and shaft_revs else None
     gear = _agree("gear_ratio", gear_read, cfg.gear_ratio, lambda a, b: a[0] * b[1] == a[1] * b[0], "0x6091", notes)
+    side = _velocity_side(unit, gear, cfg.velocity_side, "0x6091" if gear_read is not None else "[drive] gear_ratio",
+                          notes)
     if gear is None:
-        if unit.needs_encoder:
-            raise ProfileError(f"velocity unit {unit.name} counts motor encoder increments and the drive has no gear "
-                               "ratio (0x6091): state [drive] gear_ratio = [motor_revs, shaft_revs] ([1, 1] without "
-                               "a gearbox)")
+        if side == "motor":
+            what = ("counts motor encoder increments" if unit.needs_encoder and cfg.velocity_side is None
+                    else "counts the motor (velocity_side)")
+            raise ProfileError(f"velocity unit {unit.name} {what} and the drive has no gear ratio (0x6091): state "
+                               "[drive] gear_ratio = [motor_revs, shaft_revs] ([1, 1] without a gearbox)")
         gear = (1.0, 1.0)
-        notes["gear_ratio"] = "not needed: the velocity unit is of the driving shaft"
-    velocity = VelocityScale(unit, increments, gear[0], gear[1])
+        notes["gear_ratio"] = ("not applied: the velocity unit counts the driving shaft (no 0x6091 on the drive, "
+                               "none stated)")
+    velocity = VelocityScale(unit, increments, gear[0], gear[1], side)
+    notes["velocity_factor"] = velocity.describe()
 
     torque_mnm = read(o.MOTOR_RATED_TORQUE, 0)
     current_ma = read(o.MOTOR_RATED_CURRENT, 0)
@@ -192,7 +234,11 @@ def resolve(cfg: ProfileConfig, vendor_id: int, product_code: int, read: Reader,
                                    f"{spec['scale']} (0x607{6 if spec['scale'] == 'torque' else 5} or "
                                    f"[drive] rated_{spec['scale']}_{'nm' if spec['scale'] == 'torque' else 'a'})")
         sources.append(SignalSource(signal, index, subindex, factor, note))
-    return DriveProfile(kind, velocity, tuple(sources), rated_torque, rated_current, notes)
+    unread = tuple(key for key in ("velocity_unit", "encoder_increments_per_rev", "gear_ratio", "velocity_side")
+                   if key in notes and not notes[key].startswith(("read from the drive", "motor: increments",
+                                                                   "shaft: no gear")))
+    return DriveProfile(kind, velocity, tuple(sources), rated_torque, rated_current, notes, unread,
+                        cfg.units_confirmed)
 
 
 def check_section(section: dict, has_object: Callable[[int], bool], is_extension_eds: bool) -> list[tuple[str, str]]:
@@ -220,6 +266,14 @@ def check_section(section: dict, has_object: Callable[[int], bool], is_extension
                     and not section.get("encoder_increments_per_rev"):
                 problems.append(("drive.encoder_increments_per_rev",
                                  f"{parsed.name} needs the encoder resolution and the EDS has no 0x608F"))
+            gear = section.get("gear_ratio")
+            if (not parsed.needs_encoder and isinstance(gear, list) and len(gear) == 2 and gear[0] != gear[1]
+                    and not section.get("velocity_side")):
+                problems.append(("drive.velocity_side", f"{parsed.name} with gear_ratio = {gear}: which shaft does the "
+                                                        f"drive's unit count? state {SIDE_HELP}"))
+            if section.get("velocity_side") == "motor" and not has_object(o.GEAR_RATIO) and not gear:
+                problems.append(("drive.gear_ratio", "velocity_side = \"motor\" and the EDS has no gear ratio "
+                                                     "(0x6091): state gear_ratio = [motor_revs, shaft_revs]"))
             if parsed.needs_encoder and not has_object(o.GEAR_RATIO) and not section.get("gear_ratio"):
                 problems.append(("drive.gear_ratio", f"{parsed.name} counts motor increments and the EDS has no gear "
                                                      "ratio (0x6091): state gear_ratio = [motor_revs, shaft_revs]"))
@@ -238,7 +292,8 @@ def measurable(profile: DriveProfile) -> frozenset[str]:
 
 # -- bench config keys ([drive] of a CANopen drive) -------------------------------------------------------------
 
-PROFILE_KEYS = ("profile", "velocity_unit", "encoder_increments_per_rev", "gear_ratio", "rated_torque_nm",
+PROFILE_KEYS = ("profile", "velocity_unit", "velocity_side", "units_confirmed", "encoder_increments_per_rev",
+                "gear_ratio", "rated_torque_nm",
                 "rated_current_a", "signals", "pdo", "comm_loss", "consumer_time_ms", "abort_option",
                 "error_behaviour", "bench_node_id", "standstill_mech_rad_s", "stop_timeout_s", "can")
 _POSITIVE = ("encoder_increments_per_rev", "rated_torque_nm", "rated_current_a")
@@ -288,6 +343,16 @@ def config_keys(section: dict) -> tuple[dict[str, Any], list[tuple[str, str]]]:
                 parse_velocity_unit(value)
             except UnitError as exc:
                 bad(key, str(exc))
+                continue
+        elif key == "units_confirmed":
+            if not isinstance(value, str) or not value.strip():
+                bad(key, "must say how the stated units were checked on the rig, e.g. \"hand tachometer: 20 rad/s "
+                         "commanded read 191 rpm on the shaft, 2026-11-25\"")
+                continue
+        elif key == "velocity_side":
+            if value not in SIDES:
+                bad(key, f"must be \"motor\" or \"shaft\" (which shaft the drive's velocity unit counts), "
+                         f"got {value!r}")
                 continue
         elif key == "gear_ratio":
             if not (isinstance(value, list) and len(value) == 2 and all(_number(v) and v > 0 for v in value)):

@@ -4,6 +4,7 @@ None / False means "not mine": canopen's own object store answers."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -125,8 +126,7 @@ class Cia402Objects:
         elif index == o.SI_UNIT_VELOCITY:
             try:
                 unit = decode_velocity_unit(value)
-                scale = VelocityScale(unit, self.units.velocity.increments_per_rev, self.units.velocity.gear_motor_revs,
-                                      self.units.velocity.gear_shaft_revs)
+                scale = dataclasses.replace(self.units.velocity, unit=unit)
                 scale.rad_s_per_unit
             except UnitError:
                 raise SdoAbortedError(o.ABORT_INVALID_VALUE) from None

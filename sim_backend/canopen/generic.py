@@ -2,8 +2,9 @@
 
 The vendor EDS gives the objects, their types and defaults, the identity and the default PDO mappings; the drive
 spec (a rig's [simulator] section) gives what the EDS cannot: the units the simulated drive really uses (where its
-EDS has a 0x60A9 the simulated drive reports the spec's unit there), the motor's rated current and torque, and
-whether its PDO mappings are fixed. No drive clock, no trace recorder, no test hooks: the drivebench extension
+EDS has a 0x60A9 the simulated drive reports the spec's unit there; where it has a 0x6091 the spec's gear ratio; which
+shaft its velocity unit counts is the vendor's choice, `velocity_side`, and no object says it), the motor's rated
+current and torque, and whether its PDO mappings are fixed. No drive clock, no trace recorder, no test hooks: the drivebench extension
 objects are used only on a drive whose identity carries them, and a vendor's 0x2000.. objects mean what the vendor
 says, which is nothing the simulator acts on.
 
@@ -32,7 +33,9 @@ from sim_backend.canopen.drive_objects import DriveUnits
 class DriveSpec:
     velocity_unit: str | None = None          # e.g. "rpm", "inc/s"; None: the EDS's 0x60A9 default
     encoder_increments_per_rev: float | None = None
-    gear_ratio: tuple[float, float] = (1.0, 1.0)
+    gear_ratio: tuple[float, float] = (1.0, 1.0)   # 0x6091 (motor revs, driving shaft revs) where the EDS has it
+    velocity_side: str | None = None          # which shaft the velocity unit counts: "motor" (motor rpm behind a
+                                              # gear, as many drives do) or "shaft"; None: CiA default (units.py)
     rated_current_a: float | None = None
     rated_torque_nm: float | None = None
     fixed_pdo_mapping: bool = False
@@ -105,4 +108,5 @@ def units(od: objectdictionary.ObjectDictionary, spec: DriveSpec) -> DriveUnits:
             increments = res[1].default / res[2].default
     if unit.needs_encoder and not increments:
         raise ValueError(f"the simulated drive's unit {unit.name} needs [simulator] encoder_increments_per_rev")
-    return DriveUnits(VelocityScale(unit, increments, *spec.gear_ratio), spec.rated_current_a, spec.rated_torque_nm)
+    return DriveUnits(VelocityScale(unit, increments, *spec.gear_ratio, side=spec.velocity_side), spec.rated_current_a,
+                      spec.rated_torque_nm)
