@@ -123,10 +123,3 @@ class InstrumentedModel:
     def encoder_count(self) -> int:
         """The dynamometer encoder's raw count (angle = count / counts_per_rev * 2*pi + an unknown offset)."""
         return int(self._counts[-1])
-
-
-def instrumented(model: Any, table: Any, seed: int) -> Any:
-    """The model behind the instruments of [simulator.instruments] (`table`), or the model itself without one."""
-    if table is None:
-        return model
-    return InstrumentedModel(model, InstrumentSpec.from_table(table), seed)

@@ -58,7 +58,7 @@ class RigSpec:
     drive: DriveSpec | None = None                 # a third-party drive from a vendor EDS; None: drivebench's
     exclusive: bool = False                        # served: one bench at a time, each from a restarted drive
     load_map: str | Path | None = None             # the dynamometer's register map; None: drivebench-sim.toml
-    instruments: dict | None = None                # [simulator.instruments]: a lab's instruments (sim_backend.instruments)
+    instruments: Any = None                        # sim_backend.instruments.InstrumentSpec: a lab's instruments
 
 
 @dataclass
@@ -74,8 +74,9 @@ class Rig:
 
 def rig_model(spec: RigSpec) -> DriveModel:
     """The rig's drive model, seen through its instruments where the spec has them."""
-    from sim_backend.instruments import instrumented
-    return instrumented(make_model(spec.motor, spec.seed), spec.instruments, spec.seed)
+    from sim_backend.instruments import InstrumentedModel
+    model = make_model(spec.motor, spec.seed)
+    return model if spec.instruments is None else InstrumentedModel(model, spec.instruments, spec.seed)
 
 
 @contextlib.contextmanager
@@ -187,8 +188,16 @@ def spec_for_bench(bench_cfg: dict, seed: int) -> RigSpec:
         modbus={"modbus-tcp": "tcp", "modbus-rtu": "rtu-pty"}.get(load_transport),
         wire_faults=bool((bench_cfg.get("bench") or {}).get("wire_faults", False)),
         load_map=load.get("map") if load_transport else None,
-        instruments=simulator.get("instruments"),
+        instruments=_instruments(simulator, where),
     )
+
+
+def _instruments(simulator: dict, where: str):
+    """[simulator.instruments], checked (RuntimeError `file: field: reason`), or None."""
+    if simulator.get("instruments") is None:
+        return None
+    from sim_backend.instruments import InstrumentSpec
+    return InstrumentSpec.from_table(simulator["instruments"], f"{where}: simulator.instruments")
 
 
 GENERIC_KEYS = ("velocity_unit", "encoder_increments_per_rev", "rated_current_a", "rated_torque_nm",
