@@ -177,3 +177,50 @@ def test_bad_instrument_settings_name_the_file_and_field(table, needle):
     with pytest.raises(RuntimeError, match="rig.toml: simulator.instruments") as err:
         spec_for_bench(cfg, 1)
     assert needle in str(err.value)
+
+
+def test_sim_serve_serves_the_instruments_rig_with_its_dyno_map(tmp_path):
+    """Out of process too: `sim serve` of an instruments config serves its dynamometer's register map (torque only,
+    integer registers) with the instruments' readings; the bench's load link talks to it by that map."""
+    import os
+    import re
+    import threading
+
+    from drivers.api import LoadMode
+    from drivers.modbus_load import ModbusLoadLink
+
+    text = (REPO / "config/benches/sim-pmsm-instruments.toml").read_text()
+    text = re.sub(r'"127\.0\.0\.1:\d+"', '"127.0.0.1:0"', text).replace('= "config/', f'= "{REPO}/config/')
+    config = tmp_path / "bench.toml"
+    config.write_text(text)
+    proc = subprocess.Popen([sys.executable, "-m", "sim_backend.serve", "--config", str(config)], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    lines: list[str] = []
+    try:
+        def read():
+            for line in proc.stdout:
+                lines.append(line.strip())
+                if line.startswith("ready"):
+                    return
+        reader = threading.Thread(target=read, daemon=True)
+        reader.start()
+        reader.join(60)
+        assert lines and lines[-1].startswith("ready"), (lines, proc.poll())
+        port = int(re.search(r"modbus tcp://127\.0\.0\.1:(\d+)", "\n".join(lines)).group(1))
+        link = ModbusLoadLink({"transport": "modbus-tcp", "map": str(REPO / "config/load-machines/instruments-dyno.toml"),
+                               "host": "127.0.0.1", "port": port, "timeout_s": 2.0}, REPO)
+        try:
+            link.open()
+            assert link.modes == (LoadMode.TORQUE,)
+            link.set_load(LoadMode.TORQUE, 1.234)
+            link.enable(True)
+            feedback = link.feedback()
+            assert feedback.speed_mech_rad_s == 0.0                # shaft at rest: no counts
+            assert feedback.torque_nm == 0.0                       # the transducer has not seen a control period yet
+            link.zero_and_disable()
+        finally:
+            link.close()
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
