@@ -369,7 +369,8 @@ def rise_time(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
         return math.inf, f"never reached {hi:g} % of the step {start:.4g} -> {final:.4g} (max {progress.max():.3g} %)"
     before = np.flatnonzero(progress[:hit_hi[0] + 1] >= lo)
     t_lo, t_hi = t[before[0]], t[hit_hi[0]]
-    return float(t_hi - t_lo), f"{lo:g} % at {t_lo:.6g} s, {hi:g} % at {t_hi:.6g} s of the step {start:.4g} -> {final:.4g}"
+    return float(t_hi - t_lo), (f"{lo:g} % at {t_lo:.6g} s, {hi:g} % at {t_hi:.6g} s of the step "
+                                f"{start:.4g} -> {final:.4g}")
 
 
 def dip(w: _Window, spec: CriterionSpec) -> tuple[float, str]:

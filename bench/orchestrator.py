@@ -285,7 +285,8 @@ class _Run:
                            self.load_name if self.load is not None else "none: free shaft (no [load])")
         self.recorder.note("reference", self.reference.as_record(self.load is not None))
         self.recorder.note("instruments", self.reference.instruments(
-            self.load is not None, getattr(self.load, "map", None), getattr(self.identity, "device_name", "") or "the drive"))
+            self.load is not None, getattr(self.load, "map", None),
+            getattr(self.identity, "device_name", "") or "the drive"))
         self.recorder.note("bench", {"name": self.cfg.bench.name, "path": self.cfg.path,
                                      "timing": self.cfg.bench.timing})
         self._rerun_note = {"mode": self.rerun_mode, "url": self.rerun_url, "sinks": self.rerun.sinks}
@@ -434,8 +435,8 @@ class _Run:
                 # the rig's reference sensor, read now, stamped with this SYNC's (batch's) drive time
                 feedback = self._load_call(self.load.feedback)
                 values = values_from_load(feedback)
-                samples = [LiveSample(s.t_s, {**{k: v for k, v in s.values.items() if k not in self.not_from_drive},
-                                              **values}) for s in samples]
+                samples = [LiveSample(s.t_s, {**{name: v for name, v in s.values.items()
+                                                 if name not in self.not_from_drive}, **values}) for s in samples]
                 with self._live_lock:
                     self._reference_readings.append((samples[-1].t_s, values))
                 self.supervisor.feed_load(samples[-1].t_s, feedback)

@@ -127,7 +127,8 @@ def test_validate_refuses_plant_injections_and_dyno_modes_the_rig_lacks(tmp_path
     assert out.returncode == 2
     assert "simulator-only injection 'plant_rs'" in out.stderr and "plant_injections = false" in out.stderr
     brake = tmp_path / "brake.toml"
-    brake.write_text(RIG_SCENARIO.read_text().replace('kind = "torque"\nstart_s = 1.5', 'kind = "brake"\nstart_s = 1.5'))
+    brake.write_text(RIG_SCENARIO.read_text().replace('kind = "torque"\nstart_s = 1.5',
+                                                      'kind = "brake"\nstart_s = 1.5'))
     out = _cli("validate", str(brake), "--bench", str(REPO / "config/benches/sim-pmsm-instruments.toml"))
     assert out.returncode == 2 and "'brake' needs brake mode" in out.stderr, out.stderr
 
@@ -208,8 +209,9 @@ def test_sim_serve_serves_the_instruments_rig_with_its_dyno_map(tmp_path):
         reader.join(60)
         assert lines and lines[-1].startswith("ready"), (lines, proc.poll())
         port = int(re.search(r"modbus tcp://127\.0\.0\.1:(\d+)", "\n".join(lines)).group(1))
-        link = ModbusLoadLink({"transport": "modbus-tcp", "map": str(REPO / "config/load-machines/instruments-dyno.toml"),
-                               "host": "127.0.0.1", "port": port, "timeout_s": 2.0}, REPO)
+        dyno_map = str(REPO / "config/load-machines/instruments-dyno.toml")
+        link = ModbusLoadLink({"transport": "modbus-tcp", "map": dyno_map, "host": "127.0.0.1", "port": port,
+                               "timeout_s": 2.0}, REPO)
         try:
             link.open()
             assert link.modes == (LoadMode.TORQUE,)
