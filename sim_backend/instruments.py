@@ -11,7 +11,9 @@ DriveModel so that the simulated rig gives exactly that:
   * encoder: `counts_per_rev` counts (lines x 4), an alignment offset drawn once from the seed (unknown to the bench),
     Gaussian edge jitter of `noise_counts` (std, in counts) on every control period's count; speed = counts over the
     last `speed_gate_s` (M-method), so it is quantised to 2*pi / counts_per_rev / speed_gate_s and lags by half a gate;
-  * torque transducer: first-order low-pass of `bandwidth_hz` on the shaft torque plus Gaussian noise `noise_nm` (std).
+  * torque transducer, in line between motor and dynamometer: it reads the shaft torque, the dynamometer's own torque
+    plus what accelerates the dynamometer's rotor (`dyno_inertia_kgm2`, part of the plant's lumped inertia):
+    T_shaft = T_L + J_dyno dw/dt; then a first-order low-pass of `bandwidth_hz` and Gaussian noise `noise_nm` (std).
 Every random draw is made per control period from the model's own seeded generator (never per Modbus request, whose
 number depends on the bench's timing), so the same seed gives the same readings bit for bit.
 
@@ -23,6 +25,7 @@ The settings are the bench config's [simulator.instruments] table (read by sim_b
     encoder_speed_gate_s = 0.01
     torque_bandwidth_hz = 100.0
     torque_noise_nm = 0.005
+    dyno_inertia_kgm2 = 5e-4
 """
 
 from __future__ import annotations
@@ -48,6 +51,7 @@ class InstrumentSpec:
     encoder_speed_gate_s: float = 0.01
     torque_bandwidth_hz: float = 100.0
     torque_noise_nm: float = 0.005
+    dyno_inertia_kgm2: float = 0.0          # 0: the transducer reads the dynamometer's torque alone
 
     @classmethod
     def from_table(cls, table: Any, where: str = "simulator.instruments") -> "InstrumentSpec":
@@ -84,6 +88,7 @@ class InstrumentedModel:
         self._counts = np.full(self._gate_steps + 1, self._count_of(np.array([0.0]))[0])   # last gate + 1
         self._alpha = 1.0 - math.exp(-2.0 * math.pi * spec.torque_bandwidth_hz * dt)
         self._torque_filtered = 0.0
+        self._last_speed = 0.0
         self._speed = 0.0
         self._torque = 0.0
 
@@ -107,9 +112,12 @@ class InstrumentedModel:
         history = np.concatenate((self._counts, counts))[-(self._gate_steps + 1):]
         self._counts = history
         self._speed = float(history[-1] - history[0]) / self._counts_per_rad / self._gate_s
+        speeds = block[:, _SPEED]
+        shaft = block[:, _TORQUE] + self.instruments.dyno_inertia_kgm2 * np.diff(speeds, prepend=self._last_speed) / dt
+        self._last_speed = float(speeds[-1])
         y = self._torque_filtered
         a = self._alpha
-        for torque in block[:, _TORQUE]:                      # first-order lag, one control period at a time
+        for torque in shaft:                                  # first-order lag, one control period at a time
             y += a * (torque - y)
         self._torque_filtered = float(y)
         self._torque = self._torque_filtered + self.instruments.torque_noise_nm * float(self._rng.standard_normal())

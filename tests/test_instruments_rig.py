@@ -226,3 +226,24 @@ def test_sim_serve_serves_the_instruments_rig_with_its_dyno_map(tmp_path):
     finally:
         proc.terminate()
         proc.wait(timeout=20)
+
+
+def test_the_torque_transducer_sees_the_dynamometer_rotor_accelerate():
+    """In line between motor and dynamometer the transducer reads T_L + J_dyno dw/dt: while the shaft accelerates with
+    no load it reads J_dyno times the (lagged) acceleration of the plant; at steady speed the load torque alone."""
+    from drivers.signals import SIGNAL_INDEX
+
+    spec = InstrumentSpec(encoder_noise_counts=0.0, torque_noise_nm=0.0, dyno_inertia_kgm2=5e-4)
+    plain = make_model(REPO / "config/motors/pmsm-paper.toml", 3)
+    model = InstrumentedModel(make_model(REPO / "config/motors/pmsm-paper.toml", 3), spec, seed=3)
+    for m in (plain, model):
+        m.set_enabled(True)
+        m.set_speed_ref(20.0)
+    truth = plain.step(100)[:, SIGNAL_INDEX["speed_true_mech_rad_s"]]
+    model.step(100)
+    dt = model.control_period_s
+    acceleration = (truth[-1] - truth[-21]) / (20 * dt)          # the plant's, over the transducer's lag
+    torque = model.load_feedback()[1]
+    assert acceleration > 100 and torque == pytest.approx(5e-4 * acceleration, rel=0.3), (acceleration, torque)
+    model.step(10_000)                                       # 1 s later: steady at 20 rad/s, no load
+    assert abs(model.load_feedback()[1]) < 2e-3
