@@ -35,6 +35,7 @@ from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
+from scipy.signal import lfilter
 
 from drivers.signals import SIGNAL_INDEX, SIGNALS
 
@@ -115,11 +116,10 @@ class InstrumentedModel:
         speeds = block[:, _SPEED]
         shaft = block[:, _TORQUE] + self.instruments.dyno_inertia_kgm2 * np.diff(speeds, prepend=self._last_speed) / dt
         self._last_speed = float(speeds[-1])
-        y = self._torque_filtered
-        a = self._alpha
-        for torque in shaft:                                  # first-order lag, one control period at a time
-            y += a * (torque - y)
-        self._torque_filtered = float(y)
+        # first-order lag, one control period at a time: y[k] = y[k-1] + alpha (u[k] - y[k-1])
+        filtered, _ = lfilter([self._alpha], [1.0, self._alpha - 1.0], shaft,
+                              zi=[(1.0 - self._alpha) * self._torque_filtered])
+        self._torque_filtered = float(filtered[-1])
         self._torque = self._torque_filtered + self.instruments.torque_noise_nm * float(self._rng.standard_normal())
         block[:, TRUTH_COLUMNS] = np.nan                      # the firmware has no position sensor
         return block
