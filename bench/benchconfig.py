@@ -150,8 +150,8 @@ def measurable_signals(cfg: BenchConfig) -> frozenset[str]:
         own = static_measurable(drive, description.has,
                                 lambda index: description.has(index) and bool(description.od[index].default),
                                 description.drivebench_kind is not None)
-    reference = ReferenceConfig(cfg.reference_source).signals(bool(cfg.load))
-    return own | frozenset(reference)
+    reference = ReferenceConfig(cfg.reference_source)
+    return (own - reference.not_from_drive()) | frozenset(reference.signals(bool(cfg.load)))
 
 
 def _stamp(path: str) -> tuple[int, int]:

@@ -344,6 +344,67 @@ def reversal_time(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
     return float(t[hit[0]] - t0), f"reached {target:.4g} ±{band:.4g} at {t[hit[0]]:.6g} s"
 
 
+def _level(w: _Window, spec: CriterionSpec) -> float:
+    """The final level a response is judged against: `target`, or the last value of `reference` in the window."""
+    return float(_reference(w, spec)[-1])
+
+
+def rise_time(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+    x = w.signal(spec.signal)
+    t0 = w.after(spec)
+    sel = w.t >= t0
+    if not np.any(sel):
+        raise _Unusable(f"no samples after {t0:g} s in the window")
+    t, x = w.t[sel], x[sel]
+    final = _level(w, spec)
+    start = float(spec.params.get("from_value", x[0]))
+    step = final - start
+    if step == 0:
+        raise _Unusable("the step is zero (final value equals the initial value)")
+    lo, hi = float(spec.params.get("low_pct", 10.0)), float(spec.params.get("high_pct", 90.0))
+    if not 0 <= lo < hi <= 100:
+        raise _Unusable(f"needs 0 <= low_pct < high_pct <= 100, got {lo:g}, {hi:g}")
+    progress = (x - start) / step * 100.0          # % of the step reached, whatever its sign
+    hit_hi = np.flatnonzero(progress >= hi)
+    if hit_hi.size == 0:
+        return math.inf, f"never reached {hi:g} % of the step {start:.4g} -> {final:.4g} (max {progress.max():.3g} %)"
+    before = np.flatnonzero(progress[:hit_hi[0] + 1] >= lo)
+    t_lo, t_hi = t[before[0]], t[hit_hi[0]]
+    return float(t_hi - t_lo), (f"{lo:g} % at {t_lo:.6g} s, {hi:g} % at {t_hi:.6g} s of the step "
+                                f"{start:.4g} -> {final:.4g}")
+
+
+def dip(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+    x = w.signal(spec.signal)
+    t0 = w.after(spec)
+    sel = w.t >= t0
+    if not np.any(sel):
+        raise _Unusable(f"no samples after {t0:g} s in the window")
+    level = _reference(w, spec)[sel]
+    direction = np.where(level < 0, -1.0, 1.0)     # towards zero from the level (below it at level 0)
+    drop = (level - x[sel]) * direction
+    i = int(np.argmax(drop))
+    value = max(0.0, float(drop[i]))
+    detail = f"deepest {x[sel][i]:.4g} against {level[i]:.4g} at {w.t[sel][i]:.6g} s"
+    if spec.params.get("percent", False):
+        base = abs(float(np.mean(level)))
+        if base == 0:
+            raise _Unusable("the level is zero; a percentage is undefined")
+        return value / base * 100.0, detail + f" ({value:.4g} = {value / base * 100:.4g} % of {base:.4g})"
+    return value, detail
+
+
+def ripple_pp(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+    x = w.signal(spec.signal)
+    i, j = int(np.argmin(x)), int(np.argmax(x))
+    return float(x[j] - x[i]), f"min {x[i]:.4g} at {w.t[i]:.6g} s, max {x[j]:.4g} at {w.t[j]:.6g} s"
+
+
+def ripple_std(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+    x = w.signal(spec.signal)
+    return float(np.std(x)), f"std over {x.size} samples around the mean {np.mean(x):.4g}"
+
+
 _REF = {
     "reference": Param("signal", help="subtract this signal"),
     "target": Param("number", help="subtract this constant (signal units)"),
@@ -395,6 +456,17 @@ KINDS: dict[str, Kind] = {
         **_BAND, **_AFTER},
         "time from after_s until the signal reaches the reversed speed within the band (default 5 %)",
         exclusive=(("band_pct", "band_abs"),)),
+    "rise_time": Kind(rise_time, "s", {
+        **_REF, "from_value": Param("number", help="initial value (default: the signal at after_s)"),
+        "low_pct": Param("number", 10.0, help="lower crossing, % of the step"),
+        "high_pct": Param("number", 90.0, help="upper crossing, % of the step"), **_AFTER},
+        "time from low_pct to high_pct of the step from the initial to the final reference (first crossings)",
+        one_of=("reference", "target")),
+    "dip": Kind(dip, "signal", {**_REF, "percent": Param("bool", False), **_AFTER},
+                "largest excursion of the signal from the level towards zero (0 when none); % of |level| with "
+                "percent = true", one_of=("reference", "target")),
+    "ripple_pp": Kind(ripple_pp, "signal", {}, "peak to peak, max - min of the signal in the window"),
+    "ripple_std": Kind(ripple_std, "signal", {}, "standard deviation of the signal in the window"),
 }
 
 
@@ -642,6 +714,11 @@ def _criterion_params(p: Problems, item: dict, where: str, kind_name: str,
     if kind.one_of and sum(k in given for k in kind.one_of) != 1:
         p.add(where, f"kind {kind_name!r} needs exactly one of {', '.join(kind.one_of)}")
         ok = False
+    if kind_name == "rise_time" and ok:
+        lo, hi = params.get("low_pct", 10.0), params.get("high_pct", 90.0)
+        if not 0 <= lo < hi <= 100:
+            p.add(f"{where}.low_pct", f"needs 0 <= low_pct < high_pct <= 100, got {lo:g} and {hi:g}")
+            ok = False
     after = params.get("after_s")
     if after is not None and window is not None and not (window[0] <= after < window[1]):
         p.add(f"{where}.after_s", f"{after:g} s is outside the window [{window[0]:g}, {window[1]:g}] s")

@@ -32,7 +32,7 @@ from bench.run_thread import LoopThread
 from bench.telemetry import TelemetryWorker
 from bench.verdict import judge_run
 from drivers.api import LinkError, LiveSample
-from drivers.reference import ReferenceConfig, values_from_load
+from drivers.reference import ReferenceConfig, onto_rows, values_from_load
 from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
 
 # Live (PDO) signals, judged by the supervisor every SYNC. Eight REAL32 fit a 1 Mbit/s CAN bus at one SYNC
@@ -94,6 +94,7 @@ def trace_signals_for(cfg: BenchConfig, scenario) -> tuple[str, ...]:
     wanted = set(cfg.drive.get("trace_signals") or TRACE_SIGNALS)
     wanted |= {c.signal for c in scenario.criteria if c.signal in SIGNAL_NAMES}
     wanted |= {v for c in scenario.criteria for v in c.params.values() if isinstance(v, str) and v in SIGNAL_NAMES}
+    wanted -= ReferenceConfig(cfg.reference_source).not_from_drive()    # rig truth only from the reference sensor
     return tuple(name for name in SIGNAL_NAMES if name in wanted)
 
 
@@ -258,6 +259,8 @@ class _Run:
         self.trace_signals = trace_signals_for(self.cfg, self.scenario)
         self.reference = ReferenceConfig(self.cfg.reference_source)
         self.reference_signals = self.reference.signals(self.load is not None)
+        self.not_from_drive = self.reference.not_from_drive()
+        self._reference_readings: list[tuple[float, dict[str, float]]] = []   # (t_s, values), for the trace rows
         self.measured: frozenset[str] | None = None
         self.live_recorded: tuple[str, ...] = LIVE_SIGNALS
         # t_s in the record is drive time since this run's first SYNC; the drive clock counts from power-up
@@ -271,7 +274,8 @@ class _Run:
         try:
             self.rerun = RerunStream(self.rerun_mode, self.recorder.run_dir / "run.rrd", url=self.rerun_url,
                                      recording_name=self.recorder.run_dir.name,
-                                     recorded=self.trace_signals if self.data_source == "trace" else LIVE_SIGNALS,
+                                     recorded=((*self.trace_signals, *self.reference_signals)
+                                               if self.data_source == "trace" else LIVE_SIGNALS),
                                      **({"warn": self.warn} if self.warn is not None else {}))
         except Exception as exc:  # no view is better than no run
             (self.warn or print)(f"rerun: cannot open the stream ({type(exc).__name__}: {exc}); no run.rrd")
@@ -280,6 +284,9 @@ class _Run:
         self.recorder.note("load_machine",
                            self.load_name if self.load is not None else "none: free shaft (no [load])")
         self.recorder.note("reference", self.reference.as_record(self.load is not None))
+        self.recorder.note("instruments", self.reference.instruments(
+            self.load is not None, getattr(self.load, "map", None),
+            getattr(self.identity, "device_name", "") or "the drive"))
         self.recorder.note("bench", {"name": self.cfg.bench.name, "path": self.cfg.path,
                                      "timing": self.cfg.bench.timing})
         self._rerun_note = {"mode": self.rerun_mode, "url": self.rerun_url, "sinks": self.rerun.sinks}
@@ -370,8 +377,10 @@ class _Run:
 
     def _configure_and_enable(self) -> None:
         decimation = int(self.cfg.drive["trace_decimation"])
-        self.drive.configure(LIVE_SIGNALS, self.trace_signals, decimation)
-        measured = set(getattr(self.drive, "measured_signals", lambda: SIGNAL_NAMES)()) | set(self.reference_signals)
+        self.drive.configure(tuple(n for n in LIVE_SIGNALS if n not in self.not_from_drive), self.trace_signals,
+                             decimation)
+        measured = (set(getattr(self.drive, "measured_signals", lambda: SIGNAL_NAMES)()) - self.not_from_drive) \
+            | set(self.reference_signals)
         self._arm_unit_check(getattr(self.drive, "profile", None), measured)
         self.live_recorded = tuple(n for n in SIGNAL_NAMES if n in measured or (n in LIVE_SIGNALS and
                                                                                 self.data_source == "trace"))
@@ -380,6 +389,7 @@ class _Run:
         self.recorder.note("live_signals", list(self.live_recorded))
         if self.data_source == "trace":
             measured |= set(self.trace_signals)          # the drive's recorder: every traced signal, full rate
+            measured |= set(self.reference_signals)      # the reference's readings, interpolated onto its rows
         self.measured = frozenset(measured)
         self.recorder.note("measured_signals", sorted(measured))
         self.recorder.note("trace_decimation", decimation)
@@ -433,6 +443,8 @@ class _Run:
         next_progress = 0.0
         last_sample_wall = time.monotonic()
         k = 0
+        if self.reference_signals:     # the shaft as the reference sensor reads it at t = 0, before the first SYNC
+            self._reference_readings.append((0.0, values_from_load(self._load_call(self.load.feedback))))
         self._command(0.0, injections, applied)
         while t_drive < duration - 1e-9:
             if self.supervisor.tripped.is_set() or self._stop_loop.is_set():
@@ -442,7 +454,10 @@ class _Run:
                 # the rig's reference sensor, read now, stamped with this SYNC's (batch's) drive time
                 feedback = self._load_call(self.load.feedback)
                 values = values_from_load(feedback)
-                samples = [LiveSample(s.t_s, {**s.values, **values}) for s in samples]
+                samples = [LiveSample(s.t_s, {**{name: v for name, v in s.values.items()
+                                                 if name not in self.not_from_drive}, **values}) for s in samples]
+                with self._live_lock:
+                    self._reference_readings.append((samples[-1].t_s, values))
                 self.supervisor.feed_load(samples[-1].t_s, feedback)
                 next_load_poll = samples[-1].t_s + LOAD_POLL_PERIOD_S
             k += 1
@@ -557,6 +572,13 @@ class _Run:
                 uploaded_to = block[TIME_COLUMN][-1]
                 with self._live_lock:       # live samples now in the trace are no longer the only record
                     self.live_buffer = [s for s in self.live_buffer if s.t_s > uploaded_to]
+                    readings = list(self._reference_readings)
+                    keep = max(0, sum(1 for r in readings if r[0] <= uploaded_to) - 1)
+                    self._reference_readings = self._reference_readings[keep:]
+                for name in self.not_from_drive:
+                    block.pop(name, None)
+                if self.reference_signals:
+                    block.update(onto_rows(block[TIME_COLUMN], readings, self.reference_signals))
                 self._append(block)
         else:
             with self._live_lock:

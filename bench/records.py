@@ -59,6 +59,7 @@ class RunRecord(TypedDict, total=False):
     # noted by the orchestrator while the run goes on
     load_machine: str
     reference: dict[str, Any]
+    instruments: dict[str, str]     # rig-truth signal -> the instrument it came from (or "not measured")
     rerun: dict[str, Any]
     data_source: str                # "trace" (the drive's recorder) or "pdo"
     trace_signals: list[str]

@@ -57,6 +57,7 @@ class Reg:
     type: str
     count: int                      # registers
     extra: dict[str, Any] = field(default_factory=dict)
+    description: str = ""           # the map's words for it (the record names a reference signal's instrument by it)
 
     def encode(self, value: float, word_order: str) -> list[int]:
         if self.type == "string":
@@ -195,4 +196,4 @@ def _register(role: str, spec: dict, where: str, problems: list[tuple[str, str]]
     if role == "mode" and "torque" not in extra:
         problems.append((f"{where}.torque", "missing: the value of torque mode"))
         return None
-    return Reg(role, address, kind, count, extra)
+    return Reg(role, address, kind, count, extra, str(spec.get("description", "")))

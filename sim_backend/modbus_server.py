@@ -91,17 +91,23 @@ class LoadMachineRegisters:
         for reg in m.registers.values():     # multi-register values are written whole or not at all
             if reg.count > 1 and touched(reg) and not (address <= reg.address and reg.address + reg.count <= end):
                 return ExcCodes.ILLEGAL_ADDRESS
+        def touched_role(role: str) -> bool:        # optional registers (mode, fault reset, watchdog) may be absent
+            return m.has(role) and touched(m[role])
+
         enable = self._get(new, base, m["enable"])
-        mode_value = self._get(new, base, m["mode"])
         value = float(self._get(new, base, m["setpoint"])) * float(m["setpoint"].extra.get("scale", 1.0))
-        reset = self._get(new, base, m["fault_reset"])
+        reset = self._get(new, base, m["fault_reset"]) if m.has("fault_reset") else 0
         if enable not in (m["enable"].extra["on"], m["enable"].extra["off"]) or reset not in (0, 1):
             return ExcCodes.ILLEGAL_VALUE
-        modes = {m.mode_value(mode): mode for mode in m.modes}
+        if m.has("mode"):
+            modes = {m.mode_value(mode): mode for mode in m.modes}
+            mode_value = self._get(new, base, m["mode"])
+        else:                                        # a torque-only machine
+            modes, mode_value = {int(LoadMode.TORQUE): LoadMode.TORQUE}, int(LoadMode.TORQUE)
         if mode_value not in modes or not math.isfinite(value):
             return ExcCodes.ILLEGAL_VALUE
         mode = modes[mode_value]
-        if touched(m["mode"]) or touched(m["setpoint"]):
+        if touched_role("mode") or touched(m["setpoint"]):
             if mode is LoadMode.TORQUE and abs(value) > TORQUE_LIMIT_NM:
                 return ExcCodes.ILLEGAL_VALUE
             if mode is LoadMode.BRAKE and not 0.0 <= value <= TORQUE_LIMIT_NM:
@@ -110,20 +116,20 @@ class LoadMachineRegisters:
                 return ExcCodes.ILLEGAL_VALUE
         dev = self.device
         with dev.lock:
-            if touched(m["watchdog"]):
+            if touched_role("watchdog"):
                 timeout = float(self._get(new, base, m["watchdog"]))
                 dev.load_watchdog.arm(timeout / 1000.0)
                 dev.load_watchdog.touch()
                 if timeout:
                     dev.arm_watchdogs()
-            if touched(m["fault_reset"]) and reset:
+            if touched_role("fault_reset") and reset:
                 dev.load.fault = 0
                 values[m["fault_reset"].address - address] = 0      # a command, reads back 0
             is_on = enable == m["enable"].extra["on"]
             if touched(m["enable"]) and is_on and dev.load.fault:
                 return ExcCodes.DEVICE_FAILURE                      # a faulted machine refuses to enable
-            if touched(m["mode"]) or touched(m["setpoint"]) or touched(m["enable"]):
-                dev.set_load(mode=int(mode) if touched(m["mode"]) else None,
+            if touched_role("mode") or touched(m["setpoint"]) or touched(m["enable"]):
+                dev.set_load(mode=int(mode) if touched_role("mode") else None,
                              value=value if touched(m["setpoint"]) else None,
                              enabled=is_on if touched(m["enable"]) else None)
         return None
@@ -166,9 +172,9 @@ class _LoopThread:
 
 
 class ModbusServerHandle:
-    def __init__(self, device: SimulatedDevice, unit_id: int):
+    def __init__(self, device: SimulatedDevice, unit_id: int, regs: LoadMap | None = None):
         self.device = device
-        self.registers = LoadMachineRegisters(device)
+        self.registers = LoadMachineRegisters(device, regs)
         self.sim_device = SimDevice(unit_id, simdata=_sim_data(self.registers.map), action=self.registers.action)
         self._loop = _LoopThread(type(self).__name__)
         self.server = None
@@ -202,8 +208,8 @@ class ModbusServerHandle:
 
 
 class ModbusTcpHandle(ModbusServerHandle):
-    def __init__(self, device: SimulatedDevice, host: str, port: int, unit_id: int):
-        super().__init__(device, unit_id)
+    def __init__(self, device: SimulatedDevice, host: str, port: int, unit_id: int, regs: LoadMap | None = None):
+        super().__init__(device, unit_id, regs)
         self._start(lambda: ModbusTcpServer(self.sim_device, address=(host, port)))
         self.host = host
         self.port = self.server.transport.sockets[0].getsockname()[1]
@@ -263,8 +269,8 @@ class NullModem:
 
 
 class ModbusRtuPtyHandle(ModbusServerHandle):
-    def __init__(self, device: SimulatedDevice, unit_id: int, baudrate: int):
-        super().__init__(device, unit_id)
+    def __init__(self, device: SimulatedDevice, unit_id: int, baudrate: int, regs: LoadMap | None = None):
+        super().__init__(device, unit_id, regs)
         self.modem = NullModem()
         server_end, self.path = self.modem.paths
         try:
@@ -279,9 +285,11 @@ class ModbusRtuPtyHandle(ModbusServerHandle):
 
 
 def start_modbus_tcp(device: SimulatedDevice, host: str = "127.0.0.1", port: int = 0,
-                     unit_id: int = 1) -> ModbusTcpHandle:
-    return ModbusTcpHandle(device, host, port, unit_id)
+                     unit_id: int = 1, regs: LoadMap | None = None) -> ModbusTcpHandle:
+    """regs: the machine's register map (default: drivebench-sim.toml)."""
+    return ModbusTcpHandle(device, host, port, unit_id, regs)
 
 
-def start_modbus_rtu_pty(device: SimulatedDevice, unit_id: int = 1, baudrate: int = 115200) -> ModbusRtuPtyHandle:
-    return ModbusRtuPtyHandle(device, unit_id, baudrate)
+def start_modbus_rtu_pty(device: SimulatedDevice, unit_id: int = 1, baudrate: int = 115200,
+                         regs: LoadMap | None = None) -> ModbusRtuPtyHandle:
+    return ModbusRtuPtyHandle(device, unit_id, baudrate, regs)

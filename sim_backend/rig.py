@@ -57,6 +57,8 @@ class RigSpec:
     wire_faults: bool = False
     drive: DriveSpec | None = None                 # a third-party drive from a vendor EDS; None: drivebench's
     exclusive: bool = False                        # served: one bench at a time, each from a restarted drive
+    load_map: str | Path | None = None             # the dynamometer's register map; None: drivebench-sim.toml
+    instruments: Any = None                        # sim_backend.instruments.InstrumentSpec: a lab's instruments
 
 
 @dataclass
@@ -70,17 +72,24 @@ class Rig:
     sessions: Any = None                           # BenchSessions of a served rig (spec.exclusive)
 
 
+def rig_model(spec: RigSpec) -> DriveModel:
+    """The rig's drive model, seen through its instruments where the spec has them."""
+    from sim_backend.instruments import InstrumentedModel
+    model = make_model(spec.motor, spec.seed)
+    return model if spec.instruments is None else InstrumentedModel(model, spec.instruments, spec.seed)
+
+
 @contextlib.contextmanager
 def build(spec: RigSpec, device: SimulatedDevice | None = None) -> Iterator[Rig]:
     """Start the rig's front ends (in this process); stop them all on exit, whatever happened."""
     if device is None:
-        device = SimulatedDevice(make_model(spec.motor, spec.seed))
+        device = SimulatedDevice(rig_model(spec))
     device.faults.reseed(spec.seed)
     device.faults.wrapped = spec.wire_faults
     rig = Rig(spec, device)
     if spec.exclusive:
         from sim_backend.sessions import BenchSessions
-        rig.sessions = BenchSessions(lambda: device.restart(make_model(spec.motor, spec.seed)))
+        rig.sessions = BenchSessions(lambda: device.restart(rig_model(spec)))
     with contextlib.ExitStack() as stack:
         stack.callback(device.stop_watchdogs)
         if spec.eds is not None:
@@ -144,12 +153,16 @@ def _modbus(stack: contextlib.ExitStack, rig: Rig) -> None:
     from sim_backend.modbus_server import start_modbus_rtu_pty, start_modbus_tcp
 
     spec = rig.spec
+    regs = None
+    if spec.load_map is not None:
+        from drivers.load_map import read_load_map
+        regs = read_load_map(spec.load_map)
     if spec.modbus == "rtu-pty":
-        server = start_modbus_rtu_pty(rig.device)
+        server = start_modbus_rtu_pty(rig.device, regs=regs)
         rig.overrides.setdefault("load", {})["port"] = server.path
         rig.endpoints["modbus"] = f"rtu:{server.path} unit=1"
     else:
-        server = start_modbus_tcp(rig.device, *spec.modbus_tcp)
+        server = start_modbus_tcp(rig.device, *spec.modbus_tcp, regs=regs)
         rig.overrides.setdefault("load", {}).update(host=spec.modbus_tcp[0], port=server.port)
         rig.endpoints["modbus"] = f"tcp://{spec.modbus_tcp[0]}:{server.port} unit=1"
     stop = _stopper(server)
@@ -174,7 +187,17 @@ def spec_for_bench(bench_cfg: dict, seed: int) -> RigSpec:
         serial=(simulator.get("serial_line") or "tcp") if transport == "serial" else None,
         modbus={"modbus-tcp": "tcp", "modbus-rtu": "rtu-pty"}.get(load_transport),
         wire_faults=bool((bench_cfg.get("bench") or {}).get("wire_faults", False)),
+        load_map=load.get("map") if load_transport else None,
+        instruments=_instruments(simulator, where),
     )
+
+
+def _instruments(simulator: dict, where: str):
+    """[simulator.instruments], checked (RuntimeError `file: field: reason`), or None."""
+    if simulator.get("instruments") is None:
+        return None
+    from sim_backend.instruments import InstrumentSpec
+    return InstrumentSpec.from_table(simulator["instruments"], f"{where}: simulator.instruments")
 
 
 GENERIC_KEYS = ("velocity_unit", "velocity_side", "encoder_increments_per_rev", "rated_current_a", "rated_torque_nm",

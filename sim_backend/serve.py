@@ -90,11 +90,15 @@ def load_serve_config(config_path: str | Path) -> dict:
         "wire_faults": bool((cfg.get("bench") or {}).get("wire_faults", False)),
         "drive": _drive_spec(path, sim),
         "one_bench": serve.get("one_bench", True),
+        "load_map": _resolve(path, (cfg.get("load") or {})["map"]) if (cfg.get("load") or {}).get("map") else None,
+        "instruments": _instrument_spec(path, sim),
     }
     if not isinstance(out["one_bench"], bool):
         raise ServeError(f"{path}: simulator.serve.one_bench: must be true or false, got {out['one_bench']!r}")
     if not toy and not out["motor"].exists():
         raise ServeError(f"{path}: simulator.motor: file not found: {sim['motor']!r}")
+    if out["load_map"] is not None and not out["load_map"].exists():
+        raise ServeError(f"{path}: load.map: file not found: {cfg['load']['map']!r}")
     if not out["eds"].exists():
         raise ServeError(f"{path}: drive.eds: file not found: {drive.get('eds')!r}")
     return out
@@ -108,13 +112,25 @@ def _drive_spec(path: Path, simulator: dict):
         raise ServeError(f"{path}: simulator.drive: {exc}") from None
 
 
+def _instrument_spec(path: Path, simulator: dict):
+    """[simulator.instruments]: the dynamometer's encoder and torque transducer of an instruments rig, or None."""
+    if simulator.get("instruments") is None:
+        return None
+    from sim_backend.instruments import InstrumentSpec
+    try:
+        return InstrumentSpec.from_table(simulator["instruments"], f"{path}: simulator.instruments")
+    except RuntimeError as exc:
+        raise ServeError(str(exc)) from None
+
+
 def rig_spec(cfg: dict) -> "RigSpec":
     from sim_backend.rig import RigSpec
     return RigSpec(motor=cfg["motor"], seed=cfg["seed"], drive=cfg["drive"], eds=cfg["eds"] if cfg["socketcand"] else None,
                    node_id=cfg["node_id"], socketcand=cfg["socketcand"],
                    serial="tcp" if cfg["serial"] else None, serial_tcp=cfg["serial"] or ("127.0.0.1", 0),
                    modbus="tcp" if cfg["modbus"] else None, modbus_tcp=cfg["modbus"] or ("127.0.0.1", 0),
-                   wire_faults=cfg["wire_faults"], exclusive=cfg["one_bench"])
+                   wire_faults=cfg["wire_faults"], exclusive=cfg["one_bench"],
+                   load_map=cfg.get("load_map"), instruments=cfg.get("instruments"))
 
 
 def serve(cfg: dict, stop: threading.Event, out=sys.stdout) -> None:

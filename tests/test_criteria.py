@@ -161,10 +161,67 @@ def test_reversal_time():
     assert not r.passed and r.value == math.inf and "never reached" in r.detail
 
 
+def test_rise_time():
+    # first order, tau = 0.1 s: 10 % -> 90 % takes tau * ln(9) = 0.2197 s, whatever the step's sign or the start value
+    both("rise_time", "speed_true_mech_rad_s", {"speed_true_mech_rad_s": first_order_step()}, 0.1 * math.log(9),
+         window=(0.5, 3.0), rel=1e-2, target=10.0)
+    both("rise_time", "speed_true_mech_rad_s", {"speed_true_mech_rad_s": 5.0 - first_order_step()},
+         0.1 * math.log(9), window=(0.5, 3.0), rel=1e-2, target=-5.0)
+    # 5 % -> 95 %: tau * ln(19)
+    both("rise_time", "speed_true_mech_rad_s", {"speed_true_mech_rad_s": first_order_step()}, 0.1 * math.log(19),
+         window=(0.5, 3.0), rel=1e-2, target=10.0, low_pct=5.0, high_pct=95.0)
+    # a shaft that stalls at 80 % never rises: infinite, fails whatever the limit
+    r = run("rise_time", "speed_true_mech_rad_s", {"speed_true_mech_rad_s": 0.8 * first_order_step()}, 100.0,
+            window=(0.5, 3.0), target=10.0)
+    assert not r.passed and r.value == math.inf and "never reached 90 %" in r.detail
+
+
+def test_dip_towards_zero_after_a_load_step():
+    # 20 rad/s; a load step at 5 s pulls the shaft down by 1.5 rad/s (a triangle over 0.2 s), then it recovers
+    dip_shape = 1.5 * np.clip(1 - np.abs(T - 5.1) / 0.1, 0, None)
+    y = 20.0 - dip_shape + 0.01 * np.sin(2 * np.pi * 50 * T) * (T < 5.0)
+    cols = {"speed_true_mech_rad_s": y}
+    both("dip", "speed_true_mech_rad_s", cols, 1.5, window=(4.0, 6.0), rel=1e-2, target=20.0, after_s=5.0)
+    both("dip", "speed_true_mech_rad_s", cols, 7.5, window=(4.0, 6.0), rel=1e-2, target=20.0, after_s=5.0,
+         percent=True)
+    # at negative speed the dip is towards zero too: -20 -> -18.5
+    both("dip", "speed_true_mech_rad_s", {"speed_true_mech_rad_s": -y}, 1.5, window=(4.0, 6.0), rel=1e-2,
+         target=-20.0, after_s=5.0)
+    # a shaft above its level has no dip
+    r = run("dip", "speed_true_mech_rad_s", {"speed_true_mech_rad_s": 20.0 + dip_shape}, 0.0, window=(4.0, 6.0),
+            target=20.0)
+    assert r.passed and r.value == 0.0
+
+
+def test_ripple_pp_and_std():
+    # 0.2 rad/s amplitude at 30 Hz on 20 rad/s: peak to peak 0.4, std 0.2/sqrt(2)
+    y = 20.0 + 0.2 * np.sin(2 * np.pi * 30 * T)
+    cols = {"speed_true_mech_rad_s": y}
+    both("ripple_pp", "speed_true_mech_rad_s", cols, 0.4, window=(1.0, 2.0), rel=1e-3)
+    both("ripple_std", "speed_true_mech_rad_s", cols, 0.2 / math.sqrt(2), window=(1.0, 2.0), rel=1e-3)
+    # one spike is all of the peak to peak, little of the std
+    spiky = np.where(np.isclose(T, 1.5), 21.0, 20.0)
+    assert run("ripple_pp", "speed_true_mech_rad_s", {"speed_true_mech_rad_s": spiky}, 0.5,
+               window=(1.0, 2.0)).passed is False
+    assert run("ripple_std", "speed_true_mech_rad_s", {"speed_true_mech_rad_s": spiky}, 0.05,
+               window=(1.0, 2.0)).passed is True
+
+
+def test_rise_time_percent_bounds_are_checked_at_load(tmp_path):
+    from bench.criteria import parse_criteria
+    from bench.errors import Problems
+
+    p = Problems(tmp_path / "s.toml")
+    item = {"name": "r", "kind": "rise_time", "signal": "speed_true_mech_rad_s", "window_s": [0.0, 1.0],
+            "limit": 1.0, "target": 1.0, "low_pct": 90.0, "high_pct": 10.0}
+    assert parse_criteria(p, [("criteria[0]", item)], 2.0) == ()
+    assert any("low_pct < high_pct" in line for line in p.lines), p.lines
+
+
 def test_every_kind_is_tested():
     tested = {"speed_error_max_pct", "speed_error_rms_pct", "pos_error_max", "pos_error_rms", "flux_error_max_pct",
               "flux_error_rms_pct", "flux_recovery_time", "settling_time", "overshoot_pct", "steady_state_error",
-              "peak_abs", "rms", "mean", "reversal_time"}
+              "peak_abs", "rms", "mean", "reversal_time", "rise_time", "dip", "ripple_pp", "ripple_std"}
     assert set(KINDS) == tested
 
 
