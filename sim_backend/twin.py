@@ -54,6 +54,13 @@ COMPARED: dict[str, float] = {
     "flux_est_wb": 0.01,
 }
 TIME_TOL_S = 0.005
+# Near zero speed a sensorless drive's estimates follow the ADC noise (the PMSM flux estimator, paper eq. (7b), divides
+# by w^2; its speed estimate spikes by ~10 rad/s for a few ms when it crosses the firmware's threshold): a twin without
+# the rig's noise cannot follow them there, whatever its motor. The drive's estimates are not compared within
+# BLIND_TIME_S of the recorded or the twin's speed estimate being below BLIND_SPEED (mech rad/s); the rest is.
+ESTIMATES = ("speed_est_mech_rad_s", "flux_est_wb")
+BLIND_SPEED = 2.0
+BLIND_TIME_S = 0.02
 # injections a replay cannot repeat: the device's and the wire's faults act on the rig, not on the motor and firmware
 NOT_REPLAYED_PREFIXES = ("fault_",)
 
@@ -314,9 +321,11 @@ class TubeResult:
     first_exit_s: float | None
     intervals_outside: list[tuple[float, float]]
     rms_difference: float                # twin - recorded, over the compared rows
+    not_compared_s: float = 0.0          # drive seconds left out (the estimates near zero speed)
 
     def to_dict(self) -> dict[str, Any]:
         return {"signal": self.signal, "value_tol": self.value_tol, "time_tol_s": self.time_tol_s,
+                "not_compared_s": self.not_compared_s,
                 "inside": self.inside, "max_excess": self.max_excess, "t_max_excess_s": self.t_max_excess_s,
                 "fraction_outside": self.fraction_outside, "first_exit_s": self.first_exit_s,
                 "intervals_outside": [list(iv) for iv in self.intervals_outside[:20]],
@@ -333,10 +342,23 @@ def tube_bounds(t: np.ndarray, y: np.ndarray, time_tol_s: float, value_tol: floa
     return lo, hi
 
 
+def blind_rows(t: np.ndarray, speeds: list[np.ndarray], blind_speed: float = BLIND_SPEED,
+               blind_time_s: float = BLIND_TIME_S) -> np.ndarray:
+    """Rows within blind_time_s of any of the speed estimates being below blind_speed in magnitude."""
+    slow = np.zeros(t.size, bool)
+    for v in speeds:
+        slow |= np.isfinite(v) & (np.abs(v) < blind_speed)
+    if blind_speed <= 0 or not slow.any():
+        return slow
+    dt = float(np.median(np.diff(t)))
+    return maximum_filter1d(slow.astype(np.int8), 2 * int(round(blind_time_s / dt)) + 1, mode="nearest") > 0
+
+
 def tube(signal: str, t: np.ndarray, recorded: np.ndarray, twin: np.ndarray, time_tol_s: float,
-         value_tol: float) -> TubeResult:
+         value_tol: float, ignore: np.ndarray | None = None) -> TubeResult:
     lo, hi = tube_bounds(t, recorded, time_tol_s, value_tol)
-    ok = np.isfinite(recorded) & np.isfinite(twin) & np.isfinite(lo) & np.isfinite(hi)
+    ignore = np.zeros(t.size, bool) if ignore is None else ignore
+    ok = np.isfinite(recorded) & np.isfinite(twin) & np.isfinite(lo) & np.isfinite(hi) & ~ignore
     excess = np.zeros_like(twin)
     excess[ok] = np.maximum(twin[ok] - hi[ok], 0.0) + np.maximum(lo[ok] - twin[ok], 0.0)
     twin_lost = np.isfinite(recorded) & ~np.isfinite(twin)       # the twin tripped or diverged: outside
@@ -352,13 +374,16 @@ def tube(signal: str, t: np.ndarray, recorded: np.ndarray, twin: np.ndarray, tim
     return TubeResult(signal, value_tol, time_tol_s, not out.any(), float(excess[k]) if k is not None else 0.0,
                       float(t[k]) if k is not None else None, float(out.sum() / max(compared, 1)),
                       intervals[0][0] if intervals else None, intervals,
-                      float(np.sqrt(np.mean(diff ** 2))) if diff.size else math.nan)
+                      float(np.sqrt(np.mean(diff ** 2))) if diff.size else math.nan,
+                      float(ignore.sum() * np.median(np.diff(t))))
 
 
 def compare(run: RecordedRun, twin: dict[str, np.ndarray], tolerances: dict[str, float] | None = None,
-            time_tol_s: float = TIME_TOL_S) -> list[TubeResult]:
+            time_tol_s: float = TIME_TOL_S, blind_speed: float = BLIND_SPEED) -> list[TubeResult]:
     tolerances = {**COMPARED, **(tolerances or {})}
-    return [tube(name, run.t, run.columns[name], twin[name], time_tol_s, tol)
+    est = "speed_est_mech_rad_s"
+    blind = blind_rows(run.t, [run.columns[est], twin[est]] if run.measured(est) else [], blind_speed)
+    return [tube(name, run.t, run.columns[name], twin[name], time_tol_s, tol, blind if name in ESTIMATES else None)
             for name, tol in tolerances.items() if run.measured(name)]
 
 
@@ -376,6 +401,9 @@ def plot(run: RecordedRun, twin: dict[str, np.ndarray], results: list[TubeResult
         ax.plot(run.t, twin[res.signal], color="tab:red", lw=0.7, label="twin")
         for a, b in res.intervals_outside:
             ax.axvspan(a, max(b, a + 1e-3), color="tab:red", alpha=0.15, lw=0)
+        if res.not_compared_s > 0:
+            ax.text(0.995, 0.04, f"not compared near zero speed: {res.not_compared_s:.3f} s", ha="right",
+                    transform=ax.transAxes, fontsize=7, color="0.4")
         state = "inside" if res.inside else f"outside {res.fraction_outside:.1%}, max {res.max_excess:.3g}"
         ax.set_ylabel(res.signal, fontsize=8)
         ax.set_title(f"{res.signal}: {state} (tube +-{res.value_tol:g}, +-{res.time_tol_s * 1e3:g} ms)", fontsize=9,

@@ -49,7 +49,8 @@ def _table(title: str, results: list[tw.TubeResult]) -> str:
 
 
 def run_twin(run_dir: str, motor: str | None, do_fit: bool, params: tuple[str, ...], write_motor: str | None,
-             plot_path: str | None, tolerances: dict[str, float], time_tol_s: float) -> dict[str, Any]:
+             plot_path: str | None, tolerances: dict[str, float], time_tol_s: float,
+             blind_speed: float = tw.BLIND_SPEED) -> dict[str, Any]:
     run = tw.read_run(run_dir)
     motor_path = Path(motor) if motor else run.motor_path
     if motor_path is None:
@@ -60,13 +61,14 @@ def run_twin(run_dir: str, motor: str | None, do_fit: bool, params: tuple[str, .
     t0 = time.perf_counter()
     twin = tw.replay(cfg, run, where=str(motor_path))
     replay_s = time.perf_counter() - t0
-    results = tw.compare(run, twin, tolerances, time_tol_s)
+    results = tw.compare(run, twin, tolerances, time_tol_s, blind_speed)
     if not results:
         raise tw.TwinInputError(f"{run.run_dir / tw.TELEMETRY}: (file): none of {', '.join(tw.COMPARED)} is recorded")
     doc: dict[str, Any] = {
         "run_dir": str(run.run_dir), "motor": str(motor_path), "kind": cfg["motor"]["kind"],
         "inside": all(r.inside for r in results), "signals": _signals_doc(results), "replay_s": replay_s,
         "rows": int(run.t.size), "duration_s": float(run.t[-1]), "time_tol_s": time_tol_s,
+        "blind_speed_mech_rad_s": blind_speed,
         "injections": {"source": run.injections_source,
                        "replayed": [vars(i) for i in run.injections if i.name not in tw.not_replayed(run)],
                        "not_replayed": tw.not_replayed(run)},
@@ -79,7 +81,7 @@ def run_twin(run_dir: str, motor: str | None, do_fit: bool, params: tuple[str, .
         result = fit(cfg, run, params or None)
         fitted_cfg = tw.with_values(cfg, result.values)
         twin_fit = tw.replay(fitted_cfg, run)
-        after = tw.compare(run, twin_fit, tolerances, time_tol_s)
+        after = tw.compare(run, twin_fit, tolerances, time_tol_s, blind_speed)
         doc["before"] = {"motor": str(motor_path), "inside": doc["inside"], "signals": doc["signals"]}
         doc.update(result.to_dict())
         doc["inside"] = all(r.inside for r in after)
@@ -103,7 +105,8 @@ def run_twin(run_dir: str, motor: str | None, do_fit: bool, params: tuple[str, .
 
 def _text(doc: dict[str, Any]) -> str:
     out = [f"twin of {doc['run_dir']} ({doc['rows']} rows, {doc['duration_s']:.3f} s) replayed in "
-           f"{doc['replay_s']:.2f} s; time tolerance +-{doc['time_tol_s'] * 1e3:g} ms"]
+           f"{doc['replay_s']:.2f} s; time tolerance +-{doc['time_tol_s'] * 1e3:g} ms; estimates not compared near "
+           f"zero speed (|speed_est| < {doc['blind_speed_mech_rad_s']:g} rad/s, +-20 ms)"]
     inj = doc["injections"]
     if inj["replayed"] or inj["not_replayed"]:
         out.append(f"injections ({inj['source']}): replayed {', '.join(i['name'] for i in inj['replayed']) or 'none'}"
@@ -143,15 +146,21 @@ def _text(doc: dict[str, Any]) -> str:
 @click.option("--tol", "tol_items", multiple=True, help="Value tolerance SIGNAL=VALUE in the signal's unit (repeatable).")
 @click.option("--time-tol", "time_tol_s", type=float, default=tw.TIME_TOL_S, show_default=True,
               help="Time tolerance of the tube, s.")
+@click.option("--blind-speed", type=float, default=tw.BLIND_SPEED, show_default=True,
+              help="Leave the drive's estimates out of the comparison within 20 ms of |speed estimate| below this, "
+                   "mech rad/s (0: compare everything).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document.")
-def twin(run_dir, motor, do_fit, params, write_motor, plot_path, tol_items, time_tol_s, as_json) -> None:
+def twin(run_dir, motor, do_fit, params, write_motor, plot_path, tol_items, time_tol_s, blind_speed, as_json) -> None:
     """Replay a recorded run through the simulated drive, show where twin and rig part; --fit the motor."""
     try:
         if write_motor and not do_fit:
             raise tw.TwinInputError(f"{write_motor}: --write-motor: needs --fit")
         if not (math.isfinite(time_tol_s) and time_tol_s >= 0):
             raise tw.TwinInputError(f"--time-tol: {time_tol_s}: expected a number of seconds >= 0")
-        doc = run_twin(run_dir, motor, do_fit, params, write_motor, plot_path, _tolerances(tol_items), time_tol_s)
+        if not (math.isfinite(blind_speed) and blind_speed >= 0):
+            raise tw.TwinInputError(f"--blind-speed: {blind_speed}: expected a speed in mech rad/s >= 0")
+        doc = run_twin(run_dir, motor, do_fit, params, write_motor, plot_path, _tolerances(tol_items), time_tol_s,
+                       blind_speed)
     except tw.TwinInputError as exc:
         click.echo(" ".join(str(exc).split()), err=True)
         sys.exit(EXIT_ERROR)

@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 from scipy.optimize import least_squares
 
-from sim_backend.twin import COMPARED, RecordedRun, TwinInputError, build_drive, get_key, read_motor, replay, \
-    with_values
+from sim_backend.twin import BLIND_SPEED, COMPARED, ESTIMATES, RecordedRun, TwinInputError, blind_rows, build_drive, \
+    get_key, read_motor, replay, with_values
 
 PARAMS: dict[str, tuple[str, ...]] = {
     "pmsm": ("plant.rs_ohm", "plant.ls_h", "plant.flux_wb", "mechanics.inertia_kgm2", "mechanics.viscous_nm_s_rad"),
@@ -113,6 +113,12 @@ def fit(cfg: dict[str, Any], run: RecordedRun, keys: tuple[str, ...] | None = No
     recorded = np.stack([run.columns[n][rows] for n in names])
     sigma = np.array([_noise_sigma(run.columns[n], fit_signals[n] / 20.0) for n in names])
     valid = np.isfinite(recorded)
+    est = "speed_est_mech_rad_s"
+    if run.measured(est):      # the estimates near zero speed follow the rig's noise (twin.BLIND_SPEED): left out
+        blind = blind_rows(run.t, [run.columns[est]], BLIND_SPEED)[rows]
+        for i, name in enumerate(names):
+            if name in ESTIMATES:
+                valid[i] &= ~blind
     notes = [f"sigma {n} = {s:.3g}" for n, s in zip(names, sigma)]
 
     def residuals(x: np.ndarray) -> np.ndarray:
