@@ -48,7 +48,7 @@ def _table(title: str, results: list[tw.TubeResult]) -> str:
     return "\n".join(lines)
 
 
-def run_twin(run_dir: str, motor: str | None, do_fit: bool, params: tuple[str, ...], write_motor: str | None,
+def run_twin(run_dir: str, motor: str | None, do_fit: bool | str, params: tuple[str, ...], write_motor: str | None,
              plot_path: str | None, tolerances: dict[str, float], time_tol_s: float,
              blind_speed: float = tw.BLIND_SPEED) -> dict[str, Any]:
     run = tw.read_run(run_dir)
@@ -61,7 +61,7 @@ def run_twin(run_dir: str, motor: str | None, do_fit: bool, params: tuple[str, .
     t0 = time.perf_counter()
     twin = tw.replay(cfg, run, where=str(motor_path))
     replay_s = time.perf_counter() - t0
-    results = tw.compare(run, twin, tolerances, time_tol_s, blind_speed)
+    results = tw.compare(run, twin, tolerances, time_tol_s, blind_speed, cfg["motor"]["kind"])
     if not results:
         raise tw.TwinInputError(f"{run.run_dir / tw.TELEMETRY}: (file): none of {', '.join(tw.COMPARED)} is recorded")
     doc: dict[str, Any] = {
@@ -76,12 +76,15 @@ def run_twin(run_dir: str, motor: str | None, do_fit: bool, params: tuple[str, .
     }
     shown = (twin, results, f"twin of {run.run_dir.name} with {motor_path.name}")
     if do_fit:
-        from sim_backend.twin_fit import fit, write_motor as write_fitted
+        from sim_backend.twin_fit import MECHANICS, fit, fit_mechanics, write_motor as write_fitted
 
-        result = fit(cfg, run, params or None)
+        if do_fit == "mechanics":
+            result = fit_mechanics(run, start={k: tw.get_key(cfg, k) for k in MECHANICS})
+        else:
+            result = fit(cfg, run, params or None)
         fitted_cfg = tw.with_values(cfg, result.values)
         twin_fit = tw.replay(fitted_cfg, run)
-        after = tw.compare(run, twin_fit, tolerances, time_tol_s, blind_speed)
+        after = tw.compare(run, twin_fit, tolerances, time_tol_s, blind_speed, cfg["motor"]["kind"])
         doc["before"] = {"motor": str(motor_path), "inside": doc["inside"], "signals": doc["signals"]}
         doc.update(result.to_dict())
         doc["inside"] = all(r.inside for r in after)
@@ -117,8 +120,9 @@ def _text(doc: dict[str, Any]) -> str:
                       before))
     if "fitted" in doc:
         f = doc["fit"]
+        how = (f"{f['replays']} replays" if f["replays"] else f["message"])
         out.append(f"fit: {len(doc['fitted'])} parameters over {', '.join(f['signals'])} ({f['residuals']} residuals), "
-                   f"{f['evaluations']} replays, {f['time_s']:.1f} s; cost {f['cost_start']:.4g} -> {f['cost']:.4g}")
+                   f"{how}, {f['time_s']:.1f} s; cost {f['cost_start']:.4g} -> {f['cost']:.4g}")
         out.append(f"  {'parameter':<28} {'start':>11} {'fitted':>11} {'change':>8}  95 % interval")
         for key, p in doc["fitted"].items():
             flag = "" if p["identified"] else f"   NOT IDENTIFIED: {p['reason']}"
@@ -140,8 +144,11 @@ def _text(doc: dict[str, Any]) -> str:
 @click.option("--motor", type=click.Path(), help="Motor file of the twin (default: the [simulator] motor of the "
               "run's bench config; required for a real rig's run).")
 @click.option("--fit", "do_fit", is_flag=True, help="Fit the motor's [plant] and [mechanics] values to the run.")
+@click.option("--fit-mechanics", is_flag=True, help="Fit only J and B, by linear least squares on the shaft speed, "
+              "the drive's reported torque (torque_est_nm) and the measured load: for a drive whose firmware is a "
+              "black box (a vendor EDS drive).")
 @click.option("--param", "params", multiple=True, help="Fit only this dotted key (repeatable), e.g. plant.rs_ohm.")
-@click.option("--write-motor", type=click.Path(), help="With --fit: write the fitted motor file here.")
+@click.option("--write-motor", type=click.Path(), help="With --fit or --fit-mechanics: write the fitted motor file here.")
 @click.option("--plot", "plot_path", type=click.Path(), help="PNG of recorded, twin and tube (default RUN_DIR/twin.png).")
 @click.option("--tol", "tol_items", multiple=True, help="Value tolerance SIGNAL=VALUE in the signal's unit (repeatable).")
 @click.option("--time-tol", "time_tol_s", type=float, default=tw.TIME_TOL_S, show_default=True,
@@ -150,11 +157,15 @@ def _text(doc: dict[str, Any]) -> str:
               help="Leave the drive's estimates out of the comparison within 20 ms of |speed estimate| below this, "
                    "mech rad/s (0: compare everything).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document.")
-def twin(run_dir, motor, do_fit, params, write_motor, plot_path, tol_items, time_tol_s, blind_speed, as_json) -> None:
+def twin(run_dir, motor, do_fit, fit_mechanics, params, write_motor, plot_path, tol_items, time_tol_s, blind_speed,
+         as_json) -> None:
     """Replay a recorded run through the simulated drive, show where twin and rig part; --fit the motor."""
     try:
-        if write_motor and not do_fit:
-            raise tw.TwinInputError(f"{write_motor}: --write-motor: needs --fit")
+        if do_fit and fit_mechanics:
+            raise tw.TwinInputError("--fit-mechanics: --fit: give one of them")
+        if write_motor and not (do_fit or fit_mechanics):
+            raise tw.TwinInputError(f"{write_motor}: --write-motor: needs --fit or --fit-mechanics")
+        do_fit = "mechanics" if fit_mechanics else do_fit
         if not (math.isfinite(time_tol_s) and time_tol_s >= 0):
             raise tw.TwinInputError(f"--time-tol: {time_tol_s}: expected a number of seconds >= 0")
         if not (math.isfinite(blind_speed) and blind_speed >= 0):

@@ -10,7 +10,8 @@ Confidence intervals (95 %): covariance (J^T J)^-1 s^2 with s^2 the residual var
 (1 + rho) / (1 - rho), rho the residuals' lag-1 autocorrelation (neighbouring rows of a closed loop are not
 independent: without it the intervals would be several times too narrow). A parameter is reported not identified
 when its interval is wider than its value, when it sits on a bound, or when it carries a direction of the Jacobian
-whose singular value is below 1e-3 of the largest (the run cannot tell it apart from the others it moves with).
+(columns scaled to unit norm: collinearity, not sensitivity) whose singular value is below 1e-3 of the largest (the
+run cannot tell it apart from the others it moves with).
 """
 
 from __future__ import annotations
@@ -25,8 +26,8 @@ from typing import Any
 import numpy as np
 from scipy.optimize import least_squares
 
-from sim_backend.twin import BLIND_SPEED, COMPARED, ESTIMATES, RecordedRun, TwinInputError, blind_rows, build_drive, \
-    get_key, read_motor, replay, with_values
+from sim_backend.twin import BLIND_SPEED, ESTIMATES, TOLERANCES, RecordedRun, TwinInputError, blind_rows, \
+    build_drive, get_key, read_motor, replay, with_values
 
 PARAMS: dict[str, tuple[str, ...]] = {
     "pmsm": ("plant.rs_ohm", "plant.ls_h", "plant.flux_wb", "mechanics.inertia_kgm2", "mechanics.viscous_nm_s_rad"),
@@ -34,7 +35,8 @@ PARAMS: dict[str, tuple[str, ...]] = {
              "plant.msrd_h", "plant.msrq_h", "mechanics.inertia_kgm2", "mechanics.viscous_nm_s_rad"),
 }
 # the compared signals and the drive's voltage commands (u = R i + L di/dt + back-EMF: R_s, L_s and psi_m)
-FIT_SIGNALS: dict[str, float] = {**COMPARED, "u_sx_v": 1.0, "u_sy_v": 1.0}
+FIT_SIGNALS: dict[str, dict[str, float]] = {kind: {**tol, "u_sx_v": 1.0, "u_sy_v": 1.0}
+                                             for kind, tol in TOLERANCES.items()}
 BOUND_FACTOR = 5.0              # each parameter within [start / 5, start * 5]
 SINGULAR_RATIO = 1e-3
 Z95 = 1.959964
@@ -65,7 +67,8 @@ class FitResult:
     residuals: int
     cost_start: float
     cost: float
-    nfev: int
+    nfev: int                   # the optimiser's evaluations (without its Jacobians)
+    replays: int                # every replay the fit ran, Jacobians and the start included
     time_s: float
     autocorrelation: float
     singular_values: list[float]
@@ -81,6 +84,7 @@ class FitResult:
                 "not_identified": {p.key: p.reason for p in self.params if not p.identified},
                 "fit": {"signals": self.signals, "rows": self.rows, "residuals": self.residuals,
                         "cost_start": self.cost_start, "cost": self.cost, "evaluations": self.nfev,
+                        "replays": self.replays,
                         "time_s": self.time_s, "residual_lag1_autocorrelation": self.autocorrelation,
                         "singular_values": self.singular_values, "message": self.message, "notes": self.notes}}
 
@@ -105,9 +109,9 @@ def fit(cfg: dict[str, Any], run: RecordedRun, keys: tuple[str, ...] | None = No
     start = np.array([get_key(cfg, k) for k in keys])
     if np.any(start <= 0):
         raise TwinInputError(f"motor: {keys[int(np.argmin(start))]}: the fit needs a start value > 0")
-    fit_signals = {n: tol for n, tol in (signals or FIT_SIGNALS).items() if run.measured(n)}
+    fit_signals = {n: tol for n, tol in (signals or FIT_SIGNALS[kind]).items() if run.measured(n)}
     if not fit_signals:
-        raise TwinInputError(f"{run.run_dir}: telemetry.parquet: none of {', '.join(FIT_SIGNALS)} is recorded")
+        raise TwinInputError(f"{run.run_dir}: telemetry.parquet: none of {', '.join(FIT_SIGNALS[kind])} is recorded")
     rows = np.arange(run.t.size)[::decimate]
     names = list(fit_signals)
     recorded = np.stack([run.columns[n][rows] for n in names])
@@ -143,11 +147,17 @@ def fit(cfg: dict[str, Any], run: RecordedRun, keys: tuple[str, ...] | None = No
     s2 = float(r @ r) / max(m - n, 1)
     rho = _lag1(r.reshape(len(names), -1))
     inflation = (1.0 + rho) / (1.0 - rho) if rho < 0.999 else 1e3
-    sv, vt = np.linalg.svd(jac, full_matrices=False)[1:]
-    weak = sv < SINGULAR_RATIO * sv[0] if sv.size and sv[0] > 0 else np.ones(n, bool)
+    # collinearity: the SVD of the Jacobian with unit-norm columns (a parameter the replay is merely less sensitive to
+    # is told by its interval, not here)
+    norms = np.linalg.norm(jac, axis=0)
+    unit = jac / np.where(norms > 0, norms, 1.0)
+    sv, vt = np.linalg.svd(unit, full_matrices=False)[1:]
+    weak = (sv < SINGULAR_RATIO * sv[0]) if sv.size and sv[0] > 0 else np.ones(n, bool)
+    weak |= norms.min() <= 0 if norms.size else False
     with np.errstate(divide="ignore", invalid="ignore"):
         inv_sv2 = np.where(sv > 1e-12 * max(sv[0], 1e-300), 1.0 / sv ** 2, np.inf)
-    cov_x = (vt.T * inv_sv2) @ vt * s2 * inflation     # (J^T J)^-1 s^2 through the SVD
+    cov_unit = (vt.T * inv_sv2) @ vt
+    cov_x = cov_unit / np.outer(np.where(norms > 0, norms, np.nan), np.where(norms > 0, norms, np.nan)) * s2 * inflation
     values = start * np.exp(res.x)
     params = []
     for i, key in enumerate(keys):
@@ -163,12 +173,70 @@ def fit(cfg: dict[str, Any], run: RecordedRun, keys: tuple[str, ...] | None = No
                 partners = [keys[q] for q in range(n) if q != i and abs(vt[j, q]) > 0.3]
                 reasons.append("near-singular Jacobian direction" +
                                (f" shared with {', '.join(partners)}" if partners else "") +
-                               f" (singular value {sv[j] / sv[0]:.1e} of the largest)")
+                               f" (singular value {sv[j] / sv[0]:.1e} of the largest, unit-norm columns)")
         params.append(FittedParam(key, float(start[i]), float(values[i]), float(low) if math.isfinite(low) else 0.0,
                                   float(high) if math.isfinite(high) else math.inf, not reasons, "; ".join(reasons)))
     return FitResult(kind, params, names, int(rows.size), int(m), 0.5 * float(r0 @ r0), float(res.cost),
-                     int(res.nfev), elapsed, float(rho), [float(v / sv[0]) for v in sv] if sv.size else [],
+                     int(res.nfev), 1 + int(res.nfev) + int(res.njev or 0) * n, elapsed, float(rho), [float(v / sv[0]) for v in sv] if sv.size else [],
                      str(res.message), notes)
+
+
+MECHANICS = ("mechanics.inertia_kgm2", "mechanics.viscous_nm_s_rad")
+MECHANICS_WINDOW_S = 0.05
+
+
+def fit_mechanics(run: RecordedRun, torque_signal: str = "torque_est_nm", start: dict[str, float] | None = None,
+                  window_s: float = MECHANICS_WINDOW_S) -> FitResult:
+    """J and B of the shaft from what any drive and rig report, the drive's firmware a black box:
+    J dw/dt + B w = T_e - T_L with w the reference sensor's shaft speed, T_e the drive's reported torque, T_L the
+    measured load. Integrated over consecutive windows of window_s (no differentiation of a sampled speed):
+    J (w(b) - w(a)) + B int_a^b w dt = int_a^b (T_e - T_L) dt, solved by linear least squares; intervals from
+    (A^T A)^-1 s^2 as for the full fit. T_e is the drive's own figure: a torque constant or current scaling error in
+    the drive moves J and B with it (docs/twin.md)."""
+    t0 = time.perf_counter()
+    needed = ("speed_true_mech_rad_s", torque_signal, "torque_load_nm")
+    for name in needed:
+        if not run.measured(name):
+            raise TwinInputError(f"{run.run_dir / 'telemetry.parquet'}: {name}: not recorded (the mechanics fit needs "
+                                 f"the shaft speed, the drive's reported torque and the measured load)")
+    t = run.t
+    w = run.columns["speed_true_mech_rad_s"]
+    net = run.columns[torque_signal] - run.columns["torque_load_nm"]
+    ok = np.isfinite(w) & np.isfinite(net)
+    t, w, net = t[ok], w[ok], net[ok]
+    cum_w = np.concatenate(([0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))))
+    cum_net = np.concatenate(([0.0], np.cumsum(0.5 * (net[1:] + net[:-1]) * np.diff(t))))
+    edges = np.searchsorted(t, np.arange(t[0], t[-1], window_s))
+    edges = np.unique(np.append(edges, t.size - 1))
+    a, b = edges[:-1], edges[1:]
+    design = np.column_stack([w[b] - w[a], cum_w[b] - cum_w[a]])
+    target = cum_net[b] - cum_net[a]
+    scale = np.abs(design).max(axis=0)
+    scale[scale == 0] = 1.0
+    coef, *_ = np.linalg.lstsq(design / scale, target, rcond=None)
+    values = coef / scale
+    resid = target - design @ values
+    m, n = design.shape
+    s2 = float(resid @ resid) / max(m - n, 1)
+    rho = _lag1(resid[None, :])
+    cov = np.linalg.pinv((design / scale).T @ (design / scale)) * s2 * ((1 + rho) / (1 - rho))
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None)) / scale
+    sv = np.linalg.svd(design / scale, compute_uv=False)
+    starts = start or {}
+    params = []
+    for i, key in enumerate(MECHANICS):
+        low, high = values[i] - Z95 * sd[i], values[i] + Z95 * sd[i]
+        reasons = []
+        if values[i] <= 0:
+            reasons.append("fitted value not positive")
+        if high - low > abs(values[i]):
+            reasons.append("95 % interval wider than the value: the run does not excite it")
+        params.append(FittedParam(key, float(starts.get(key, values[i])), float(values[i]), float(low), float(high),
+                                  not reasons, "; ".join(reasons)))
+    cost = 0.5 * float(resid @ resid)
+    return FitResult("mechanics", params, list(needed), int(t.size), int(m), 0.5 * float(target @ target), cost,
+                     1, 0, time.perf_counter() - t0, float(rho), [float(v / sv[0]) for v in sv],
+                     f"linear least squares over {m} windows of {window_s:g} s")
 
 
 def _lag1(r: np.ndarray) -> float:
