@@ -215,7 +215,7 @@ def test_a_vendor_drive_black_box_gives_the_mechanics(tmp_path):
     bench.write_text(text)
     result = run_scenario(IDENTIFY, bench, out_root=tmp_path, rerun_mode="off")
     assert result.verdict == "pass", result.record.get("abort_reason")
-    assert "u_sy_a" not in result.record["measured_signals"] and "flux_est_wb" not in result.record["measured_signals"]
+    assert "u_sy_v" not in result.record["measured_signals"] and "flux_est_wb" not in result.record["measured_signals"]
     motor = tmp_path / "mech.toml"
     out = invoke(result.run_dir, "--motor", PAPER_MOTOR, "--fit-mechanics", "--write-motor", motor, "--json",
                  "--plot", tmp_path / "m.png")
