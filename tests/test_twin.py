@@ -11,6 +11,8 @@ from __future__ import annotations
 import ast
 import json
 import shutil
+import subprocess
+import sys
 import tomllib
 from pathlib import Path
 
@@ -194,12 +196,19 @@ def test_bad_input_is_one_line_and_exit_2(lab_runs, tmp_path):
     assert result.exit_code == 2 and "rs_ohm" in result.output and result.output.strip().count("\n") == 0
 
 
-def test_the_twin_modules_never_import_bench():
+def test_the_twin_never_imports_bench():
+    """The run directory is read as the documented layout, not through bench (the layers: docs/architecture)."""
     for name in ("twin", "twin_fit", "twin_cli"):
         tree = ast.parse((REPO / "sim_backend" / f"{name}.py").read_text())
         imported = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
         imported |= {n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
         assert not any(m.split(".")[0] == "bench" for m in imported), (name, imported)
+    code = ("import sys, sim_backend.twin as tw, sim_backend.twin_fit, sim_backend.twin_cli\n"
+            f"tw.build_drive(tw.read_motor({str(PAPER_MOTOR)!r})).step(1)\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] == 'bench'))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
 
 
 def test_a_vendor_drive_black_box_gives_the_mechanics(tmp_path):
