@@ -86,8 +86,15 @@ def run_twin(run_dir: str, motor: str | None, do_fit: bool | str, params: tuple[
         twin_fit = tw.replay(fitted_cfg, run)
         after = tw.compare(run, twin_fit, tolerances, time_tol_s, blind_speed, cfg["motor"]["kind"])
         doc["before"] = {"motor": str(motor_path), "inside": doc["inside"], "signals": doc["signals"]}
-        doc.update(result.to_dict())
         doc["inside"] = all(r.inside for r in after)
+        if not doc["inside"]:
+            # a motor that does not explain the run: its values are where the optimiser stopped, not the rig's motor
+            why = ("the fitted twin leaves the tube (" + ", ".join(r.signal for r in after if not r.inside)
+                   + "): no motor of this model found that explains the run; the value is where the fit stopped")
+            for p in result.params:
+                p.identified = False
+                p.reason = f"{why}; {p.reason}" if p.reason else why
+        doc.update(result.to_dict())
         doc["signals"] = _signals_doc(after)
         if write_motor:
             write_fitted(motor_path, result, run.run_dir.name, Path(write_motor))

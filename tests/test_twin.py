@@ -143,6 +143,18 @@ def test_a_parameter_the_run_does_not_excite_is_reported_not_identified(lab_runs
     assert by_key["mechanics.viscous_nm_s_rad"].reason
 
 
+def test_a_fit_that_does_not_explain_the_run_says_so(lab_runs, tmp_path):
+    """Fitting L_s alone cannot explain a motor whose R_s, J and B differ: the fitted twin still leaves the tube, exit 1,
+    and the value is reported as where the fit stopped, not as the rig's."""
+    out = invoke(lab_runs["identify"], "--motor", PAPER_MOTOR, "--fit", "--param", "plant.ls_h", "--json",
+                 "--plot", tmp_path / "ls.png")
+    assert out.exit_code == 1, out.output
+    doc = json.loads(out.output)
+    assert doc["inside"] is False and list(doc["fitted"]) == ["plant.ls_h"]
+    assert doc["fitted"]["plant.ls_h"]["identified"] is False
+    assert "the fitted twin leaves the tube" in doc["not_identified"]["plant.ls_h"]
+
+
 def test_injections_are_replayed_at_the_recorded_times(tmp_path):
     """PMSM Fig. 8: the plant's R_s drops 20 % at 2 s; the flux estimate then carries the eq. (15b) offset of
     -0.0205 Wb. The twin replays the injection and stays inside; told nothing of it, it leaves the flux tube."""
