@@ -1,0 +1,427 @@
+"""The rig's twin: replay a recorded run through the simulated drive and show where the two part.
+
+A run directory (record.json + telemetry.parquet, the documented layout of docs/records.md) is read with json and
+pyarrow directly: sim_backend does not import bench. The replay drives the drive model itself (plant, inverter and
+firmware kernels; no protocol server, no lockstep bench loop) with what the rig's drive and instruments recorded:
+
+- the speed reference as the drive received it (`speed_ref_mech_rad_s`, the drive's own ramped reference),
+- the load as the reference sensor measured it (`torque_load_nm`, replayed as an active torque),
+- the injections at the times the record says (`injections_applied`; else the scenario file's [[injection]]s, read
+  with tomllib when its sha256 is the one in the record).
+
+Time: a recorded row stamped t_s = n T (T the control period) is the firmware's output of its n-th period; the replay
+steps the model to the same period and takes that row. Each chunk between two recorded rows runs with the reference
+and the load of the chunk's last row (the load machine's setpoint changes on a SYNC, and the first row that shows a
+change is the one at the end of the chunk it happened in; the drive's ramp limiter catches a reference that moved).
+
+The tube (`tube`): around each recorded signal, the band of all values within +-time_tol_s and +-value_tol of it:
+lower(t) = min over |tau - t| <= time_tol_s of y(tau) - value_tol, upper likewise; the twin is inside where
+lower <= twin <= upper, and `excess` = how far outside (0 inside). This is the rectangle tube of csv-compare and of
+LBNL's funnel (pyfunnel) on a uniformly sampled reference. pyfunnel itself was tried and not used: its only interface
+writes five CSV files per comparison into a directory and returns a status code (the errors are read back from
+errors.csv), prints its warnings on stdout (which `--json` owns) and ships a prebuilt C library built for Python up to
+3.12; the tube here is a sliding minimum and maximum (scipy.ndimage) on the recorded samples, in memory.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+from scipy.ndimage import maximum_filter1d, minimum_filter1d
+
+from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
+from sim_backend.mechanics import LOAD_TORQUE
+from sim_backend.model import DriveModel
+
+RECORD = "record.json"
+TELEMETRY = "telemetry.parquet"
+
+# signals compared inside a tube, and their default value tolerance (signal units); time tolerance for all.
+# PMSM: a few times the recording's noise (5 mA current noise, ~0.05 rad/s on the speed estimate). SPIM: its
+# single-phase torque pulsates at twice the supply frequency, and its current noise is 20 mA: twice as wide.
+COMPARED: dict[str, float] = {
+    "speed_true_mech_rad_s": 1.0,
+    "speed_est_mech_rad_s": 1.0,
+    "i_sx_a": 0.1,
+    "i_sy_a": 0.1,
+    "flux_est_wb": 0.01,
+}
+TOLERANCES: dict[str, dict[str, float]] = {"pmsm": COMPARED, "spim": {k: 2.0 * v for k, v in COMPARED.items()}}
+TIME_TOL_S = 0.005
+# Near zero speed a sensorless drive's estimates follow the ADC noise (the PMSM flux estimator, paper eq. (7b), divides
+# by w^2; its speed estimate spikes by ~10 rad/s for a few ms when it crosses the firmware's threshold): a twin without
+# the rig's noise cannot follow them there, whatever its motor. The drive's estimates are not compared within
+# BLIND_TIME_S of the recorded or the twin's speed estimate being below BLIND_SPEED (mech rad/s); the rest is.
+ESTIMATES = ("speed_est_mech_rad_s", "flux_est_wb")
+BLIND_SPEED = 2.0
+BLIND_TIME_S = 0.02
+# injections a replay cannot repeat: the device's and the wire's faults act on the rig, not on the motor and firmware
+NOT_REPLAYED_PREFIXES = ("fault_",)
+
+
+class TwinInputError(ValueError):
+    """A run directory, motor file or option the twin cannot use: one line `file: field: reason`."""
+
+
+@dataclass(frozen=True)
+class Injection:
+    at_s: float
+    name: str
+    value: float
+
+
+@dataclass
+class RecordedRun:
+    run_dir: Path
+    record: dict[str, Any]
+    t: np.ndarray                                  # drive clock of the rows replayed, s
+    columns: dict[str, np.ndarray]                 # recorded signals (NaN where not measured), at t
+    injections: list[Injection]
+    injections_source: str                         # "record", "scenario" or "none"
+    motor_path: Path | None                        # the bench's [simulator] motor, when it names one
+    notes: list[str] = field(default_factory=list)
+
+    def measured(self, name: str) -> bool:
+        values = self.columns.get(name)
+        return values is not None and bool(np.isfinite(values).any())
+
+
+def repo_root() -> Path:
+    return Path(__file__).resolve().parents[1]
+
+
+def _resolve(path: str | Path, *bases: Path) -> Path:
+    p = Path(path)
+    if p.is_absolute():
+        return p
+    for base in bases:
+        if (base / p).exists():
+            return base / p
+    return p
+
+
+def read_run(run_dir: str | Path) -> RecordedRun:
+    """Read a run directory; TwinInputError names the file and field that cannot be used."""
+    run_dir = Path(run_dir)
+    record_path = run_dir / RECORD
+    try:
+        record = json.loads(record_path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise TwinInputError(f"{record_path}: (file): not found (not a run directory?)") from None
+    except (OSError, ValueError) as exc:
+        raise TwinInputError(f"{record_path}: (file): unreadable: {exc}") from None
+    if not isinstance(record, dict):
+        raise TwinInputError(f"{record_path}: (file): not a run record (a JSON object is expected)")
+    parquet = run_dir / TELEMETRY
+    try:
+        table = pq.read_table(parquet)
+    except FileNotFoundError:
+        raise TwinInputError(f"{parquet}: (file): not found (the run did not finish; `drivebench show` recovers "
+                             f"its journal)") from None
+    except (OSError, pa.ArrowException) as exc:
+        raise TwinInputError(f"{parquet}: (file): not a readable Parquet file: {' '.join(str(exc).split())[:160]}") \
+            from None
+    if TIME_COLUMN not in table.column_names:
+        raise TwinInputError(f"{parquet}: {TIME_COLUMN}: column missing: not drivebench telemetry")
+    try:
+        raw = {n: table.column(n).to_numpy().astype(np.float64) for n in table.column_names
+               if n == TIME_COLUMN or n in SIGNAL_NAMES}
+    except (TypeError, ValueError, pa.ArrowException) as exc:
+        raise TwinInputError(f"{parquet}: (file): not numeric telemetry: {exc}") from None
+    t = raw.pop(TIME_COLUMN)
+    if t.size < 2 or not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+        raise TwinInputError(f"{parquet}: {TIME_COLUMN}: needs at least two rows on a strictly increasing drive clock")
+    scenario = record.get("scenario") if isinstance(record.get("scenario"), dict) else {}
+    duration = scenario.get("duration_s")
+    keep = t <= float(duration) + 1e-9 if isinstance(duration, (int, float)) else np.ones(t.size, bool)
+    keep &= t >= 0.0
+    t = t[keep]
+    columns = {n: v[keep] for n, v in raw.items()}
+    if t.size < 2:
+        raise TwinInputError(f"{parquet}: {TIME_COLUMN}: fewer than two rows within the scenario's duration")
+    if "speed_ref_mech_rad_s" not in columns or not np.isfinite(columns["speed_ref_mech_rad_s"]).any():
+        raise TwinInputError(f"{parquet}: speed_ref_mech_rad_s: not recorded (the twin replays the reference as the "
+                             f"drive received it)")
+    notes: list[str] = []
+    if "torque_load_nm" not in columns or not np.isfinite(columns["torque_load_nm"]).any():
+        notes.append("torque_load_nm not measured: replayed without load")
+    injections, source = _injections(record, record_path, notes)
+    return RecordedRun(run_dir, record, t, columns, injections, source, _bench_motor(record, notes), notes)
+
+
+def _injections(record: dict, record_path: Path, notes: list[str]) -> tuple[list[Injection], str]:
+    applied = record.get("injections_applied")
+    if isinstance(applied, list):
+        out = []
+        for i, item in enumerate(applied):
+            try:
+                at = item.get("applied_t_s", item["at_s"])
+                out.append(Injection(float(at), str(item["name"]), float(item["value"])))
+            except (AttributeError, KeyError, TypeError, ValueError):
+                raise TwinInputError(f"{record_path}: injections_applied[{i}]: expected at_s, name and value") \
+                    from None
+        return out, "record"
+    scenario = record.get("scenario") if isinstance(record.get("scenario"), dict) else {}
+    path = scenario.get("path")
+    if not path:
+        notes.append("the record names no scenario: no injections replayed")
+        return [], "none"
+    path = _resolve(path, Path.cwd(), repo_root())
+    try:
+        data = path.read_bytes()
+    except OSError:
+        notes.append(f"scenario {path} not readable: no injections replayed")
+        return [], "none"
+    if scenario.get("sha256") and hashlib.sha256(data).hexdigest() != scenario["sha256"]:
+        notes.append(f"scenario {path} changed since the run (sha256 differs): its injections are not replayed")
+        return [], "none"
+    try:
+        items = tomllib.loads(data.decode("utf-8")).get("injection", [])
+        out = [Injection(float(x["at_s"]), str(x["name"]), float(x["value"])) for x in items]
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError, AttributeError, KeyError, TypeError, ValueError) as exc:
+        raise TwinInputError(f"{path}: injection: cannot be read: {exc}") from None
+    return sorted(out, key=lambda inj: inj.at_s), "scenario"   # stable: same-time injections keep file order
+
+
+def _bench_motor(record: dict, notes: list[str]) -> Path | None:
+    bench = record.get("bench") if isinstance(record.get("bench"), dict) else {}
+    path = bench.get("path")
+    if not path:
+        return None
+    path = _resolve(path, Path.cwd(), repo_root())
+    try:
+        cfg = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError):
+        notes.append(f"bench config {path} not readable: give the motor with --motor")
+        return None
+    motor = (cfg.get("simulator") or {}).get("motor")
+    if not motor:
+        return None
+    return _resolve(motor, Path.cwd(), repo_root(), path.parent)
+
+
+# ---- motor files -----------------------------------------------------------------------------------------------
+
+def read_motor(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    try:
+        cfg = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise TwinInputError(f"{path}: (file): not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TwinInputError(f"{path}: (file): unreadable: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise TwinInputError(f"{path}: (file): not TOML: {exc}") from None
+    kind = (cfg.get("motor") or {}).get("kind") if isinstance(cfg.get("motor"), dict) else None
+    if kind not in ("pmsm", "spim"):
+        raise TwinInputError(f"{path}: motor.kind: expected 'pmsm' or 'spim', got {kind!r}")
+    return cfg
+
+
+def build_drive(cfg: dict[str, Any], seed: int = 0, noise: bool = False, where: str = "motor") -> DriveModel:
+    """The simulated drive of a motor config (the same constructors sim_backend.drive.make_drive dispatches to)."""
+    try:
+        if cfg["motor"]["kind"] == "pmsm":
+            from sim_backend.pmsm.model import PmsmDrive
+            return PmsmDrive.from_config(cfg, seed, noise=noise)
+        from sim_backend.spim.model import SpimDrive
+        return SpimDrive.from_config(cfg, seed, noise=noise)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise TwinInputError(f"{where}: {exc}") from None
+
+
+def get_key(cfg: dict[str, Any], dotted: str) -> float:
+    section, key = dotted.split(".", 1)
+    return float(cfg[section][key])
+
+
+def with_values(cfg: dict[str, Any], values: dict[str, float]) -> dict[str, Any]:
+    """A copy of a motor config with some dotted keys (`plant.rs_ohm`) replaced."""
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in cfg.items()}
+    for dotted, value in values.items():
+        section, key = dotted.split(".", 1)
+        out[section][key] = float(value)
+    return out
+
+
+# ---- replay ----------------------------------------------------------------------------------------------------
+
+def _held(values: np.ndarray | None, n: int, default: float = 0.0) -> np.ndarray:
+    """A recorded input with its gaps (NaN) filled by the last value before them."""
+    if values is None or not np.isfinite(values).any():
+        return np.full(n, default)
+    v = values.copy()
+    ok = np.isfinite(v)
+    first = int(np.argmax(ok))
+    v[:first] = v[first]
+    idx = np.where(np.isfinite(v), np.arange(n), 0)
+    np.maximum.accumulate(idx, out=idx)
+    return v[idx]
+
+
+def replay(cfg: dict[str, Any], run: RecordedRun, *, noise: bool = False, seed: int | None = None,
+           where: str = "motor") -> dict[str, np.ndarray]:
+    """The twin's telemetry at the recorded rows' times (one column per signal of drivers.signals)."""
+    drive = build_drive(cfg, run.record.get("seed", 0) if seed is None else seed, noise, where)
+    period = drive.control_period_s
+    n = run.t.size
+    steps = np.rint(run.t / period).astype(np.int64)
+    off_grid = "rows off the motor file's control period: each is compared with the period nearest to it"
+    if np.any(np.abs(steps * period - run.t) > 0.25 * period) and off_grid not in run.notes:
+        run.notes.append(off_grid)             # a drive clock of another rate; rows closer than a period share one
+    ref = _held(run.columns.get("speed_ref_mech_rad_s"), n)
+    load = _held(run.columns.get("torque_load_nm"), n)
+    pending = [(int(math.ceil(inj.at_s / period - 1e-9)), inj) for inj in run.injections
+               if not inj.name.startswith(NOT_REPLAYED_PREFIXES)]
+    out = np.full((n, len(SIGNAL_NAMES)), np.nan)
+    drive.set_enabled(True)
+    done = 0                                             # model periods run; the next row out is period done + 1
+    for i in range(n):
+        drive.set_speed_ref(float(ref[i]))
+        drive.set_load(LOAD_TORQUE, float(load[i]), True)
+        target = int(steps[i])
+        if target <= done and i > 0:
+            out[i] = out[i - 1]
+        while done < target:
+            while pending and pending[0][0] <= done:
+                _apply(drive, pending.pop(0)[1])
+            stop = min(target, pending[0][0]) if pending and pending[0][0] > done else target
+            block = drive.step(stop - done)
+            done = stop
+            out[i] = block[-1]
+    return {name: out[:, c] for c, name in enumerate(SIGNAL_NAMES)}
+
+
+def _apply(drive: DriveModel, inj: Injection) -> None:
+    try:
+        if inj.name.startswith("plant_") or inj.name.startswith("inverter_"):
+            drive.set_plant_param(inj.name, inj.value)
+        else:
+            drive.set_hook(inj.name, inj.value)
+    except (KeyError, ValueError) as exc:
+        raise TwinInputError(f"{RECORD}: injections: {inj.name} = {inj.value:g} at {inj.at_s:g} s: the twin cannot "
+                             f"apply it ({' '.join(str(exc).split())[:200]})") from None
+
+
+def not_replayed(run: RecordedRun) -> list[str]:
+    return sorted({inj.name for inj in run.injections if inj.name.startswith(NOT_REPLAYED_PREFIXES)})
+
+
+# ---- the tube --------------------------------------------------------------------------------------------------
+
+@dataclass
+class TubeResult:
+    signal: str
+    value_tol: float
+    time_tol_s: float
+    inside: bool
+    max_excess: float                    # largest distance outside the tube (signal unit), 0 when inside
+    t_max_excess_s: float | None
+    fraction_outside: float              # of the compared rows
+    first_exit_s: float | None
+    intervals_outside: list[tuple[float, float]]
+    rms_difference: float                # twin - recorded, over the compared rows
+    not_compared_s: float = 0.0          # drive seconds left out (the estimates near zero speed)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"signal": self.signal, "value_tol": self.value_tol, "time_tol_s": self.time_tol_s,
+                "not_compared_s": self.not_compared_s,
+                "inside": self.inside, "max_excess": self.max_excess, "t_max_excess_s": self.t_max_excess_s,
+                "fraction_outside": self.fraction_outside, "first_exit_s": self.first_exit_s,
+                "intervals_outside": [list(iv) for iv in self.intervals_outside[:20]],
+                "intervals_outside_count": len(self.intervals_outside), "rms_difference": self.rms_difference}
+
+
+def tube_bounds(t: np.ndarray, y: np.ndarray, time_tol_s: float, value_tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper bound of the tube around y(t) (uniform sampling assumed for the window width)."""
+    dt = float(np.median(np.diff(t)))
+    width = 2 * int(round(time_tol_s / dt)) + 1
+    filled = np.where(np.isfinite(y), y, np.nan)
+    lo = minimum_filter1d(np.where(np.isfinite(filled), filled, np.inf), width, mode="nearest") - value_tol
+    hi = maximum_filter1d(np.where(np.isfinite(filled), filled, -np.inf), width, mode="nearest") + value_tol
+    return lo, hi
+
+
+def blind_rows(t: np.ndarray, speeds: list[np.ndarray], blind_speed: float = BLIND_SPEED,
+               blind_time_s: float = BLIND_TIME_S) -> np.ndarray:
+    """Rows within blind_time_s of any of the speed estimates being below blind_speed in magnitude."""
+    slow = np.zeros(t.size, bool)
+    for v in speeds:
+        slow |= np.isfinite(v) & (np.abs(v) < blind_speed)
+    if blind_speed <= 0 or not slow.any():
+        return slow
+    dt = float(np.median(np.diff(t)))
+    return maximum_filter1d(slow.astype(np.int8), 2 * int(round(blind_time_s / dt)) + 1, mode="nearest") > 0
+
+
+def tube(signal: str, t: np.ndarray, recorded: np.ndarray, twin: np.ndarray, time_tol_s: float,
+         value_tol: float, ignore: np.ndarray | None = None) -> TubeResult:
+    lo, hi = tube_bounds(t, recorded, time_tol_s, value_tol)
+    ignore = np.zeros(t.size, bool) if ignore is None else ignore
+    ok = np.isfinite(recorded) & np.isfinite(twin) & np.isfinite(lo) & np.isfinite(hi) & ~ignore
+    excess = np.zeros_like(twin)
+    excess[ok] = np.maximum(twin[ok] - hi[ok], 0.0) + np.maximum(lo[ok] - twin[ok], 0.0)
+    twin_lost = np.isfinite(recorded) & ~np.isfinite(twin)       # the twin tripped or diverged: outside
+    excess[twin_lost] = np.inf
+    out = excess > 0
+    compared = int((ok | twin_lost).sum())
+    intervals: list[tuple[float, float]] = []
+    if out.any():
+        edges = np.flatnonzero(np.diff(np.concatenate(([0], out.astype(np.int8), [0]))))
+        intervals = [(float(t[a]), float(t[b - 1])) for a, b in zip(edges[::2], edges[1::2])]
+    k = int(np.argmax(excess)) if out.any() else None
+    diff = (twin - recorded)[ok]
+    return TubeResult(signal, value_tol, time_tol_s, not out.any(), float(excess[k]) if k is not None else 0.0,
+                      float(t[k]) if k is not None else None, float(out.sum() / max(compared, 1)),
+                      intervals[0][0] if intervals else None, intervals,
+                      float(np.sqrt(np.mean(diff ** 2))) if diff.size else math.nan,
+                      float(ignore.sum() * np.median(np.diff(t))))
+
+
+def compare(run: RecordedRun, twin: dict[str, np.ndarray], tolerances: dict[str, float] | None = None,
+            time_tol_s: float = TIME_TOL_S, blind_speed: float = BLIND_SPEED, kind: str = "pmsm") -> list[TubeResult]:
+    tolerances = {**TOLERANCES.get(kind, COMPARED), **(tolerances or {})}
+    est = "speed_est_mech_rad_s"
+    blind = blind_rows(run.t, [run.columns[est], twin[est]] if run.measured(est) else [], blind_speed)
+    return [tube(name, run.t, run.columns[name], twin[name], time_tol_s, tol, blind if name in ESTIMATES else None)
+            for name, tol in tolerances.items() if run.measured(name)]
+
+
+def plot(run: RecordedRun, twin: dict[str, np.ndarray], results: list[TubeResult], path: Path,
+         title: str = "") -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(len(results), 1, figsize=(11, 2.2 * len(results) + 0.6), sharex=True, squeeze=False)
+    for ax, res in zip(axes[:, 0], results):
+        lo, hi = tube_bounds(run.t, run.columns[res.signal], res.time_tol_s, res.value_tol)
+        ax.fill_between(run.t, lo, hi, color="tab:blue", alpha=0.25, lw=0, label="tube around the record")
+        ax.plot(run.t, run.columns[res.signal], color="tab:blue", lw=0.7, label="recorded")
+        ax.plot(run.t, twin[res.signal], color="tab:red", lw=0.7, label="twin")
+        for a, b in res.intervals_outside:
+            ax.axvspan(a, max(b, a + 1e-3), color="tab:red", alpha=0.15, lw=0)
+        if res.not_compared_s > 0:
+            ax.text(0.995, 0.04, f"not compared near zero speed: {res.not_compared_s:.3f} s", ha="right",
+                    transform=ax.transAxes, fontsize=7, color="0.4")
+        state = "inside" if res.inside else f"outside {res.fraction_outside:.1%}, max {res.max_excess:.3g}"
+        ax.set_ylabel(res.signal, fontsize=8)
+        ax.set_title(f"{res.signal}: {state} (tube +-{res.value_tol:g}, +-{res.time_tol_s * 1e3:g} ms)", fontsize=9,
+                     loc="left")
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(loc="upper right", fontsize=7)
+    axes[-1, 0].set_xlabel("drive clock t_s (s)")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
