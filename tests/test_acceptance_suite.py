@@ -25,6 +25,9 @@ REQUIRED = (
     "pmsm/fig10-startup-position-error", "pmsm/fig11-no-load-reversal", "spim/fig06-1500rpm-load-step",
     "spim/fig07-reversal-1500rpm", "spim/fig08-low-speed-15rpm", "spim/rr-sensitivity",
     "pmsm/sig-isx-rs-step-eq15a", "spim/sig-slip-hold-unload",
+    "pmsm/sig-shaft-pos-kick-20rads", "pmsm/sig-shaft-pos-kick-2rads", "pmsm/sig-shaft-rs-fw-step-20rads",
+    "pmsm/sig-shaft-isx-rs-fw-step-20rads", "spim/sig-shaft-slip-hold-unload", "spim/sig-shaft-rr-fw-step",
+    "spim/sig-shaft-rr-fw-step-low", "spim/sig-shaft-frame-kick",
 )
 
 
