@@ -53,6 +53,69 @@ PMSM_MUTANTS = [
                     "        fw.firmware_step(fw_s, fw_p, ia_m, ib_m, vdc_m, t, row)")]),
 ]
 
+# --- sensor-in-the-loop and detuned-estimator mutants (issue 24): the drive reports its estimator's output, but
+# controls on an encoder (always, or only at low speed), or runs the estimator with its gains 10x off.
+# The kernel hands the encoder to the firmware through two telemetry slots it overwrites afterwards.
+_PMSM_ENCODER_INPUT = [
+    ("C_VDC = SIGNAL_INDEX[\"vdc_v\"]\n",
+     "C_VDC = SIGNAL_INDEX[\"vdc_v\"]\n"
+     "C_ENC_SPEED_MECH = SIGNAL_INDEX[\"speed_true_mech_rad_s\"]   # mutant: encoder speed, from the kernel\n"
+     "C_ENC_ANGLE_ELEC = SIGNAL_INDEX[\"pos_err_elec_rad\"]        # mutant: encoder angle (elec), from the kernel\n"),
+]
+_PMSM_ENCODER_KERNEL = [
+    ("        fw.firmware_step(fw_s, fw_p, ia_m, ib_m, vdc_m, t, row)",
+     "        row[C_SPEED_TRUE] = x[pl.X_W_MECH]\n"
+     "        row[C_POS_ERR] = math.atan2(x[pl.X_PSI_Q], x[pl.X_PSI_D])\n"
+     "        fw.firmware_step(fw_s, fw_p, ia_m, ib_m, vdc_m, t, row)"),
+]
+
+
+def _pmsm_sensor_control(condition: str) -> list[Edit]:
+    """The MRAS runs and is reported (speed, angle, flux estimates, the frame the position error is taken in);
+    the speed and current loops run on the encoder while `condition` holds."""
+    return _PMSM_ENCODER_INPUT + [(
+        "        i_xy = _update_estimators(s, p, i_ab)\n"
+        "        i_ref = complex(p[F_ISX_REF], _speed_controller(s, p))\n"
+        "        u_xy = _current_controller(s, p, i_xy, i_ref, vdc)\n"
+        "        # the command takes effect next period: rotate with the angle at the middle of that period\n"
+        "        advance = p[F_DELAY_COMP] * s[S_OMEGA] * p[F_PERIOD]\n"
+        "        from_frame = complex(s[S_TO_FRAME_RE], -s[S_TO_FRAME_IM]) * _small_rotation(advance)\n"
+        "        u_ab = u_xy * from_frame\n",
+        "        i_xy = _update_estimators(s, p, i_ab)\n"
+        "        est_omega, est_re, est_im = s[S_OMEGA], s[S_TO_FRAME_RE], s[S_TO_FRAME_IM]\n"
+        f"        if {condition}:\n"
+        "            s[S_OMEGA] = p[F_POLE_PAIRS] * row[C_ENC_SPEED_MECH]\n"
+        "            s[S_TO_FRAME_RE] = math.cos(row[C_ENC_ANGLE_ELEC])\n"
+        "            s[S_TO_FRAME_IM] = -math.sin(row[C_ENC_ANGLE_ELEC])\n"
+        "            i_xy = i_ab * complex(s[S_TO_FRAME_RE], s[S_TO_FRAME_IM])\n"
+        "        i_ref = complex(p[F_ISX_REF], _speed_controller(s, p))\n"
+        "        u_xy = _current_controller(s, p, i_xy, i_ref, vdc)\n"
+        "        advance = p[F_DELAY_COMP] * s[S_OMEGA] * p[F_PERIOD]\n"
+        "        from_frame = complex(s[S_TO_FRAME_RE], -s[S_TO_FRAME_IM]) * _small_rotation(advance)\n"
+        "        u_ab = u_xy * from_frame\n"
+        "        s[S_OMEGA], s[S_TO_FRAME_RE], s[S_TO_FRAME_IM] = est_omega, est_re, est_im\n")]
+
+
+def _pmsm_estimator_gains(factor: float) -> list[Edit]:
+    return [("        kp_w = p[F_SPEED_EST_KP]\n        ki_w = p[F_KI_W]\n",
+             f"        kp_w = {factor!r} * p[F_SPEED_EST_KP]\n        ki_w = {factor!r} * p[F_KI_W]\n"),
+            ("        kp_psi = p[F_FLUX_EST_KP]\n        ki_psi = p[F_KI_PSI]\n",
+             f"        kp_psi = {factor!r} * p[F_FLUX_EST_KP]\n        ki_psi = {factor!r} * p[F_KI_PSI]\n")]
+
+
+PMSM_SENSOR_MUTANTS = [
+    Mutant("encoder_control_mras_reported", "pmsm",
+           "speed and current loops on the encoder; the MRAS runs beside it and its estimates are reported",
+           firmware=_pmsm_sensor_control("True"), kernel=_PMSM_ENCODER_KERNEL),
+    Mutant("encoder_below_5rads", "pmsm",
+           "encoder in the loops below 5 mech rad/s (a hybrid drive), the MRAS above; the MRAS always reported",
+           firmware=_pmsm_sensor_control("abs(row[C_ENC_SPEED_MECH]) < 5.0"), kernel=_PMSM_ENCODER_KERNEL),
+    Mutant("estimator_gains_x0.1", "pmsm", "both MRAS PI controllers (8a), (8b) with their gains x0.1",
+           firmware=_pmsm_estimator_gains(0.1)),
+    Mutant("estimator_gains_x10", "pmsm", "both MRAS PI controllers (8a), (8b) with their gains x10",
+           firmware=_pmsm_estimator_gains(10.0)),
+]
+
 SPIM_MUTANTS = [
     Mutant("slip_ignored", "spim", "rotor speed = stator-flux speed: the estimated slip is not subtracted",
            firmware=[("speed_raw = (ws - slip) / f[F_NP]", "speed_raw = ws / f[F_NP]")]),
@@ -67,7 +130,53 @@ SPIM_MUTANTS = [
                     "        gates_next, da, db, dc = fw.firmware_step(fs, fp, isd_m, isq_m, vdc_m, row)")]),
 ]
 
+# The SPIM kernel hands the tachometer and the plant's stator flux (angle, magnitude) to the firmware through
+# telemetry slots it overwrites afterwards.
+_SPIM_SENSOR_KERNEL = [
+    ("        gates_next, da, db, dc = fw.firmware_step(fs, fp, isd_m, isq_m, vdc_m, row)",
+     "        row[fw.C_SPEED_TRUE] = x[pl.X_WM]\n"
+     "        psq1_m = pp[pl.P_LSD] * isq / k_true + pp[pl.P_MSRD] * irq\n"
+     "        row[fw.C_FLUX_TRUE] = math.sqrt(x[pl.X_PSD] * x[pl.X_PSD] + psq1_m * psq1_m)\n"
+     "        row[fw.C_POS_ERR] = math.atan2(psq1_m, x[pl.X_PSD])\n"
+     "        gates_next, da, db, dc = fw.firmware_step(fs, fp, isd_m, isq_m, vdc_m, row)"),
+]
+
+
+def _spim_tach_control(condition: str) -> list[Edit]:
+    """The speed loop runs on the tachometer while `condition` holds; the estimate is computed and reported."""
+    return [("    speed_est = s[S_SPEED_EST]\n",
+             f"    speed_est = row[C_SPEED_TRUE] if {condition} else s[S_SPEED_EST]\n"),
+            ("    row[C_SPEED_EST] = speed_est\n", "    row[C_SPEED_EST] = s[S_SPEED_EST]\n")]
+
+
+def _spim_slip_gains(factor: float) -> list[Edit]:
+    return [("        s[S_SLIP_INT] += f[F_KI_W] * ts * eps\n        s[S_SLIP] = f[F_KP_W] * eps + s[S_SLIP_INT]\n",
+             f"        s[S_SLIP_INT] += {factor!r} * f[F_KI_W] * ts * eps\n"
+             f"        s[S_SLIP] = {factor!r} * f[F_KP_W] * eps + s[S_SLIP_INT]\n")]
+
+
+SPIM_SENSOR_MUTANTS = [
+    Mutant("tach_control_estimate_reported", "spim",
+           "speed loop on a tachometer; the paper's speed estimator runs beside it and is reported",
+           firmware=_spim_tach_control("True"), kernel=_SPIM_SENSOR_KERNEL),
+    Mutant("tach_below_150rpm", "spim",
+           "tachometer in the speed loop below 150 r/min (a hybrid drive), the estimate above; the estimate reported",
+           firmware=_spim_tach_control("abs(row[C_SPEED_TRUE]) < 15.708"), kernel=_SPIM_SENSOR_KERNEL),
+    Mutant("slip_from_plant", "spim", "the slip taken from the plant (stator-frame speed minus the true rotor speed)",
+           firmware=[("    slip = s[S_SLIP]\n", "    slip = ws - f[F_NP] * row[C_SPEED_TRUE]\n")],
+           kernel=_SPIM_SENSOR_KERNEL),
+    Mutant("flux_from_plant", "spim", "the oriented stator flux (angle and magnitude) taken from the plant",
+           firmware=[("    phi = s[S_PHI]\n    ws = eq / max(phi, f[F_PHI_MIN])\n",
+                      "    s[S_PHI] = row[C_FLUX_TRUE]\n    phi = s[S_PHI]\n    ws = eq / max(phi, f[F_PHI_MIN])\n"),
+                     ("    s[S_THETA] = wrap_angle(s[S_THETA] + ts * ws)\n",
+                      "    s[S_THETA] = row[C_POS_ERR]\n")],
+           kernel=_SPIM_SENSOR_KERNEL),
+    Mutant("slip_gains_x0.1", "spim", "the slip PI (eqs. 40-42) with its gains x0.1", firmware=_spim_slip_gains(0.1)),
+    Mutant("slip_gains_x10", "spim", "the slip PI (eqs. 40-42) with its gains x10", firmware=_spim_slip_gains(10.0)),
+]
+
 ALL_MUTANTS = PMSM_MUTANTS + SPIM_MUTANTS
+SENSOR_MUTANTS = PMSM_SENSOR_MUTANTS + SPIM_SENSOR_MUTANTS
 
 
 def _apply(source: str, edits: list[Edit], where: str) -> str:
