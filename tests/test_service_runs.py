@@ -181,12 +181,12 @@ while True:
         server.kill()
         server.wait(timeout=10)
         killed = time.monotonic()
-        # the run process follows its service (SIGTERM: safe stop, record closed) ...
-        wait_until(lambda: not _alive(child_pid), 30, 0.1, "the orphaned run process to stop")
-        # ... and the real rig's lease, no longer extended, expires within its TTL
+        # the real rig's lease, no longer extended, expires within its TTL ...
         from bench.service.leases import active_leases
         wait_until(lambda: not active_leases(db.sessions(), "real-a"), 2.0 + 3, 0.05, "the lease to expire")
         assert time.monotonic() - killed <= 2.0 + 3
+        # ... and the run process follows its service (SIGTERM: safe stop, record closed)
+        wait_until(lambda: not _alive(child_pid), 30, 0.1, "the orphaned run process to stop")
 
         from bench.service.runner import Runner, RunnerSettings
         runner = Runner(db, RunnerSettings(data_dir=(tmp_path / "data").resolve()))
