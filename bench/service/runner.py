@@ -336,7 +336,7 @@ class Runner:
     def _handle_aborts(self) -> None:
         if not self.children:
             return
-        for child in self.children.values():
+        for child in self.children.values():      # an abort's or a fence's SIGTERM that did not end the run
             if (child.term_sent is not None and child.proc.poll() is None
                     and time.monotonic() - child.term_sent > ABORT_KILL_AFTER_S):
                 child.proc.kill()
@@ -350,8 +350,6 @@ class Runner:
             if child.term_sent is None:
                 child.proc.send_signal(signal.SIGTERM)      # the run's single safe-stop sequence
                 child.term_sent = time.monotonic()
-            elif time.monotonic() - child.term_sent > ABORT_KILL_AFTER_S:
-                child.proc.kill()
 
     def _write_progress(self) -> None:
         t = time.monotonic()
