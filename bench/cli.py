@@ -148,6 +148,17 @@ def print_record(console: Console, record: dict, run_dir: Path | str) -> None:
                                  record.get("criteria", [])))
     if record.get("abort_reason"):
         console.print(f"  reason: {record['abort_reason']}")
+    from bench.drill import UNVERIFIED, timings, unverified
+    comm_loss = record.get("comm_loss") if isinstance(record.get("comm_loss"), dict) else None
+    note = unverified(comm_loss)
+    if note:
+        console.print(f"  [bold yellow]{UNVERIFIED.upper()}[/]{note[len(UNVERIFIED):]}")
+    elif timings(comm_loss):
+        console.print(f"  {timings(comm_loss)}")
+    warnings = [w for w in record.get("drive_warnings") or [] if isinstance(w, dict) and w.get("warning")]
+    if warnings:
+        console.print(f"  [yellow]drive warning[/] (statusword bit 7) set {len(warnings)} time(s), first at "
+                      f"t={warnings[0].get('t_s', float('nan')):.3f} s")
 
 
 # --- commands --------------------------------------------------------------------------------------------

@@ -239,7 +239,8 @@ def measurable(profile: DriveProfile) -> frozenset[str]:
 # -- bench config keys ([drive] of a CANopen drive) -------------------------------------------------------------
 
 PROFILE_KEYS = ("profile", "velocity_unit", "encoder_increments_per_rev", "gear_ratio", "rated_torque_nm",
-                "rated_current_a", "signals", "pdo", "comm_loss", "consumer_time_ms", "abort_option",
+                "rated_current_a", "signals", "pdo", "comm_loss", "external_stop", "consumer_time_ms", "abort_option",
+                "drill_margin_ms",
                 "error_behaviour", "bench_node_id", "standstill_mech_rad_s", "stop_timeout_s", "can")
 _POSITIVE = ("encoder_increments_per_rev", "rated_torque_nm", "rated_current_a")
 
