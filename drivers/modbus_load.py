@@ -193,7 +193,9 @@ class ModbusLoadLink:
         report.update(silent_ms=round(silent_ms, 1), enabled_after=after.enabled,
                       torque_after_nm=round(after.torque_nm, 4),
                       disabled_within_ms=round(silent_ms, 1) if not after.enabled else None)
-        self.zero_and_disable()
+        if after.enabled:                       # it did not stop itself: the bench does (not zero_and_disable:
+            self._write(self.map["setpoint"], 0.0)  # that is the end-of-run step, counted as such)
+            self.enable(False)
         self._arm_watchdog()                   # armed and fed again
         if before.enabled and not after.enabled:
             report["result"] = "passed"

@@ -233,7 +233,7 @@ class SerialDriveLink:
         report.update(silent_ms=round(silent_ms, 1), state_after=cia402.state_name(word))
         if state in cia402.FAULT_STATES:
             cia402.fault_reset(self, self._step_timeout_s, self.where)
-        else:
+        elif state in cia402.POWERED_STATES:
             self.disable()
         self._emcy_codes.clear()
         if state is not cia402.State.OPERATION_ENABLED:

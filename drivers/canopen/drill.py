@@ -123,7 +123,7 @@ def _rearm(link: "CanopenDriveLink", word: int) -> list[str]:
     if state in cia402.FAULT_STATES:       # 0x6007 = 1 (fault): the drill's own fault, not the run's
         cia402.wait_state(link, {cia402.State.FAULT}, "fault reaction", timeout, where=link.where)
         cia402.fault_reset(link, timeout, link.where)
-    else:
+    elif state in cia402.POWERED_STATES:
         link.disable()                     # from QUICK STOP ACTIVE, or a drive that stayed enabled (at zero speed)
     link.node.nmt.state = "OPERATIONAL"    # 0x1029 may have sent it to pre-operational
     link.take_emcy()
