@@ -319,11 +319,15 @@ def validate(files, bench_path) -> None:
 @cli.command()
 @click.option("--bench", "bench_path", type=click.Path(), required=True, help="The rig's bench config.")
 @click.option("--scan", is_flag=True, help="Also list every node on the CAN bus that answers (node ids 1-127).")
+@click.option("--drill", is_flag=True, help="Also run the bench-death drill: enables the drive at zero velocity, "
+                                            "withholds the bench's heartbeat and the load machine's watchdog feed, "
+                                            "and checks both stop themselves (docs/rig.md).")
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
-def probe(bench_path, scan, as_json) -> None:
+def probe(bench_path, scan, drill, as_json) -> None:
     """What the drive says about itself before the first run: identity, device type, modes, units and factor
     group, PDO mappings, heartbeat and comm-loss objects, drivebench features, and the profile the bench would use
-    (or what to fix in the bench config). Read-only: nothing is written to the drive."""
+    (or what to fix in the bench config). Read-only (nothing is written to the drive) unless --drill is given;
+    with --drill, exit 1 when the drive or the load machine fails it."""
 
     def body() -> int:
         from bench.benchconfig import load_bench_config
@@ -349,11 +353,20 @@ def probe(bench_path, scan, as_json) -> None:
                         "parameters": list(link.parameters)}}
                 finally:
                     link.close()
+            refused = None
+            if drill:
+                from bench.drill import drill_rig, refusal, timings, unverified
+                report["drill"] = drill_rig(live, find_repo_root(bench_path))
+                refused = refusal(report["drill"])
         if as_json:
             click.echo(json.dumps(report, default=str, indent=2))
         else:
             make_console().print(report)
-        return EXIT_PASS
+            if drill:
+                for line in (refused, unverified(report["drill"]), timings(report["drill"])):
+                    if line:
+                        click.echo(line)
+        return EXIT_FAIL if drill and refused else EXIT_PASS
 
     sys.exit(_guarded(body))
 

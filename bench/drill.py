@@ -102,3 +102,47 @@ def timings(summary: dict[str, Any] | None) -> str | None:
         parts.append(f"load machine disabled within {load['disabled_within_ms']:.0f} ms of silence "
                      f"(watchdog {load['timeout_ms']} ms)")
     return "comm-loss drill passed: " + "; ".join(parts) if parts else None
+
+
+def stated_external(cfg: Any) -> str | None:
+    """From a bench config alone (the service's rig list): the stop chains it states instead of a drill."""
+    parts = []
+    if cfg.drive.get("comm_loss") == "external":
+        parts.append(f"drive: {cfg.drive.get('external_stop') or 'not said'}")
+    if cfg.load and cfg.load.get("comm_loss") == "external":
+        parts.append(f"load machine: {cfg.load.get('external_stop') or 'not said'}")
+    return f"{UNVERIFIED}: the rig's own stop chain, stated, not proved ({'; '.join(parts)})" if parts else None
+
+
+def drill_rig(live_cfg: Any, base_dir: Any) -> dict[str, Any]:
+    """`drivebench probe --drill`: connect as a run does (comm-loss armed, PDOs set), drill, leave both off, close.
+    The only probe step that writes to the drive and enables it (at zero velocity)."""
+    from bench.links import make_links
+    from bench.orchestrator import LIVE_SIGNALS
+    from bench.supervisor import SafeStop
+    from drivers.reference import ReferenceConfig
+
+    drive, load = make_links(live_cfg, base_dir)
+    opened = []
+    try:
+        drive.open()
+        opened.append(drive)
+        if load is not None:
+            load.open()
+            opened.append(load)
+        drive.configure(LIVE_SIGNALS, (), 1)
+        reference = ReferenceConfig(live_cfg.reference_source).signals(load is not None)
+        set_reference = getattr(drive, "set_reference_speed", None)
+        if set_reference is not None and load is not None and "speed_true_mech_rad_s" in reference:
+            set_reference(lambda: load.feedback().speed_mech_rad_s)
+        return run_drills(drive, load)
+    except BaseException:
+        if opened:
+            SafeStop(drive if drive in opened else None, load if load in opened else None).run()
+        raise
+    finally:
+        for link in reversed(opened):
+            try:
+                link.close()
+            except Exception:
+                pass

@@ -251,3 +251,35 @@ def test_a_failed_or_unverified_drill_reaches_the_record_with_fake_links(tmp_pat
     result = run(tmp_path / "b", rig)
     assert result.verdict == "pass" and result.record["comm_loss"]["verified"] is False
     assert "fake STO relay" in result.record["comm_loss_unverified"]
+
+
+def test_probe_drill_reports_and_refuses(tmp_path):
+    bench = bench_with(tmp_path, simulator="comm_loss_reaction = false\n", drive="consumer_time_ms = 300\n",
+                       replace=("consumer_time_ms = 2000", "# consumer"))
+    out = cli("probe", "--bench", str(bench), "--drill", "--json")
+    assert out.returncode == 1, out.stderr
+    drill = json.loads(out.stdout)["drill"]
+    assert drill["verified"] is False and drill["drive"]["result"] == "failed"
+    assert drill["load"]["result"] == "passed" and drill["load"]["disabled_within_ms"] <= 1000 + 100 + 50
+    out = cli("probe", "--bench", str(bench_with(tmp_path, drive="consumer_time_ms = 300\n",
+                                                 replace=("consumer_time_ms = 2000", "# consumer"))), "--drill")
+    assert out.returncode == 0, out.stderr
+    assert "comm-loss drill passed: drive left OPERATION ENABLED" in " ".join(out.stdout.split())
+
+
+def test_the_service_runs_an_unverified_rig_only_when_an_admin_marked_it(tmp_path):
+    from bench.errors import InputError
+    from bench.service.rigs import load_rigs
+
+    bench = bench_with(tmp_path, drive='comm_loss = "external"\nexternal_stop = "STO relay on watchdog K3"\n')
+    rigs = tmp_path / "rigs.toml"
+    rigs.write_text(f'[[rig]]\nname = "lab-a"\nbench = "{bench}"\n')
+    with pytest.raises(InputError) as refused:
+        load_rigs(rigs)
+    assert refused.value.problems == [
+        f"{rigs}: rig[0].allow_unverified_comm_loss: its bench config states an external stop chain instead of the "
+        "drill (unverified comm-loss reaction: the rig's own stop chain, stated, not proved (drive: STO relay on "
+        "watchdog K3)); the service runs it only when an admin sets allow_unverified_comm_loss = true on this rig"]
+    rigs.write_text(f'[[rig]]\nname = "lab-a"\nbench = "{bench}"\nallow_unverified_comm_loss = true\n')
+    (rig,) = load_rigs(rigs)
+    assert rig.comm_loss_unverified.startswith("unverified comm-loss reaction: the rig's own stop chain")

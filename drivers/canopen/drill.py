@@ -81,8 +81,8 @@ def drill(link: "CanopenDriveLink", before_withhold: Callable[[], None] | None =
         deadline_ms=consumer + margin,
         state_after=cia402.state_name(word),
         emcy=[f"0x{code:04X} {text}" for code, text in emcy],
-        nmt_before=NMT_NAMES.get(nmt_before, nmt_before),
-        nmt_after="no heartbeat of the drive since" if nmt_after is None else NMT_NAMES.get(nmt_after, nmt_after),
+        nmt_heartbeat_before=NMT_NAMES.get(nmt_before, nmt_before),
+        nmt_heartbeat_after="no heartbeat of the drive since" if nmt_after is None else NMT_NAMES.get(nmt_after, nmt_after),
     )
     if left_s is not None:
         report["reaction_vs_consumer_ms"] = round(left_s * 1e3 - consumer, 1)
@@ -96,7 +96,7 @@ def drill(link: "CanopenDriveLink", before_withhold: Callable[[], None] | None =
     report["result"] = "failed"
     noticed = [f"EMCY {e.split()[0]}" for e in report["emcy"]]
     if nmt_after is not None and nmt_after != nmt_before:
-        noticed.append(f"NMT {report['nmt_after']}")
+        noticed.append(f"NMT {report['nmt_heartbeat_after']}")
     if left_s is not None:
         why = (f"the drive left OPERATION ENABLED only {left_s * 1e3:.0f} ms after the bench withheld its heartbeat, "
                f"later than consumer time {consumer} ms + margin {margin} ms")
