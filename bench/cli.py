@@ -333,8 +333,9 @@ def probe(bench_path, scan, drill, as_json) -> None:
         from bench.benchconfig import load_bench_config
         from bench.links import started_services
 
-        cfg = load_bench_config(bench_path)
+        cfg = load_bench_config(bench_path, for_probe=not drill)
         drive = cfg.drive
+        items = None
         with started_services(cfg, 0) as live:
             section = live.drive
             if drive["transport"] == "canopen":
@@ -342,6 +343,7 @@ def probe(bench_path, scan, drill, as_json) -> None:
                 report = {"bench": cfg.bench.name, "drive": probe_canopen(section, find_repo_root(bench_path))}
                 if scan:
                     report["nodes"] = scan_bus(section)
+                items = True
             else:
                 from drivers.api import LinkSettings
                 from drivers.serial_link import SerialDriveLink
@@ -358,14 +360,28 @@ def probe(bench_path, scan, drill, as_json) -> None:
                 from bench.drill import drill_rig, refusal, timings, unverified
                 report["drill"] = drill_rig(live, find_repo_root(bench_path))
                 refused = refusal(report["drill"])
+        if items:
+            from bench.checklist import as_json as items_json, checklist
+            items = checklist(report["drive"], cfg, report.get("drill"))
+            report["checklist"] = items_json(items)
         if as_json:
             click.echo(json.dumps(report, default=str, indent=2))
-        else:
-            make_console().print(report)
+        elif items:
+            identity = report["drive"]["identity"]
+            click.echo(f"node {report['drive']['node_id']}: {identity['device_name'] or '?'} (vendor "
+                       f"{identity['vendor_id']}, product {identity['product_code']}, software "
+                       f"{identity['software_version'] or '?'})")
+            for item in items:
+                click.echo(item.line())
+            for node in report.get("nodes", []):
+                click.echo(f"on the bus: node {node['node_id']} device type {node['device_type']}")
+            click.echo("(--json for everything the probe read)")
             if drill:
                 for line in (refused, unverified(report["drill"]), timings(report["drill"])):
                     if line:
                         click.echo(line)
+        else:
+            make_console().print(report)
         return EXIT_FAIL if drill and refused else EXIT_PASS
 
     sys.exit(_guarded(body))

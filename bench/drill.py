@@ -53,8 +53,15 @@ def run_drills(drive: Any, load: Any | None) -> dict[str, Any]:
         try:
             drive_result = drive_drill(before_withhold=start_load)
         finally:
-            if thread is not None:
-                thread.join(LOAD_JOIN_MARGIN_S + 60.0)
+            # a drive whose watchdog only sees requests (serial) must hear from the bench while the load's drill
+            # goes on, or it reacts a second time
+            keepalive = getattr(drive, "keepalive", None)
+            deadline = LOAD_JOIN_MARGIN_S + 60.0
+            while thread is not None and thread.is_alive() and deadline > 0:
+                thread.join(0.05)
+                deadline -= 0.05
+                if keepalive is not None:
+                    keepalive()
     if load is None:
         load_result: Any = "none: free shaft"
     else:

@@ -247,6 +247,10 @@ class SerialDriveLink:
                              f"{EXTERNAL_HINT}")
         return report
 
+    def keepalive(self) -> None:
+        """Any request feeds the drive's WATCHDOG: a status read (its EMCY codes kept for status())."""
+        self._read_status()
+
     def write_controlword(self, word: int) -> int:
         """cia402 port: the drive answers a controlword with its statusword."""
         (status,) = struct.unpack("<H", self._transact(Cmd.CONTROLWORD, struct.pack("<H", word)))

@@ -283,3 +283,53 @@ def test_the_service_runs_an_unverified_rig_only_when_an_admin_marked_it(tmp_pat
     rigs.write_text(f'[[rig]]\nname = "lab-a"\nbench = "{bench}"\nallow_unverified_comm_loss = true\n')
     (rig,) = load_rigs(rigs)
     assert rig.comm_loss_unverified.startswith("unverified comm-loss reaction: the rig's own stop chain")
+
+
+def test_probe_checklist_runs_on_a_config_a_lab_writes_first(tmp_path):
+    """Only interface, channel, node id (and here the EDS): no velocity unit yet. The probe still runs and says, one
+    line per item, what is ok and what to write."""
+    bench = tmp_path / "first.toml"
+    bench.write_text(f"""[bench]
+name = "first look"
+[services]
+start = "sim"
+[drive]
+transport = "canopen"
+interface = "virtual"
+channel = "x"
+node_id = 1
+eds = "{REPO}/config/od/third-party/technosoft.eds"
+[simulator]
+motor = "{REPO}/config/motors/pmsm-paper.toml"
+drive = "generic"
+velocity_unit = "rpm"
+""")
+    assert cli("validate", str(bench)).returncode == 2              # a run would be refused: no velocity unit
+    out = cli("probe", "--bench", str(bench))
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    assert any(l.startswith("OK      402 device: device type 0x00060192") for l in lines), lines
+    assert any(l.startswith("FIX     units: velocity unit unknown") and 'write: velocity_unit = "rpm"' in l
+               for l in lines), lines
+    assert any(l.startswith("UNKNOWN gear: no gear ratio object (0x6091)") for l in lines), lines
+    assert any(l.startswith("OK      bench node id: 127: no node answers there") for l in lines), lines
+    report = json.loads(cli("probe", "--bench", str(bench), "--json").stdout)
+    assert {i["item"]: i["status"] for i in report["checklist"]}["units"] == "fix"
+
+
+def test_probe_checklist_decodes_a_fault_and_sees_a_node_id_clash():
+    from bench.checklist import checklist
+    from drivers.canopen.probe import probe
+    from sim_backend.rig import RigSpec, build
+
+    eds = REPO / "config/od/third-party/e35.eds"
+    with build(RigSpec(motor="toy", eds=eds, node_id=5, drive=spec(comm_loss_reaction=False))) as rig:
+        with rig.device.lock:
+            rig.device.device.fault(0x2310)
+        section = dict(transport="canopen", interface="virtual", channel=rig.channel, node_id=5, eds=str(eds),
+                       bench_node_id=5)
+        items = {i.item: i for i in checklist(probe(section, REPO), None)}
+    assert items["fault state"].status == "fix" and "error code 0x2310 (Current)" in \
+        items["fault state"].detail
+    assert items["bench node id"].status == "fix" and "bench_node_id = 126" in items["bench node id"].config_line
+    assert items["0x6007 abort connection"].status == "fix"               # the quirk's drive has none
