@@ -358,7 +358,8 @@ def probe(bench_path, scan, drill, as_json) -> None:
             refused = None
             if drill:
                 from bench.drill import drill_rig, refusal, timings, unverified
-                report["drill"] = drill_rig(live, find_repo_root(bench_path))
+                from bench.orchestrator import LIVE_SIGNALS
+                report["drill"] = drill_rig(live, find_repo_root(bench_path), LIVE_SIGNALS)
                 refused = refusal(report["drill"])
         if items:
             from bench.checklist import as_json as items_json, checklist

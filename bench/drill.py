@@ -121,11 +121,10 @@ def stated_external(cfg: Any) -> str | None:
     return f"{UNVERIFIED}: the rig's own stop chain, stated, not proved ({'; '.join(parts)})" if parts else None
 
 
-def drill_rig(live_cfg: Any, base_dir: Any) -> dict[str, Any]:
-    """`drivebench probe --drill`: connect as a run does (comm-loss armed, PDOs set), drill, leave both off, close.
-    The only probe step that writes to the drive and enables it (at zero velocity)."""
+def drill_rig(live_cfg: Any, base_dir: Any, live_signals: tuple[str, ...]) -> dict[str, Any]:
+    """`drivebench probe --drill`: connect as a run does (comm-loss armed, PDOs set for `live_signals`), drill, leave
+    both off, close. The only probe step that writes to the drive and enables it (at zero velocity)."""
     from bench.links import make_links
-    from bench.orchestrator import LIVE_SIGNALS
     from bench.supervisor import SafeStop
     from drivers.reference import ReferenceConfig
 
@@ -137,7 +136,7 @@ def drill_rig(live_cfg: Any, base_dir: Any) -> dict[str, Any]:
         if load is not None:
             load.open()
             opened.append(load)
-        drive.configure(LIVE_SIGNALS, (), 1)
+        drive.configure(live_signals, (), 1)
         reference = ReferenceConfig(live_cfg.reference_source).signals(load is not None)
         set_reference = getattr(drive, "set_reference_speed", None)
         if set_reference is not None and load is not None and "speed_true_mech_rad_s" in reference:
