@@ -333,3 +333,20 @@ def test_probe_checklist_decodes_a_fault_and_sees_a_node_id_clash():
         items["fault state"].detail
     assert items["bench node id"].status == "fix" and "bench_node_id = 126" in items["bench node id"].config_line
     assert items["0x6007 abort connection"].status == "fix"               # the quirk's drive has none
+
+
+def test_the_unit_cross_check_does_not_pass_on_missing_drive_speed():
+    """The first second of motion with the drive's speed NaN (its TPDO missing) is no agreement: the check stays open
+    and still trips a wrong unit once the speed arrives (before: the window ran out on NaN and counted as passed)."""
+    from bench.supervisor import UnitCheck
+
+    check = UnitCheck()
+    nan = float("nan")
+    for k in range(3):                          # first motion: three samples agree...
+        assert check.check(k * 0.01, {"speed_est_mech_rad_s": 2.5, "speed_true_mech_rad_s": 2.5}) is None
+    for k in range(3, 200):                     # ... then 2 s with the drive's speed missing
+        assert check.check(k * 0.01, {"speed_est_mech_rad_s": nan, "speed_true_mech_rad_s": 20.0}) is None
+    assert not check.done                       # the window ran out on NaN: not passed
+    trips = [check.check(2.0 + k * 0.01, {"speed_est_mech_rad_s": 191.0, "speed_true_mech_rad_s": 20.0})
+             for k in range(5)]
+    assert any(t is not None and t.reason == "unit_mismatch" for t in trips)
