@@ -404,6 +404,8 @@ class _Run:
         if set_reference is not None and self.load is not None and "speed_true_mech_rad_s" in self.reference_signals:
             set_reference(lambda: self._load_call(self.load.feedback).speed_mech_rad_s)
         self._comm_loss_drill()
+        if self._stop_loop.is_set():          # stopped during the drill (operator): the drive is not enabled again
+            return
         # the drive holds the shaft before the load machine may pull on it (an active load drops a crane's mass)
         self.drive.enable_velocity_mode()
         # after enabling: enable_velocity_mode starts the drive from a zero target (CiA 402 links reset it)
@@ -435,6 +437,8 @@ class _Run:
             self.recorder.note("load_settings", getattr(self.load, "report", {}))
 
     def _loop(self) -> str | None:
+        if self._stop_loop.is_set():          # the operator stopped the run before its first motion
+            return None
         duration = float(self.scenario.duration_s)
         injections = list(self.scenario.injections)
         applied: list[dict] = []

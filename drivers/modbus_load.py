@@ -67,6 +67,7 @@ class ModbusLoadLink:
         self._client: ModbusTcpClient | ModbusSerialClient | None = None
         self._lock = threading.Lock()          # the watchdog thread and the bench share the client
         self._keepalive_stop = threading.Event()
+        self._cancel = threading.Event()       # interrupt(): a drill in progress ends at once
         self._keepalive: threading.Thread | None = None
 
     @property
@@ -187,7 +188,8 @@ class ModbusLoadLink:
         with self._lock:                       # nothing else may reach the machine while it is left alone
             report["withheld_utc"] = datetime.now(timezone.utc).isoformat(timespec="milliseconds")
             withheld = time.monotonic()
-            time.sleep((timeout_ms + margin) / 1000.0)
+            if self._cancel.wait((timeout_ms + margin) / 1000.0):
+                raise LinkError(f"load machine {self.where}: comm-loss drill abandoned: the run is stopping")
             silent_ms = (time.monotonic() - withheld) * 1e3
         after = self.feedback()
         report.update(silent_ms=round(silent_ms, 1), enabled_after=after.enabled,
@@ -208,6 +210,10 @@ class ModbusLoadLink:
                              f"the bench died. Check its watchdog register in {self.map.path.name}, or where the rig "
                              f"stops it by other means write [load] {EXTERNAL_HINT}")
         return report
+
+    def interrupt(self) -> None:
+        """From another thread: the run is being abandoned; a drill in progress ends at once (the safe stop follows)."""
+        self._cancel.set()
 
     def _feed_watchdog(self, period_s: float) -> None:
         """Any request feeds a Modbus watchdog: read the status register while this process lives."""

@@ -16,6 +16,7 @@ from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any, Callable
 
 from drivers import cia402
+from drivers.api import LinkError
 from drivers.comm_loss import EXTERNAL_HINT
 
 if TYPE_CHECKING:
@@ -45,6 +46,7 @@ def drill(link: "CanopenDriveLink", before_withhold: Callable[[], None] | None =
                               "producer_period_ms": round(cfg.producer_period_s * 1e3, 3),
                               "abort_connection_0x6007": guard.report.get("abort_connection_0x6007")}
     word = link.read_statusword()
+    _check_cancelled(link)
     if cia402.decode(word) is not cia402.State.OPERATION_ENABLED:
         link.enable_velocity_mode()                # at zero velocity (a drive found running is brought to rest first)
         word = link.read_statusword()
@@ -69,6 +71,7 @@ def drill(link: "CanopenDriveLink", before_withhold: Callable[[], None] | None =
             break
         if now > deadline + LATE_WATCH_S:
             break
+        _check_cancelled(link)
         time.sleep(POLL_S)
     watched_s = time.monotonic() - withheld
     time.sleep(min(0.05, consumer / 4000.0))   # the EMCY and the NMT change may follow the state change
@@ -111,6 +114,12 @@ def drill(link: "CanopenDriveLink", before_withhold: Callable[[], None] | None =
                          f"died. Fix the drive's reaction (0x1016/0x6007), or where the rig stops it by other means "
                          f"write [drive] {EXTERNAL_HINT}")
     return report
+
+
+def _check_cancelled(link: "CanopenDriveLink") -> None:
+    """The run was abandoned (operator abort, the supervisor): the safe stop has the drive now, not the drill."""
+    if link._cancel.is_set():
+        raise LinkError(f"{link.where}: comm-loss drill abandoned: the run is stopping")
 
 
 def _rearm(link: "CanopenDriveLink", word: int) -> list[str]:
