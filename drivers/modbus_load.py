@@ -220,8 +220,8 @@ class ModbusLoadLink:
         while not self._keepalive_stop.wait(period_s):
             try:
                 self.read(self.map["status"])
-            except LinkError:
-                pass                                  # the bench's own calls will report a dead link
+            except Exception:                         # LinkError, a reset connection: the bench's own calls
+                pass                                  # will report a dead link
 
     def set_load(self, mode: LoadMode, value: float) -> None:
         mode = LoadMode(mode)
