@@ -20,22 +20,24 @@ from bench.errors import InputError, Problems, find_repo_root
 from bench.services import check_service
 from drivers.api import FAULT_RESET_POLICIES, TIMINGS, LinkSettings
 from drivers.canopen.profile import PROFILE_KEYS, check_section, config_keys
-from drivers.comm_loss import STOP_KEYS, check_keys
+from drivers.comm_loss import EXTERNAL_HINT, STOP_KEYS, check_keys, external_stop_problem
 from drivers.toml_file import TomlFileError, read_toml_file
 from drivers.eds import DeviceDescription, EdsError, read_eds
 from drivers.load_map import LoadMapError, read_load_map
 from drivers.reference import check_section as check_reference
 
-_BENCH_KEYS = {"name", "description", "timing", "plant_injections", "wire_faults", "fault_reset"}
+_BENCH_KEYS = {"name", "description", "timing", "plant_injections", "wire_faults", "fault_reset", "served_by"}
 _SERVICES_KEYS = {"start"}
+_LOAD_COMM_LOSS = ("watchdog", "external")
 _DRIVE_COMMON = {"transport", "sync_period_s", "heartbeat_timeout_s", "trace_decimation", "trace_signals", "eds"}
 _DRIVE_KEYS = {
     "canopen": _DRIVE_COMMON | {"interface", "channel", "bitrate", "node_id", "sdo_timeout_s"} | set(PROFILE_KEYS),
     "serial": _DRIVE_COMMON | {"port", "baudrate", "timeout_s"} | set(STOP_KEYS),
 }
+_LOAD_COMMON = {"transport", "map", "unit_id", "timeout_s", "comm_loss", "external_stop", "drill_margin_ms"}
 _LOAD_KEYS = {
-    "modbus-tcp": {"transport", "map", "host", "port", "unit_id", "timeout_s"},
-    "modbus-rtu": {"transport", "map", "port", "baudrate", "unit_id", "timeout_s"},
+    "modbus-tcp": _LOAD_COMMON | {"host", "port"},
+    "modbus-rtu": _LOAD_COMMON | {"port", "baudrate"},
 }
 _TOP_KEYS = {"bench", "services", "drive", "load", "reference", "simulator"}
 
@@ -79,8 +81,15 @@ class BenchConfig:
                        load={**self.load, **(overrides.get("load") or {})})
 
 
-def load_bench_config(path: str | Path) -> BenchConfig:
-    """Read and validate a bench config; InputError lists every problem as `file: field: reason`."""
+# What `drivebench probe` finds out itself (a lab's first step, with only interface, channel and node id known): a
+# config lacking these still probes; the probe's checklist says what to write.
+PROBE_TELLS = ("drive.eds", "drive.velocity_unit", "drive.encoder_increments_per_rev", "drive.gear_ratio",
+               "bench.timing", "load.map", "drive.external_stop", "load.external_stop")
+
+
+def load_bench_config(path: str | Path, for_probe: bool = False) -> BenchConfig:
+    """Read and validate a bench config; InputError lists every problem as `file: field: reason`. `for_probe`:
+    problems the probe diagnoses itself (PROBE_TELLS) are let through."""
     path = Path(path)
     raw = read_toml(path)
     problems = Problems(path)
@@ -92,7 +101,9 @@ def load_bench_config(path: str | Path) -> BenchConfig:
     section = BenchSection(
         name=problems.string(bench, "name", "bench"),
         description=problems.string(bench, "description", "bench", required=False, default=""),
-        timing=problems.string(bench, "timing", "bench", required=False, default="lockstep", choices=TIMINGS),
+        # a config without [services] drives a rig (or a served simulator, which says so): real time by default
+        timing=problems.string(bench, "timing", "bench", required=False, choices=TIMINGS,
+                               default="lockstep" if "services" in raw or bench.get("served_by") else "realtime"),
         plant_injections=problems.boolean(bench, "plant_injections", "bench", required=False, default=False),
         wire_faults=problems.boolean(bench, "wire_faults", "bench", required=False, default=False),
         fault_reset=problems.string(bench, "fault_reset", "bench", required=False, default="once",
@@ -106,6 +117,13 @@ def load_bench_config(path: str | Path) -> BenchConfig:
         reason = check_service(start)
         if reason:
             problems.add("services.start", reason)
+    served_by = problems.string(bench, "served_by", "bench", required=False)
+    if section.timing == "lockstep" and start is None and not (served_by or "").strip():
+        # the simulator advances only on the bench's SYNC: on a drive with its own clock the verdict would depend
+        # on how fast the host happens to be
+        problems.add("bench.timing", '"lockstep" is for simulators only (they advance on the bench\'s SYNC) and this '
+                                     'config has no [services]: a real rig runs timing = "realtime" (a simulator '
+                                     'served elsewhere says so: [bench] served_by = "drivebench sim serve ...")')
 
     drive = _drive(problems, problems.table(raw, "drive", ""), root)
     load = _load(problems, problems.table(raw, "load", "", required=False), root)
@@ -119,9 +137,19 @@ def load_bench_config(path: str | Path) -> BenchConfig:
         if "motor" in simulator:
             motor = problems.string(simulator, "motor", "simulator")
             simulator["motor"] = _existing_path(problems, "simulator.motor", motor, root) if motor else None
+    if for_probe:
+        problems.lines = [line for line in problems.lines if not _probe_tells(line, problems.file)]
     problems.raise_if_any()
     return BenchConfig(path=str(path.resolve()), bench=section, drive=drive, load=load, services_start=start,
-                       reference_source=reference.source if reference else None, simulator=simulator)
+                       reference_source=reference.source if reference else None,
+                       simulator=simulator)
+
+
+def _probe_tells(line: str, file: str) -> bool:
+    for field in PROBE_TELLS:
+        if line.startswith(f"{file}: {field}:"):
+            return field != "load.map" or "no communication watchdog" in line
+    return False
 
 
 def link_settings(cfg: BenchConfig) -> LinkSettings:
@@ -292,7 +320,20 @@ def _load(problems: Problems, load: dict | None, root: Path) -> dict[str, Any]:
         "map": map_path,
         "unit_id": problems.integer(load, "unit_id", w, required=False, default=1, min_value=0, max_value=247),
         "timeout_s": problems.number(load, "timeout_s", w, required=False, default=0.5, positive=True),
+        "comm_loss": problems.string(load, "comm_loss", w, required=False, default="watchdog",
+                                     choices=_LOAD_COMM_LOSS),
     }
+    problem = external_stop_problem(load, "load")
+    if problem is not None:
+        problems.add(*problem)
+    elif out["comm_loss"] == "external":
+        out["external_stop"] = load["external_stop"]
+    if "drill_margin_ms" in load:
+        out["drill_margin_ms"] = problems.integer(load, "drill_margin_ms", w, min_value=10, max_value=10000)
+    if map_path and out["comm_loss"] == "watchdog" and not read_load_map(map_path).watchdog_timeout_ms:
+        problems.add("load.map", f"{map_name}: no communication watchdog register: the machine keeps its torque when "
+                                 f"the bench dies; add it to the map, or where the rig stops the machine by other "
+                                 f"means write [load] {EXTERNAL_HINT}")
     if transport == "modbus-tcp":
         out["host"] = problems.string(load, "host", w)
         out["port"] = problems.integer(load, "port", w, min_value=0, max_value=65535)

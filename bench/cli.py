@@ -149,6 +149,17 @@ def print_record(console: Console, record: dict, run_dir: Path | str) -> None:
                                  record.get("criteria", [])))
     if record.get("abort_reason"):
         console.print(f"  reason: {record['abort_reason']}")
+    from bench.drill import UNVERIFIED, timings, unverified
+    comm_loss = record.get("comm_loss") if isinstance(record.get("comm_loss"), dict) else None
+    note = unverified(comm_loss)
+    if note:
+        console.print(f"  [bold yellow]{UNVERIFIED.upper()}[/]{note[len(UNVERIFIED):]}")
+    elif timings(comm_loss):
+        console.print(f"  {timings(comm_loss)}")
+    warnings = [w for w in record.get("drive_warnings") or [] if isinstance(w, dict) and w.get("warning")]
+    if warnings:
+        console.print(f"  [yellow]drive warning[/] (statusword bit 7) set {len(warnings)} time(s), first at "
+                      f"t={warnings[0].get('t_s', float('nan')):.3f} s")
 
 
 # --- commands --------------------------------------------------------------------------------------------
@@ -337,18 +348,23 @@ def validate(files, bench_path) -> None:
 @cli.command()
 @click.option("--bench", "bench_path", type=click.Path(), required=True, help="The rig's bench config.")
 @click.option("--scan", is_flag=True, help="Also list every node on the CAN bus that answers (node ids 1-127).")
+@click.option("--drill", is_flag=True, help="Also run the bench-death drill: enables the drive at zero velocity, "
+                                            "withholds the bench's heartbeat and the load machine's watchdog feed, "
+                                            "and checks both stop themselves (docs/rig.md).")
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
-def probe(bench_path, scan, as_json) -> None:
+def probe(bench_path, scan, drill, as_json) -> None:
     """What the drive says about itself before the first run: identity, device type, modes, units and factor
     group, PDO mappings, heartbeat and comm-loss objects, drivebench features, and the profile the bench would use
-    (or what to fix in the bench config). Read-only: nothing is written to the drive."""
+    (or what to fix in the bench config). Read-only (nothing is written to the drive) unless --drill is given;
+    with --drill, exit 1 when the drive or the load machine fails it."""
 
     def body() -> int:
         from bench.benchconfig import load_bench_config
         from bench.links import started_services
 
-        cfg = load_bench_config(bench_path)
+        cfg = load_bench_config(bench_path, for_probe=not drill)
         drive = cfg.drive
+        items = None
         with started_services(cfg, 0) as live:
             section = live.drive
             if drive["transport"] == "canopen":
@@ -356,6 +372,7 @@ def probe(bench_path, scan, as_json) -> None:
                 report = {"bench": cfg.bench.name, "drive": probe_canopen(section, find_repo_root(bench_path))}
                 if scan:
                     report["nodes"] = scan_bus(section)
+                items = True
             else:
                 from drivers.api import LinkSettings
                 from drivers.serial_link import SerialDriveLink
@@ -367,11 +384,35 @@ def probe(bench_path, scan, as_json) -> None:
                         "parameters": list(link.parameters)}}
                 finally:
                     link.close()
+            refused = None
+            if drill:
+                from bench.drill import drill_rig, refusal, timings, unverified
+                from bench.orchestrator import LIVE_SIGNALS
+                report["drill"] = drill_rig(live, find_repo_root(bench_path), LIVE_SIGNALS)
+                refused = refusal(report["drill"])
+        if items:
+            from bench.checklist import as_json as items_json, checklist
+            items = checklist(report["drive"], cfg, report.get("drill"))
+            report["checklist"] = items_json(items)
         if as_json:
             click.echo(json.dumps(report, default=str, indent=2))
+        elif items:
+            identity = report["drive"]["identity"]
+            click.echo(f"node {report['drive']['node_id']}: {identity['device_name'] or '?'} (vendor "
+                       f"{identity['vendor_id']}, product {identity['product_code']}, software "
+                       f"{identity['software_version'] or '?'})")
+            for item in items:
+                click.echo(item.line())
+            for node in report.get("nodes", []):
+                click.echo(f"on the bus: node {node['node_id']} device type {node['device_type']}")
+            click.echo("(--json for everything the probe read)")
+            if drill:
+                for line in (refused, unverified(report["drill"]), timings(report["drill"])):
+                    if line:
+                        click.echo(line)
         else:
             make_console().print(report)
-        return EXIT_PASS
+        return EXIT_FAIL if drill and refused else EXIT_PASS
 
     sys.exit(_guarded(body))
 

@@ -21,13 +21,14 @@ import numpy as np
 
 from bench.benchconfig import BenchConfig, load_bench_config
 from bench.criteria import TimeAxis, signals_of, time_axis
+from bench.drill import DrillRefused, refusal as drill_refusal, run_drills, unverified as drill_unverified
 from bench.errors import InputError, find_repo_root
 from bench.links import make_links, started_services
 from bench.records import RunRecord, RunRecorder, freeze_long_lived, json_safe, release_freed_memory
 from bench.rerun_view import RerunStream
 from bench.scenario import load_scenario
 from bench.summary_plot import BUCKETS as PLOT_BUCKETS, PLOT_SIGNALS, events_of, write_summary_png
-from bench.supervisor import SafeStop, Supervisor, UnitCheck, check_status
+from bench.supervisor import FeedbackCheck, SafeStop, Supervisor, UnitCheck, check_status
 from bench.run_thread import LoopThread
 from bench.telemetry import TelemetryWorker
 from bench.verdict import judge_run
@@ -58,6 +59,9 @@ STUCK_GRACE_S = 2.0        # after a trip, how long the run loop may take to not
 SUPERVISE_POLL_S = 0.05    # the main thread's wait on the run loop (signals are handled between waits)
 STALL_TIMEOUT_S = 5.0      # wall seconds without any live sample -> the link is dead
 LOAD_POLL_PERIOD_S = 0.1   # read the load machine's status (fault bit; a dead Modbus link) every 0.1 s of drive time
+FEEDBACK_LOST_PERIODS = 5  # real time: a measured live signal missing this many SYNC periods in a row trips
+FEEDBACK_LOST_MIN_S = 0.5  # ... and no live sample at all for this long (or 5 periods, the longer): a loaded host
+                           # stalls the bench's own threads for 40-80 ms, more under heavy load
 
 DEFAULT_SEED = 0           # a scenario without a seed runs with this one (recorded), so reruns are identical
 ProgressFn = Callable[[float, float], None]
@@ -255,6 +259,8 @@ class _Run:
         self._live_lock = threading.Lock()        # live_buffer: the command thread adds, the worker prunes
         self.supervisor = Supervisor(self.scenario.limits)
         self.sync_period_s = float(self.cfg.drive["sync_period_s"])
+        # real time: no live sample for this long is lost feedback (a host hiccup is not)
+        self._feedback_lost_s = max(FEEDBACK_LOST_MIN_S, FEEDBACK_LOST_PERIODS * self.sync_period_s)
         self.data_source = "trace" if self.identity.has_trace_recorder else "pdo"
         self.trace_signals = trace_signals_for(self.cfg, self.scenario)
         self.reference = ReferenceConfig(self.cfg.reference_source)
@@ -267,6 +273,8 @@ class _Run:
         self._clock_start: float | None = None
         self.signals: _StopSignals | None = None
         self.trips: list[dict] = []          # every cause of the abort, in the order they were seen
+        self.drive_warnings: list[dict] = []  # statusword bit 7 changes
+        self._warning = False
         self._link_in_use = "drive"          # which link a LinkError came from
         self._t_drive = 0.0
         self._started_wall = time.monotonic()
@@ -309,6 +317,9 @@ class _Run:
             loop.stop_and_wait(STUCK_GRACE_S)
             abort_reason = (str(exc) if isinstance(exc, Interrupted) else "") or "interrupted (Ctrl-C)"
             self._add_trip("operator", abort_reason)
+        except DrillRefused as exc:
+            error = f"refused: {exc}"
+            self._add_trip("comm_loss_drill", str(exc))
         except LinkError as exc:
             error = f"link error: {exc}"
             self._add_trip(f"{self._link_in_use}_link", str(exc))
@@ -393,7 +404,17 @@ class _Run:
         self.measured = frozenset(measured)
         self.recorder.note("measured_signals", sorted(measured))
         self.recorder.note("trace_decimation", decimation)
+        carried = getattr(self.drive, "measured_signals", None)
+        if carried is not None:   # what the drive's live PDOs carry must keep coming (feedback_lost)
+            self.supervisor.feedback_check = FeedbackCheck(tuple(sorted(carried())), self.sync_period_s,
+                                                           FEEDBACK_LOST_PERIODS)
         self._note_link_reports()
+        set_reference = getattr(self.drive, "set_reference_speed", None)
+        if set_reference is not None and self.load is not None and "speed_true_mech_rad_s" in self.reference_signals:
+            set_reference(lambda: self._load_call(self.load.feedback).speed_mech_rad_s)
+        self._comm_loss_drill()
+        if self._stop_loop.is_set():          # stopped during the drill (operator): the drive is not enabled again
+            return
         # the drive holds the shaft before the load machine may pull on it (an active load drops a crane's mass)
         self.drive.enable_velocity_mode()
         # after enabling: enable_velocity_mode starts the drive from a zero target (CiA 402 links reset it)
@@ -426,6 +447,19 @@ class _Run:
                                           "velocity_factors_not_read": list(profile.unread),
                                           "units_confirmed": profile.units_confirmed})
 
+    def _comm_loss_drill(self) -> None:
+        """Before the first motion: prove the drive and the load machine stop themselves when the bench dies
+        (bench.drill); refused when one does not, shown as unverified where the config states an external stop."""
+        summary = run_drills(self.drive, self.load)
+        self.recorder.note("comm_loss", summary)
+        note = drill_unverified(summary)
+        if note is not None:
+            self.recorder.note("comm_loss_unverified", note)
+            (self.warn or (lambda _m: None))(note)
+        reason = drill_refusal(summary)
+        if reason is not None:
+            raise DrillRefused(reason)
+
     def _note_link_reports(self) -> None:
         """What each link read from its device and set in it (profile, units, PDOs, comm loss, watchdog)."""
         self.recorder.note("drive_settings", getattr(self.drive, "report", {}))
@@ -433,6 +467,8 @@ class _Run:
             self.recorder.note("load_settings", getattr(self.load, "report", {}))
 
     def _loop(self) -> str | None:
+        if self._stop_loop.is_set():          # the operator stopped the run before its first motion
+            return None
         duration = float(self.scenario.duration_s)
         injections = list(self.scenario.injections)
         applied: list[dict] = []
@@ -475,12 +511,17 @@ class _Run:
                     # in real time a step is on the wire within the SYNC period it falls in
                     self._command(t_drive, injections, applied)
             else:
-                if time.monotonic() - last_sample_wall > STALL_TIMEOUT_S:
+                silent_s = time.monotonic() - last_sample_wall
+                if self.realtime and silent_s > self._feedback_lost_s:
+                    self.supervisor.feed_feedback_lost(t_drive, silent_s)
+                if silent_s > STALL_TIMEOUT_S:
                     raise LinkError(f"no telemetry from the drive for {STALL_TIMEOUT_S:g} s (after t={t_drive:.3f} s)")
                 time.sleep(self.sync_period_s)  # real-time links: nothing arrived yet; do not spin
 
             if t_drive >= next_status:
-                self.supervisor.feed_status(t_drive, self.drive.status())
+                status = self.drive.status()
+                self._note_warning(t_drive, getattr(status, "warning", False))
+                self.supervisor.feed_status(t_drive, status)
                 next_status = t_drive + STATUS_PERIOD_S
             if t_drive >= next_load_poll and self.load is not None:
                 self.supervisor.feed_load(t_drive, self._load_call(self.load.feedback))
@@ -508,6 +549,15 @@ class _Run:
         if self.supervisor.trip is not None:
             return self.supervisor.trip.message + self._drive_fault_behind(self.supervisor.trip)
         return None
+
+    def _note_warning(self, t_s: float, on: bool) -> None:
+        """The statusword's warning bit (CiA 402 bit 7): every change, as an event in the record."""
+        if on == self._warning:
+            return
+        self._warning = on
+        self.drive_warnings.append({"t_s": t_s, "warning": on,
+                                    "utc": datetime.now(timezone.utc).isoformat(timespec="milliseconds")})
+        self.recorder.note("drive_warnings", self.drive_warnings)
 
     def _command(self, t_cmd: float, injections: list, applied: list[dict]) -> None:
         """Due injections, the speed reference and the load of the profile at t_cmd (only what changed)."""

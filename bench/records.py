@@ -71,6 +71,9 @@ class RunRecord(TypedDict, total=False):
     injections_applied: list[dict[str, Any]]
     drive_settings: dict[str, Any]  # what the link configured and read from the drive (units, comm-loss reaction)
     load_settings: dict[str, Any]
+    comm_loss: dict[str, Any]       # the bench-death drill before motion (bench.drill): verified, drive, load
+    comm_loss_unverified: str       # one line where the config states an external stop chain instead
+    drive_warnings: list[dict[str, Any]]   # statusword bit 7 changes: t_s, warning, utc
     # at the end
     trips: list[dict[str, Any]]
     supervisor_trip: dict[str, Any]

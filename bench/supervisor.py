@@ -28,7 +28,8 @@ class SupervisorLimits(Protocol):
 
 @dataclass(frozen=True)
 class Trip:
-    reason: str  # overspeed overcurrent position_error dc_link_overvoltage unit_mismatch max_duration fault emcy heartbeat load_fault
+    reason: str  # overspeed overcurrent position_error dc_link_overvoltage unit_mismatch feedback_lost max_duration fault
+                 # emcy heartbeat load_fault
     t_s: float | None            # drive time of the sample or status that tripped
     values: dict[str, float] = field(default_factory=dict)
     message: str = ""
@@ -201,6 +202,36 @@ class UnitCheck:
                     "and velocity_side in the record")
 
 
+@dataclass
+class FeedbackCheck:
+    """Live feedback the drive's PDOs carry must keep arriving: a signal missing from `periods` samples in a row (its
+    TPDO stopped, or never came) trips `feedback_lost` — a run must not go on blind with NaN rows."""
+
+    signals: tuple[str, ...]
+    sync_period_s: float
+    periods: int = 5
+    _missing: dict[str, int] = field(default_factory=dict)
+
+    def check(self, t_s: float, values: dict[str, float]) -> Trip | None:
+        for name in self.signals:
+            if name in values:
+                self._missing[name] = 0
+                continue
+            n = self._missing[name] = self._missing.get(name, 0) + 1
+            if n >= self.periods:
+                return Trip("feedback_lost", t_s, {"missing_samples": float(n)},
+                            f"feedback lost at t={t_s:.4f} s: {name} missing from the last {n} live samples "
+                            f"({n * self.sync_period_s * 1e3:.0f} ms of SYNC periods): the drive's TPDO carrying it "
+                            "does not arrive")
+        return None
+
+
+def feedback_silence_trip(t_s: float | None, silent_s: float) -> Trip:
+    when = "" if t_s is None else f" after t={t_s:.4f} s"
+    return Trip("feedback_lost", t_s, {"silent_s": silent_s},
+                f"feedback lost{when}: no live sample from the drive for {silent_s * 1e3:.0f} ms")
+
+
 _STOP = object()
 WATCHDOG_PERIOD_S = 0.05
 
@@ -213,9 +244,10 @@ class Supervisor:
     """
 
     def __init__(self, limits: SupervisorLimits, on_trip: Callable[[Trip], None] | None = None,
-                 unit_check: UnitCheck | None = None):
+                 unit_check: UnitCheck | None = None, feedback_check: FeedbackCheck | None = None):
         self.limits = limits
         self.unit_check = unit_check
+        self.feedback_check = feedback_check
         self.on_trip = on_trip
         self.tripped = threading.Event()
         self.trip: Trip | None = None
@@ -244,6 +276,11 @@ class Supervisor:
     def feed_load(self, t_s: float | None, feedback: LoadFeedback) -> None:
         if not self.tripped.is_set():
             self._put(("load", (t_s, feedback)))
+
+    def feed_feedback_lost(self, t_s: float | None, silent_s: float) -> None:
+        """Real time: no live sample at all for silent_s (the run loop measures it)."""
+        if not self.tripped.is_set():
+            self._put(("silent", (t_s, silent_s)))
 
     def _put(self, item) -> None:
         with self._idle:
@@ -302,8 +339,14 @@ class Supervisor:
             if payload[0] is not None:
                 self._last_t_s = payload[0]
             return check_status(*payload)
+        if kind == "silent":
+            return feedback_silence_trip(*payload)
         for sample in payload:
             self._last_t_s = sample.t_s
+            if self.feedback_check is not None:
+                trip = self.feedback_check.check(sample.t_s, sample.values)
+                if trip is not None:
+                    return trip
             trip = self.unit_check.check(sample.t_s, sample.values) if self.unit_check is not None else None
             if trip is None:       # a unit mismatch is the cause when both trip: the overspeed is its symptom
                 trip = check_sample(self.limits, sample.t_s, sample.values)

@@ -75,6 +75,7 @@ class DriveStatus:
     fault: bool
     heartbeat_ok: bool
     emcy: list[tuple[int, str]] = field(default_factory=list)  # (error code, text) received since last call
+    warning: bool = False       # CiA 402 statusword bit 7: the drive warns (temperature, limits...) and runs on
 
 
 class DriveLink(Protocol):

@@ -210,13 +210,15 @@ def fault_reset(port: Cia402Port, timeout_s: float, where: str = "drive") -> Non
 
 def enable_operation(port: Cia402Port, *, fault_reset_policy: str, timeout_s: float, where: str = "drive",
                      select_mode: Callable[[], None] | None = None,
-                     fault_detail: Callable[[], str] | None = None) -> None:
+                     fault_detail: Callable[[], str] | None = None,
+                     bring_to_rest: Callable[[], None] | None = None) -> None:
     """From whatever state the drive is in to OPERATION ENABLED.
 
     A drive in FAULT is reset only when the policy is "once"; with "never" it stays in FAULT and the run does not
     start. A drive found powered (left running, or in quick stop) is disabled first, so every run starts from
-    SWITCH ON DISABLED. `select_mode` runs while the power stage is off (mode of operation, target zero);
-    `fault_detail` says what the fault is (error code) when a fault stops the enable."""
+    SWITCH ON DISABLED; `bring_to_rest` (where the transport has it) first stops a drive found powered and waits for
+    standstill, so the run never enables onto a turning shaft. `select_mode` runs while the power stage is off (mode
+    of operation, target zero); `fault_detail` says what the fault is (error code) when a fault stops the enable."""
     if fault_reset_policy not in FAULT_RESET_POLICIES:
         raise ValueError(f"fault_reset: {fault_reset_policy!r} is not one of {FAULT_RESET_POLICIES}")
     word = port.read_statusword()
@@ -227,6 +229,8 @@ def enable_operation(port: Cia402Port, *, fault_reset_policy: str, timeout_s: fl
             raise LinkError(f"{where}: drive is in {state_name(word)}{detail} and the fault-reset policy is 'never'")
         fault_reset(port, timeout_s, where)
     elif state in POWERED_STATES:
+        if bring_to_rest is not None:
+            bring_to_rest()
         command(port, Command.DISABLE_VOLTAGE, {State.SWITCH_ON_DISABLED}, "disable voltage before enabling",
                 timeout_s, where)
     if select_mode is not None:

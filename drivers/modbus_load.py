@@ -11,6 +11,8 @@ of this process, so the machine takes its torque off by itself when the bench pr
 from __future__ import annotations
 
 import threading
+import time
+from datetime import datetime, timezone
 from pathlib import Path
 
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
@@ -18,6 +20,7 @@ from pymodbus.exceptions import ModbusException
 from pymodbus.pdu import ExceptionResponse
 
 from drivers.api import LinkError, LoadFeedback, LoadMode, attempt_all
+from drivers.comm_loss import EXTERNAL_HINT
 from drivers.load_map import LoadMap, LoadMapError, Reg, read_load_map
 
 EXCEPTION_TEXT = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
@@ -57,10 +60,14 @@ class ModbusLoadLink:
             self.baudrate = int(section.get("baudrate", 19200))
             self.where = f"modbus-rtu {port} unit {self.unit_id}"
         self.base_dir = base_dir
+        self.comm_loss = section.get("comm_loss", "watchdog")        # "external": the rig stops it by other means
+        self.external_stop = str(section.get("external_stop", ""))
+        self.drill_margin_ms = section.get("drill_margin_ms")
         self.report: dict = {"map": self.map.name, "modes": [m.name.lower() for m in self.map.modes]}
         self._client: ModbusTcpClient | ModbusSerialClient | None = None
         self._lock = threading.Lock()          # the watchdog thread and the bench share the client
         self._keepalive_stop = threading.Event()
+        self._cancel = threading.Event()       # interrupt(): a drill in progress ends at once
         self._keepalive: threading.Thread | None = None
 
     @property
@@ -132,9 +139,12 @@ class ModbusLoadLink:
 
     def _arm_watchdog(self) -> None:
         timeout_ms = self.map.watchdog_timeout_ms
-        if not timeout_ms:
-            self.report["watchdog"] = "none in the register map: the machine does not stop by itself"
+        if self.comm_loss == "external":
+            self.report["watchdog"] = (f"not used: the rig stops the machine by other means ({self.external_stop}); "
+                                       "unverified comm-loss reaction")
             return
+        if not timeout_ms:
+            raise LinkError(no_watchdog_refusal(self.where, self.map.path.name))
         reg = self.map["watchdog"]
         self._write(reg, timeout_ms if reg.extra.get("unit", "ms") == "ms" else timeout_ms / 1000.0)
         self.report["watchdog"] = f"armed: {timeout_ms} ms (register {reg.address})"
@@ -143,13 +153,75 @@ class ModbusLoadLink:
                                            name="load-watchdog-keepalive", daemon=True)
         self._keepalive.start()
 
+    def _stop_feeding(self) -> None:
+        self._keepalive_stop.set()
+        if self._keepalive is not None:
+            self._keepalive.join(timeout=2.0)
+            self._keepalive = None
+
+    @property
+    def drill_margin(self) -> int:
+        timeout_ms = self.map.watchdog_timeout_ms or 0
+        return int(self.drill_margin_ms) if self.drill_margin_ms is not None else max(100, timeout_ms // 10)
+
+    def drill(self) -> dict:
+        """The bench-death drill: enabled at zero torque, the bench stops every request (its watchdog feed too) for
+        the watchdog time plus a margin, then reads the status register once (any request feeds the watchdog, so one
+        read is all there is: the reaction is bounded, not timed) and expects it disabled. Then re-arms and leaves it
+        at zero torque and disabled. Returns the drill's record (`result`: passed / failed with `refusal` /
+        unverified)."""
+        if self.comm_loss == "external":
+            return {"what": "load machine", "result": "unverified", "mode": "external",
+                    "external_stop": self.external_stop,
+                    "note": "not drilled: the bench config states the rig's own stop chain; nothing proves it"}
+        timeout_ms = self.map.watchdog_timeout_ms
+        if not timeout_ms:           # refused at open already; kept for links built without open()
+            return {"what": "load machine", "result": "failed",
+                    "refusal": no_watchdog_refusal(self.where, self.map.path.name)}
+        margin = self.drill_margin
+        self.set_load(LoadMode.TORQUE, 0.0)
+        self.enable(True)
+        before = self.feedback()
+        report = {"what": "load machine", "mode": "watchdog", "timeout_ms": timeout_ms, "margin_ms": margin,
+                  "enabled_before": before.enabled}
+        self._stop_feeding()
+        with self._lock:                       # nothing else may reach the machine while it is left alone
+            report["withheld_utc"] = datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+            withheld = time.monotonic()
+            if self._cancel.wait((timeout_ms + margin) / 1000.0):
+                raise LinkError(f"load machine {self.where}: comm-loss drill abandoned: the run is stopping")
+            silent_ms = (time.monotonic() - withheld) * 1e3
+        after = self.feedback()
+        report.update(silent_ms=round(silent_ms, 1), enabled_after=after.enabled,
+                      torque_after_nm=round(after.torque_nm, 4),
+                      disabled_within_ms=round(silent_ms, 1) if not after.enabled else None)
+        if after.enabled:                       # it did not stop itself: the bench does (not zero_and_disable:
+            self._write(self.map["setpoint"], 0.0)  # that is the end-of-run step, counted as such)
+            self.enable(False)
+        self._arm_watchdog()                   # armed and fed again
+        if before.enabled and not after.enabled:
+            report["result"] = "passed"
+            return report
+        report["result"] = "failed"
+        why = ("it did not report itself enabled at zero torque, so its reaction cannot be seen" if not before.enabled
+               else f"it was still enabled {silent_ms:.0f} ms after the bench's last request (watchdog "
+                    f"{timeout_ms} ms + margin {margin} ms)")
+        report["refusal"] = (f"load machine {self.where}: comm-loss drill failed: {why}; it would keep its torque if "
+                             f"the bench died. Check its watchdog register in {self.map.path.name}, or where the rig "
+                             f"stops it by other means write [load] {EXTERNAL_HINT}")
+        return report
+
+    def interrupt(self) -> None:
+        """From another thread: the run is being abandoned; a drill in progress ends at once (the safe stop follows)."""
+        self._cancel.set()
+
     def _feed_watchdog(self, period_s: float) -> None:
         """Any request feeds a Modbus watchdog: read the status register while this process lives."""
         while not self._keepalive_stop.wait(period_s):
             try:
                 self.read(self.map["status"])
-            except LinkError:
-                pass                                  # the bench's own calls will report a dead link
+            except Exception:                         # LinkError, a reset connection: the bench's own calls
+                pass                                  # will report a dead link
 
     def set_load(self, mode: LoadMode, value: float) -> None:
         mode = LoadMode(mode)
@@ -200,15 +272,18 @@ class ModbusLoadLink:
         attempt_all(lambda: self._write(self.map["setpoint"], 0.0), lambda: self.enable(False))
 
     def close(self) -> None:
-        self._keepalive_stop.set()
-        if self._keepalive is not None:
-            self._keepalive.join(timeout=2.0)
-            self._keepalive = None
+        self._stop_feeding()
         if self._client is not None:
-            if self.map.watchdog_timeout_ms:       # a normal end: the bench leaves politely, no reaction needed
+            if self.map.watchdog_timeout_ms and self.comm_loss != "external":       # a normal end: the bench leaves politely, no reaction needed
                 try:
                     self._write(self.map["watchdog"], 0)
                 except LinkError:
                     pass
             self._client.close()
             self._client = None
+
+
+def no_watchdog_refusal(where: str, map_name: str) -> str:
+    return (f"load machine {where}: its register map {map_name} has no communication watchdog: it keeps its torque "
+            f"when the bench dies, and nothing can prove otherwise. Add its watchdog register to the map, or where "
+            f"the rig stops it by other means write [load] {EXTERNAL_HINT}")

@@ -19,7 +19,7 @@ import serial
 
 from drivers import cia402
 from drivers.api import DriveIdentity, DriveStatus, LinkError, LinkSettings, LiveSample, attempt_all
-from drivers.comm_loss import CommLossConfig
+from drivers.comm_loss import EXTERNAL_HINT, CommLossConfig
 from drivers.serial_frames import (
     PROTOCOL_MAJOR, PROTOCOL_MINOR, RESPONSE_FLAG, SAMPLE_HEADER, Cmd, ErrorCode, Frame, FrameDecoder,
     encode_frame, fault_text, unpack_str8,
@@ -192,7 +192,8 @@ class SerialDriveLink:
         """The drive's own reaction to a silent bench (serial WATCHDOG, protocol 1.1: CiA 402 0x6007 codes)."""
         cfg = self.comm_loss
         if cfg.mode == "external":
-            self.report["comm_loss"] = {"mode": "external", "note": "the rig stops the drive by itself"}
+            self.report["comm_loss"] = {"mode": "external", "external_stop": cfg.external_stop,
+                                        "note": "the rig stops the drive by other means: unverified comm-loss reaction"}
             return
         self._transact(Cmd.WATCHDOG, struct.pack("<Hh", cfg.consumer_time_ms, cfg.abort_option))
         self._watchdog_armed = True
@@ -211,6 +212,45 @@ class SerialDriveLink:
         if self.identity and self.identity.has_trace_recorder and trace_mask:
             self._transact(Cmd.TRACE_CONFIGURE, struct.pack("<IHB", trace_mask, trace_decimation, TRIGGER_IMMEDIATE))
             self._transact(Cmd.TRACE_START)
+
+    def drill(self, before_withhold=None) -> dict:
+        """The bench-death drill on the serial line: enabled at zero velocity, the bench sends nothing for the watchdog
+        time plus a margin (any request feeds the drive's WATCHDOG), then reads the status once: the drive must have
+        left OPERATION ENABLED. Then the power stage off (a fault the drill caused reset) and the run goes on."""
+        cfg = self.comm_loss
+        if cfg.mode == "external":
+            return {"what": "drive", "result": "unverified", "mode": "external", "external_stop": cfg.external_stop,
+                    "note": "not drilled: the bench config states the rig's own stop chain; nothing proves it"}
+        self.enable_velocity_mode()
+        if before_withhold is not None:
+            before_withhold()
+        report = {"what": "drive", "mode": "watchdog", "consumer_ms": cfg.consumer_time_ms, "margin_ms": cfg.margin_ms}
+        with self._line:                     # nothing reaches the drive while it is left alone
+            withheld = time.monotonic()
+            time.sleep((cfg.consumer_time_ms + cfg.margin_ms) / 1000.0)
+            silent_ms = (time.monotonic() - withheld) * 1e3
+        word = self.read_statusword()
+        state = cia402.decode(word)
+        report.update(silent_ms=round(silent_ms, 1), state_after=cia402.state_name(word))
+        if state in cia402.FAULT_STATES:
+            cia402.fault_reset(self, self._step_timeout_s, self.where)
+        elif state in cia402.POWERED_STATES:
+            self.disable()
+        self._emcy_codes.clear()
+        if state is not cia402.State.OPERATION_ENABLED:
+            report.update(result="passed", left_operation_enabled_ms=round(silent_ms, 1),
+                          note="one status read after the silence (any request feeds the watchdog): a bound")
+            return report
+        report["result"] = "failed"
+        report["refusal"] = (f"{self.where}: comm-loss drill failed: the drive stayed OPERATION ENABLED {silent_ms:.0f} "
+                             f"ms after the bench's last request (watchdog {cfg.consumer_time_ms} ms + margin "
+                             f"{cfg.margin_ms} ms); where the rig stops it by other means write [drive] "
+                             f"{EXTERNAL_HINT}")
+        return report
+
+    def keepalive(self) -> None:
+        """Any request feeds the drive's WATCHDOG: a status read (its EMCY codes kept for status())."""
+        self._read_status()
 
     def write_controlword(self, word: int) -> int:
         """cia402 port: the drive answers a controlword with its statusword."""

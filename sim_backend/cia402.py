@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from drivers.cia402 import POWERED_STATES, State, next_state, statusword
+from drivers.cia402 import POWERED_STATES, State, StatusBit, next_state, statusword
 
 
 @dataclass
@@ -14,6 +14,7 @@ class Cia402Device:
     controlword: int = 0
     error_code: int = 0            # 0x603F
     target_reached: bool = False
+    warning: bool = False          # statusword bit 7 (a drive warns and runs on: temperature, limits)
 
     @property
     def power_enabled(self) -> bool:
@@ -22,7 +23,8 @@ class Cia402Device:
 
     @property
     def statusword(self) -> int:
-        return statusword(self.state, target_reached=self.target_reached)
+        word = statusword(self.state, target_reached=self.target_reached)
+        return int(word | StatusBit.WARNING) if self.warning else word
 
     def fault(self, error_code: int) -> None:
         """A device fault: fault reaction (gates off), then FAULT."""

@@ -52,6 +52,7 @@ class SimulatedDevice:
     faults: FaultState = field(default_factory=FaultState)
     quick_stop_option: int = 2                 # 0x605A
     abort_connection_option: int = 3           # 0x6007
+    cia402_comm_loss_reaction: bool = True     # False (a vendor quirk): a lost master gives EMCY + NMT change only
     master_watchdog: Watchdog = field(default_factory=lambda: Watchdog("drive"))
     load_watchdog: Watchdog = field(default_factory=lambda: Watchdog("load machine"))
     _watchdogs: WatchdogThread | None = None
@@ -131,17 +132,32 @@ class SimulatedDevice:
         """CiA 402 0x6007 abort connection option: the drive's own reaction to a lost master."""
         option = self.abort_connection_option
         what = {1: "fault", 2: "disable voltage", 3: "quick stop"}.get(option, "no action")
-        self.faults.self_stops.append(f"drive: master silent for {silent_s:.2f} s, 0x6007 = {option} ({what})")
         self.pending_emcy.append(EMCY_HEARTBEAT)
+        if not self.cia402_comm_loss_reaction:
+            self.faults.self_stops.append(f"drive: master silent for {silent_s:.2f} s, no CiA 402 reaction "
+                                          f"(EMCY and NMT change only; state {self.device.state.name})")
+            for react in self.on_master_lost:
+                react()
+            return
+        self.faults.self_stops.append(f"drive: master silent for {silent_s:.2f} s, 0x6007 = {option} ({what})")
         if option == 1:
             self.device.fault(EMCY_HEARTBEAT)
         elif option == 2 and self.device.power_enabled:
             self.device.write_controlword(Command.DISABLE_VOLTAGE)
         elif option == 3 and self.device.state is State.OPERATION_ENABLED:
             self.device.write_controlword(Command.QUICK_STOP)
+            self._quick_stop_done_at_standstill()
         self._apply_outputs()
         for react in self.on_master_lost:
             react()
+
+    def _quick_stop_done_at_standstill(self) -> None:
+        """A quick stop from standstill has no ramp to brake along: done at once (0x605A), so the drive's time does
+        not run on for it (the bench's comm-loss drill, at zero speed, leaves the simulated run's start untouched)."""
+        speed = self.latest[SIGNAL_NAMES.index("speed_est_mech_rad_s")]
+        if (self.device.state is State.QUICK_STOP_ACTIVE and self.quick_stop_option in QUICK_STOP_TO_DISABLED
+                and abs(speed) <= STANDSTILL_MECH_RAD_S):
+            self.device.state = State.SWITCH_ON_DISABLED
 
     def _free_run(self, dt_s: float) -> None:
         """In lockstep the drive's time moves only with the bench's SYNCs; with the bench gone, a real drive's clock

@@ -89,7 +89,11 @@ def build(spec: RigSpec, device: SimulatedDevice | None = None) -> Iterator[Rig]
     rig = Rig(spec, device)
     if spec.exclusive:
         from sim_backend.sessions import BenchSessions
-        rig.sessions = BenchSessions(lambda: device.restart(rig_model(spec)))
+
+        def restart() -> None:
+            device.restart(rig_model(spec))
+            _found_running(device, spec.drive)
+        rig.sessions = BenchSessions(restart)
     with contextlib.ExitStack() as stack:
         stack.callback(device.stop_watchdogs)
         if spec.eds is not None:
@@ -98,7 +102,31 @@ def build(spec: RigSpec, device: SimulatedDevice | None = None) -> Iterator[Rig]
             _serial(stack, rig)
         if spec.modbus is not None:
             _modbus(stack, rig)
+        _found_running(device, spec.drive)
         yield rig
+
+
+SPIN_UP_MAX_S = 5.0
+
+
+def _found_running(device: SimulatedDevice, drive: DriveSpec | None) -> None:
+    """The quirk of a drive somebody left running: enabled in profile velocity and turning at the stated speed when
+    the bench connects (the drive's time ran until the shaft got there)."""
+    speed = drive.found_running_mech_rad_s if drive is not None else None
+    if not speed:
+        return
+    from drivers.signals import SIGNAL_NAMES
+
+    with device.lock:
+        for word in (0x06, 0x07, 0x0F):
+            device.write_controlword(word)
+        device.target_speed_mech_rad_s = float(speed)
+        chunk = max(1, round(0.1 / device.model.control_period_s))
+        column = SIGNAL_NAMES.index("speed_true_mech_rad_s")
+        for _ in range(round(SPIN_UP_MAX_S / 0.1)):
+            device.advance(chunk)
+            if abs(device.latest[column] - speed) <= 0.02 * abs(speed):
+                break
 
 
 def _stopper(handle) -> Callable[[], None]:
@@ -201,7 +229,8 @@ def _instruments(simulator: dict, where: str):
 
 
 GENERIC_KEYS = ("velocity_unit", "velocity_side", "encoder_increments_per_rev", "rated_current_a", "rated_torque_nm",
-                "fixed_pdo_mapping")
+                "fixed_pdo_mapping", "comm_loss_reaction", "found_running_mech_rad_s", "tpdo_stops_after_s",
+                "tpdo_stops")
 
 
 def drive_spec(simulator: dict) -> DriveSpec | None:

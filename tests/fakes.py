@@ -29,6 +29,7 @@ class FakeRig:
     interrupt_at_s: float | None = None      # sync() raises KeyboardInterrupt once at this drive time
     hang_at_s: float | None = None           # sync() blocks (a stuck call) from this drive time until `release` is set
     overspeed_offset: float = 0.0            # added to the true speed reported live (to trip the supervisor)
+    drill_result: str = "passed"             # what the fake drive's comm-loss drill reports (passed/failed/unverified)
     calls: list[tuple[str, tuple]] = field(default_factory=list)
     model: object = None                     # any sim_backend DriveModel; default a ToyDrive
 
@@ -71,6 +72,19 @@ class FakeDriveLink:
         self.live = tuple(live_signals)
         self.trace = tuple(trace_signals)
         self.decimation = trace_decimation
+
+    def drill(self, before_withhold=None) -> dict:
+        """No protocol, no watchdog: the fake says what the rig asks it to (the orchestrator's handling is tested)."""
+        self._log("drive.drill")
+        if before_withhold is not None:
+            before_withhold()
+        result = {"what": "drive", "result": self.rig.drill_result, "left_operation_enabled_ms": 0.0,
+                  "consumer_ms": 0, "margin_ms": 0}
+        if self.rig.drill_result == "failed":
+            result["refusal"] = "fake drive: comm-loss drill failed (the rig says so)"
+        if self.rig.drill_result == "unverified":
+            result["external_stop"] = "fake STO relay"
+        return result
 
     def enable_velocity_mode(self) -> None:
         self._log("drive.enable_velocity_mode")
@@ -174,6 +188,10 @@ class FakeLoadLink:
         self._log("load.enable", on)
         self.enabled = bool(on)
         self.rig.model.set_load(int(self.mode), self.value, self.enabled)
+
+    def drill(self) -> dict:
+        self._log("load.drill")
+        return {"what": "load machine", "result": "passed", "disabled_within_ms": 0.0, "timeout_ms": 0}
 
     def feedback(self) -> LoadFeedback:
         speed, torque = self.rig.model.load_feedback()

@@ -34,6 +34,7 @@ BENCH = """
 [bench]
 name = "killed-sim"
 timing = "lockstep"
+served_by = "drivebench sim serve"     # a served simulator: lockstep allowed
 plant_injections = true
 fault_reset = "once"
 

@@ -154,3 +154,49 @@ def test_sigkilled_bench_leaves_the_drive_and_the_load_machine_to_stop_themselve
             server.wait(30)
         except subprocess.TimeoutExpired:
             server.kill()
+
+
+def test_a_served_drive_without_comm_loss_reaction_is_refused_before_motion(tmp_path):
+    """The same rig with the quirk of a drive that watches the bench's heartbeat (EMCY, NMT change) but has no CiA 402
+    reaction: SIGKILLing the bench mid-run would leave it running, so the drill refuses the run before the first
+    motion. Watched by a second master: the shaft never turned, the drive is left switched off."""
+    serve_cfg = tmp_path / "serve.toml"
+    serve_cfg.write_text(SERVE.replace('drive = "generic"\n', 'drive = "generic"\ncomm_loss_reaction = false\n'))
+    server = _serve(serve_cfg)
+    monitor = canopen.Network()
+    try:
+        lines = _endpoints(server, timeout=120.0)
+        can_port = next(l for l in lines if l.startswith("canopen ")).split(":")[2].split("/")[0]
+        modbus_port = int(next(l for l in lines if l.startswith("modbus ")).split(":")[2].split()[0])
+        bench = tmp_path / "bench.toml"
+        bench.write_text(BENCH.format(can_port=can_port, eds=EDS, modbus_port=modbus_port))
+        scenario = tmp_path / "killed.toml"
+        scenario.write_text(SCENARIO.format(bench=bench))
+        monitor.connect(interface="socketcand", channel="can0", host="127.0.0.1", port=int(can_port))
+        node = monitor.add_node(1, str(EDS))
+        node.sdo.RESPONSE_TIMEOUT = 2.0
+        frames: list[tuple[int, bytes]] = []     # a passive listener, as candump: every frame the bench sends
+        monitor.subscribe(0x201, lambda cob, data, ts: frames.append((cob, bytes(data))))       # RPDO1
+        monitor.subscribe(0x601, lambda cob, data, ts: frames.append((cob, bytes(data))))       # SDO requests
+        started = time.monotonic()
+        run = subprocess.run([sys.executable, "-m", "bench", "run", str(scenario), "--out", str(tmp_path / "runs"),
+                              "--rerun", "off"], cwd=REPO, capture_output=True, text=True, timeout=120)
+        assert run.returncode == 2, run.stdout + run.stderr
+        text = " ".join((run.stdout + run.stderr).split())
+        assert "comm-loss drill failed: the drive noticed the lost heartbeat (EMCY 0x8130" in text, text
+        assert 'comm_loss = "external" and external_stop =' in text
+        assert time.monotonic() - started < 60
+        # never commanded to move: no non-zero target velocity by SDO (0x60FF) or in RPDO1 (controlword, target)
+        targets = [d for cob, d in frames if cob == 0x601 and d[0] & 0xE0 == 0x20 and d[1:3] == b"\xFF\x60"]
+        assert frames and targets and all(d[4:8] == bytes(4) for d in targets), targets
+        assert all(d[2:6] == bytes(4) for cob, d in frames if cob == 0x201 and len(d) >= 6)
+        assert abs(node.sdo[0x606C].raw) <= 5                               # rpm: standing still
+        assert cia402.decode(node.sdo[0x6041].raw) is cia402.State.SWITCH_ON_DISABLED
+    finally:
+        with contextlib.suppress(Exception):
+            monitor.disconnect()
+        server.send_signal(signal.SIGINT)
+        try:
+            server.wait(30)
+        except subprocess.TimeoutExpired:
+            server.kill()

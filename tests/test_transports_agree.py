@@ -129,8 +129,8 @@ def test_virtual_can_socketcand_and_serial_pty_agree(tmp_path):
     }
     proc, endpoints = _serve_pmsm(tmp_path)
     try:
-        benches["socketcand"] = _bench(
-            tmp_path, "socketcand", "",
+        benches["socketcand"] = _bench(          # a served simulator: lockstep only where the config says so
+            tmp_path, "socketcand", 'served_by = "drivebench sim serve"\n',
             f'transport = "canopen"\ninterface = "socketcand"\nchannel = "can0@127.0.0.1:{endpoints["socketcand"]}"\n'
             f'node_id = 1\neds = "{EDS}"\nsdo_timeout_s = 5.0\n', f'port = {endpoints["modbus"]}')
         results = {}

@@ -133,6 +133,7 @@ class Service:
             view = rig_view(row, active_leases(s, name), name in held_rigs(s)).contract()
             view["bench"] = row.bench
             view["enabled"] = row.enabled
+            view["comm_loss_unverified"] = _stated_external(row.bench)
             return view
 
     def set_rig_enabled(self, name: str, enabled: bool) -> dict:
@@ -274,3 +275,15 @@ class Service:
                 raise not_found(f"token {token_id}")
             row.revoked = True
         self.tokens.forget()
+
+
+def _stated_external(bench: str) -> str | None:
+    """The rig page says plainly when the rig's comm-loss reaction is stated in its bench config, not drilled."""
+    from bench.benchconfig import load_bench_config
+    from bench.drill import stated_external
+    from bench.errors import InputError
+
+    try:
+        return stated_external(load_bench_config(bench))
+    except (InputError, OSError):
+        return None

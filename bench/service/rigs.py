@@ -7,6 +7,8 @@
     tags = ["pmsm"]
     max_concurrent = 2          # simulated rigs only (default 2); a real rig is always 1
     # simulated = true          # default: the bench config starts its own services (a simulator)
+    # allow_unverified_comm_loss = true   # an admin's mark: the bench config states an external stop chain
+    #                                     # (comm_loss = "external") instead of the drill; its runs are unverified
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from bench.benchconfig import load_bench_config, read_toml, resolve_path
+from bench.drill import stated_external
 from bench.errors import InputError, Problems, find_repo_root
 
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
@@ -30,6 +33,7 @@ class RigConfig:
     simulated: bool
     max_concurrent: int
     description: str = field(default="")
+    comm_loss_unverified: str | None = None     # what the bench config states instead of the drill (bench.drill)
 
 
 def load_rigs(path: str | Path) -> list[RigConfig]:
@@ -49,7 +53,8 @@ def load_rigs(path: str | Path) -> list[RigConfig]:
         if not isinstance(item, dict):
             p.add(where, "must be a table")
             continue
-        p.unknown_keys(item, ("name", "bench", "tags", "simulated", "max_concurrent", "description"), where)
+        p.unknown_keys(item, ("name", "bench", "tags", "simulated", "max_concurrent", "description",
+                              "allow_unverified_comm_loss"), where)
         name = p.string(item, "name", where)
         if name is not None and not NAME_RE.match(name):
             p.add(f"{where}.name", f"{name!r}: letters, digits, '.', '_' and '-' only (at most 64)")
@@ -78,10 +83,16 @@ def load_rigs(path: str | Path) -> list[RigConfig]:
         if not simulated and concurrent not in (None, 1):
             p.add(f"{where}.max_concurrent", "a real rig runs one run at a time (1)")
         description = p.string(item, "description", where, required=False, default="") or ""
+        unverified = stated_external(cfg) if cfg is not None else None
+        allowed = p.boolean(item, "allow_unverified_comm_loss", where, required=False, default=False)
+        if unverified and not allowed:
+            p.add(f"{where}.allow_unverified_comm_loss", f"its bench config states an external stop chain instead of "
+                  f"the drill ({unverified}); the service runs it only when an admin sets "
+                  f"allow_unverified_comm_loss = true on this rig")
         if name and bench and cfg is not None and simulated is not None and concurrent is not None:
             kind = "simulated" if simulated else "real"
             all_tags = tuple(dict.fromkeys([*tags, kind]))
             rigs.append(RigConfig(name, str(bench), all_tags, bool(simulated), concurrent if simulated else 1,
-                                  description))
+                                  description, unverified))
     p.raise_if_any()
     return rigs

@@ -17,7 +17,7 @@ import canopen
 from drivers.api import LinkError
 from drivers.canopen import objects as o
 from drivers.canopen.sdo import SdoAccess
-from drivers.comm_loss import CommLossConfig
+from drivers.comm_loss import EXTERNAL_HINT, CommLossConfig
 
 @dataclass
 class CommLossGuard:
@@ -33,15 +33,16 @@ class CommLossGuard:
     def arm(self) -> dict[str, Any]:
         cfg = self.config
         if cfg.mode == "external":
-            self.report = {"mode": "external", "note": "the bench config says the rig stops the drive by itself "
-                                                       "(e.g. STO on a watchdog); nothing configured in the drive"}
+            self.report = {"mode": "external", "external_stop": cfg.external_stop,
+                           "note": "the bench config says the rig stops the drive by other means; nothing configured "
+                                   "in the drive, nothing proved: unverified comm-loss reaction"}
             return self.report
         cob = o.HEARTBEAT + cfg.bench_node_id
         sub = self._consumer_sub()
         if sub is None:
             raise LinkError(f"{self.sdo.where}: the drive has no consumer heartbeat (0x1016): it cannot stop itself when "
                             "the bench dies; only a rig that stops the drive by other means may run it, with "
-                            "[drive] comm_loss = \"external\"")
+                            f"[drive] {EXTERNAL_HINT}")
         value = cfg.bench_node_id << 16 | cfg.consumer_time_ms
         self._set(o.CONSUMER_HEARTBEAT, sub, value, 4)
         self.report = {"mode": "heartbeat", "bench_heartbeat": f"0x{cob:03X} every {cfg.producer_period_s * 1e3:g} ms",
@@ -55,8 +56,24 @@ class CommLossGuard:
             if self._set(o.ERROR_BEHAVIOUR, 1, cfg.error_behaviour, 1):
                 self.report["error_behaviour_0x1029"] = f"sub 1 = {cfg.error_behaviour}"
         # the heartbeat starts after the drive watches for it: its first frame, now, starts the drive's monitoring
-        self._task = self.network.send_periodic(cob, [o.NMT_OPERATIONAL], cfg.producer_period_s)
+        self.resume()
         return self.report
+
+    @property
+    def producing(self) -> bool:
+        return self._task is not None
+
+    def withhold(self) -> None:
+        """The drill: the bench's heartbeat stops, as if the bench had died (everything else goes on)."""
+        if self._task is not None:
+            self._task.stop()
+            self._task = None
+
+    def resume(self) -> None:
+        """The bench's heartbeat (again): its first frame goes out now."""
+        if self._task is None and self.config.mode != "external":
+            cob = o.HEARTBEAT + self.config.bench_node_id
+            self._task = self.network.send_periodic(cob, [o.NMT_OPERATIONAL], self.config.producer_period_s)
 
     def _consumer_sub(self) -> int | None:
         """The 0x1016 entry to use: one that already watches the bench's node id, else the first empty one."""
@@ -86,7 +103,5 @@ class CommLossGuard:
             except LinkError as exc:
                 errors.append(str(exc))
         self._restore.clear()
-        if self._task is not None:
-            self._task.stop()
-            self._task = None
+        self.withhold()
         return errors

@@ -25,7 +25,7 @@ import struct
 import threading
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import can
 import canopen
@@ -40,6 +40,7 @@ from drivers.canopen import objects as o
 from drivers.canopen import pdo as pdos
 from drivers.canopen.bus import BusErrorCounter, bus_kwargs, open_bus
 from drivers.canopen.comm_loss import CommLossGuard
+from drivers.canopen import drill as drills
 from drivers.comm_loss import CommLossConfig
 from drivers.canopen.profile import DriveProfile, ProfileConfig, ProfileError, resolve
 from drivers.canopen.sdo import SdoAccess, block_upload
@@ -107,6 +108,7 @@ class CanopenDriveLink:
         self._rx_lag_s = 0.0
         self._last_return = 0.0
         self.bus_errors = BusErrorCounter()
+        self._reference_speed: Callable[[], float | None] | None = None
 
     # -- connection ----------------------------------------------------------------------------------
     def open(self) -> DriveIdentity:
@@ -362,6 +364,35 @@ class CanopenDriveLink:
                 self._lock.notify_all()
 
     # -- SYNC ----------------------------------------------------------------------------------------
+    @property
+    def heartbeat_state(self) -> tuple[int | None, float]:
+        """The NMT state the drive's last heartbeat carried, and when it came (monotonic)."""
+        with self._lock:
+            return self._heartbeat_state, self._last_heartbeat
+
+    def take_emcy(self) -> list[tuple[int, str]]:
+        with self._lock:
+            emcy, self._emcy = self._emcy, []
+            return emcy
+
+    def drop_pending(self) -> list[str]:
+        """Forget the samples and link complaints of a drill (the drive in pre-operational sends no TPDOs); returns
+        the complaints, for the drill's record."""
+        with self._lock:
+            errors, self._errors = self._errors, []
+            self._samples.clear()
+            return errors
+
+    def drill(self, before_withhold: Callable[[], None] | None = None) -> dict[str, Any]:
+        """The bench-death drill (drivers.canopen.drill): the drive's reaction to the bench's silence, proved."""
+        result = drills.drill(self, before_withhold)
+        self.report["drill"] = result
+        return result
+
+    def set_reference_speed(self, speed: Callable[[], float | None]) -> None:
+        """The rig's reference sensor (mech rad/s), so a drive found running is judged at rest by the shaft too."""
+        self._reference_speed = speed
+
     def _check_health(self) -> None:
         bus_problem = self.bus_errors.problem(self.network.bus if self.network is not None else None)
         if bus_problem:
@@ -488,8 +519,46 @@ class CanopenDriveLink:
             code = self.sdo.read_standard(o.ERROR_CODE, 0)
             return "no error code" if code is None else f"error code 0x{code:04X}"
 
+        self._wait_for_rest()
         cia402.enable_operation(self, fault_reset_policy=self.fault_reset_policy, timeout_s=self._step_timeout_s,
-                                where=self.where, select_mode=select_mode, fault_detail=fault_detail)
+                                where=self.where, select_mode=select_mode, fault_detail=fault_detail,
+                                bring_to_rest=self._bring_to_rest)
+
+    def _rest_speed(self) -> float | None:
+        """|speed| for 'at rest': the larger of the drive's report and the reference sensor's (either may be None)."""
+        speeds = [self._speed_now()]
+        if self._reference_speed is not None:
+            reference = self._reference_speed()
+            speeds.append(None if reference is None else abs(reference))
+        known = [s for s in speeds if s is not None and math.isfinite(s)]
+        return max(known) if known else None
+
+    def _bring_to_rest(self) -> None:
+        """A drive found powered (left running by someone): quick stop, then wait (bounded) until both the drive and
+        the reference sensor say standstill; else nothing is enabled."""
+        before = self._rest_speed()
+        cia402.quick_stop(self, self._step_timeout_s, self.where)
+        self._await_rest("found running", before)
+
+    def _wait_for_rest(self) -> None:
+        """A shaft still turning with the power stage off (coasting, or turned by the load) is waited for too."""
+        if cia402.decode(self.read_statusword()) in cia402.POWERED_STATES:
+            return                         # enable_operation brings it to rest (_bring_to_rest)
+        speed = self._rest_speed()
+        if speed is not None and speed > self.standstill_mech_rad_s:
+            self._await_rest("found turning with its power stage off", speed)
+
+    def _await_rest(self, what: str, before: float | None) -> None:
+        advance = self.sync if self.timing == "lockstep" else (lambda: time.sleep(max(self.sync_period_s, 0.01)))
+        rest = cia402.wait_standstill(advance, self._rest_speed, self.standstill_mech_rad_s, self.stop_timeout_s,
+                                      self._stop_advances())
+        self.report["found_running"] = {"what": what, "speed_mech_rad_s": before, **rest}
+        if not rest["standstill"]:
+            speed = rest["speed_at_disable_mech_rad_s"]
+            raise LinkError(f"{self.where}: drive {what} at {before if before is not None else float('nan'):.1f} "
+                            f"rad/s did not come to standstill within {self.stop_timeout_s:g} s (now "
+                            f"{'unknown' if speed is None else f'{speed:.1f}'} rad/s): not enabling onto a turning "
+                            f"shaft")
 
     def set_speed_ref(self, speed_mech_rad_s: float) -> None:
         if not math.isfinite(speed_mech_rad_s):
@@ -550,9 +619,11 @@ class CanopenDriveLink:
     def status(self) -> DriveStatus:
         with self._lock:
             emcy, self._emcy = self._emcy, []
-            state = cia402.decode(self._decoder.statusword)
-            return DriveStatus(state=cia402.state_name(self._decoder.statusword),
-                               fault=state in cia402.FAULT_STATES, heartbeat_ok=self._heartbeat_ok(), emcy=emcy)
+            word = self._decoder.statusword
+            state = cia402.decode(word)
+            return DriveStatus(state=cia402.state_name(word), fault=state in cia402.FAULT_STATES,
+                               heartbeat_ok=self._heartbeat_ok(), emcy=emcy,
+                               warning=bool(word & cia402.StatusBit.WARNING))
 
     # -- parameters ----------------------------------------------------------------------------------
     def write_parameter(self, name: str, value: float) -> None:

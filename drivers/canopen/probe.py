@@ -56,8 +56,9 @@ def _pdos(sdo: SdoAccess, od: canopen.ObjectDictionary, comm_base: int, map_base
 def probe(section: dict, base_dir: Path) -> dict[str, Any]:
     """The drive's identity, profile, units, PDO mappings, heartbeat and comm-loss objects, and which drivebench
     features it carries; `profile` says what the bench would use, or what to fix in the bench config."""
-    eds = Path(section["eds"])
-    eds = eds if eds.is_absolute() else base_dir / eds
+    eds = Path(section["eds"]) if section.get("eds") else None
+    if eds is not None and not eds.is_absolute():
+        eds = base_dir / eds
     node_id = int(section["node_id"])
     network = canopen.Network()
     kwargs = bus_kwargs(section)
@@ -67,10 +68,11 @@ def probe(section: dict, base_dir: Path) -> dict[str, Any]:
         raise LinkError(f"CAN interface {section.get('interface')!r} channel {section.get('channel')!r}: "
                         f"cannot open: {exc}") from None
     try:
-        od = canopen.import_od(str(eds), node_id)
+        # no EDS yet (a lab's first step): every standard object is read from the device by its number anyway
+        od = canopen.import_od(str(eds), node_id) if eds is not None else canopen.ObjectDictionary()
         node = network.add_node(node_id, od)
         node.sdo.RESPONSE_TIMEOUT = float(section.get("sdo_timeout_s", 0.5))
-        sdo = SdoAccess(node, eds.name, node.sdo.RESPONSE_TIMEOUT)
+        sdo = SdoAccess(node, eds.name if eds is not None else "(no EDS)", node.sdo.RESPONSE_TIMEOUT)
         vendor, product, revision, serial = (sdo.read_standard(o.IDENTITY, k) for k in (1, 2, 3, 4))
         if vendor is None:
             raise LinkError(f"node {node_id}: no identity object (0x1018) answered")
@@ -110,6 +112,9 @@ def probe(section: dict, base_dir: Path) -> dict[str, Any]:
                            "trace_recorder": extension.carries_extension(vendor, product or 0)
                            and sdo.read_standard(o.EXT_TRACE, o.TRACE_ROW_SIZE) is not None},
         }
+        report["error_code_0x603F"] = sdo.read_standard(o.ERROR_CODE, 0)
+        report["statusword"] = statusword
+        report["supported_modes_0x6502"] = modes
         if consumers is None:
             report["heartbeat"]["warning"] = ("no consumer heartbeat (0x1016): this drive cannot stop itself when the "
                                               "bench dies; the bench refuses it unless comm_loss = \"external\"")
@@ -118,9 +123,27 @@ def probe(section: dict, base_dir: Path) -> dict[str, Any]:
             report["profile"] = profile.as_record()
         except ProfileError as exc:
             report["profile"] = {"error": str(exc)}
+        # last: a stray answer on another node's SDO channel must not meet one of the reads above
+        bench_id = int(section.get("bench_node_id", o.HEARTBEAT_BENCH_NODE_ID))
+        report["bench_node_id"] = {"id": bench_id,
+                                   "answers_on_the_bus": bench_id == node_id or _answers(network, bench_id)}
         return report
     finally:
         network.disconnect()
+
+
+def _answers(network: canopen.Network, node_id: int) -> bool:
+    """Does a node answer an SDO read of 0x1000 at node_id (the bench's own heartbeat id would clash with it)?"""
+    import threading
+
+    answered = threading.Event()
+    cob = o.SDO_TX + node_id
+    network.subscribe(cob, lambda can_id, data, ts: answered.set())
+    try:
+        network.send_message(o.SDO_RX + node_id, struct.pack("<BHBL", 0x40, o.DEVICE_TYPE, 0, 0))
+        return answered.wait(SCAN_TIMEOUT_S)
+    finally:
+        network.unsubscribe(cob)
 
 
 def _pair(sdo: SdoAccess, index: int, text: str) -> str:

@@ -294,7 +294,8 @@ def measurable(profile: DriveProfile) -> frozenset[str]:
 
 PROFILE_KEYS = ("profile", "velocity_unit", "velocity_side", "units_confirmed", "encoder_increments_per_rev",
                 "gear_ratio", "rated_torque_nm",
-                "rated_current_a", "signals", "pdo", "comm_loss", "consumer_time_ms", "abort_option",
+                "rated_current_a", "signals", "pdo", "comm_loss", "external_stop", "consumer_time_ms", "abort_option",
+                "drill_margin_ms",
                 "error_behaviour", "bench_node_id", "standstill_mech_rad_s", "stop_timeout_s", "can")
 _POSITIVE = ("encoder_increments_per_rev", "rated_torque_nm", "rated_current_a")
 

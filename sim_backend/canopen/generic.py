@@ -40,6 +40,12 @@ class DriveSpec:
     rated_torque_nm: float | None = None
     fixed_pdo_mapping: bool = False
     comm_loss_objects: bool = True            # False: a drive that really lacks 0x1016/0x6007/0x1029 (tests)
+    # vendor quirks (a [simulator] option each; docs/rig.md "Simulated quirks")
+    comm_loss_reaction: bool = True           # False: 0x1016 watched (EMCY 0x8130, 0x1029 NMT change) but no 0x6007
+                                              # and no CiA 402 reaction: the drive stays OPERATION ENABLED
+    found_running_mech_rad_s: float | None = None   # enabled and turning at this speed when the bench connects
+    tpdo_stops_after_s: float | None = None   # TPDO `tpdo_stops` (0: all) goes silent after this much drive time
+    tpdo_stops: int = 0
 
 
 def is_drivebench(od: objectdictionary.ObjectDictionary) -> bool:
@@ -55,9 +61,14 @@ def _var(name: str, index: int, subindex: int, data_type: int, access: str, defa
     return var
 
 
-def add_missing_standard_objects(od: objectdictionary.ObjectDictionary, comm_loss: bool = True) -> list[str]:
-    """The comm-loss objects a CiA 402 drive has even where its EDS omits them; returns what was added."""
+def add_missing_standard_objects(od: objectdictionary.ObjectDictionary, comm_loss: bool = True,
+                                 abort_option: bool = True) -> list[str]:
+    """The comm-loss objects a CiA 402 drive has even where its EDS omits them; returns what was added. A drive
+    without a CiA 402 comm-loss reaction (`abort_option` False) has no 0x6007, whatever its EDS says."""
     added = []
+    if not abort_option and o.ABORT_CONNECTION_OPTION in od:
+        del od[o.ABORT_CONNECTION_OPTION]
+    comm_loss_reaction = comm_loss and abort_option
     records = ((o.CONSUMER_HEARTBEAT, "Consumer heartbeat time", "Consumer heartbeat time 1", o.UNSIGNED32),
                (o.ERROR_BEHAVIOUR, "Error behaviour", "Communication error", o.UNSIGNED8))
     for index, name, entry, data_type in records if comm_loss else ():
@@ -70,7 +81,7 @@ def add_missing_standard_objects(od: objectdictionary.ObjectDictionary, comm_los
     for index, name, data_type, default in ((o.ABORT_CONNECTION_OPTION, "Abort connection option code", o.INTEGER16, 1),
                                             (o.QUICK_STOP_OPTION, "Quick stop option code", o.INTEGER16, 2),
                                             (o.COMM_CYCLE_PERIOD, "Communication cycle period", o.UNSIGNED32, 1000)):
-        if index not in od and (comm_loss or index != o.ABORT_CONNECTION_OPTION):
+        if index not in od and (comm_loss_reaction or index != o.ABORT_CONNECTION_OPTION):
             od.add_object(_var(name, index, 0, data_type, "rw", default))
             added.append(f"0x{index:04X}")
     return added

@@ -49,7 +49,11 @@ class SimCanopenNode:
         self.network.NOTIFIER_CYCLE = 0.02      # stop() returns within 20 ms (the notifier thread polls)
         od = canopen.import_od(str(eds_path), node_id)
         spec = drive or generic.DriveSpec()
-        self.added_objects = generic.add_missing_standard_objects(od, spec.comm_loss_objects)
+        self.added_objects = generic.add_missing_standard_objects(od, spec.comm_loss_objects, spec.comm_loss_reaction)
+        device.cia402_comm_loss_reaction = spec.comm_loss_reaction
+        self._tpdo_stop = (None if spec.tpdo_stops_after_s is None else
+                           (spec.tpdo_stops_after_s, spec.tpdo_stops))   # after this much operational drive time
+        self._operational_since: float | None = None
         generic.fill_defaults(od)
         self.od = od
         self.node = DriveLocalNode(node_id, od)
@@ -170,10 +174,24 @@ class SimCanopenNode:
             self._was_fault = True
         self._sync_count += 1
         if self.nmt_state != o.NMT_OPERATIONAL:
+            self._operational_since = None
             return
         frames = self.pdos.tpdo_frames(self._sync_count)
+        if self._tpdo_stop is not None:
+            if self._operational_since is None:
+                self._operational_since = self.device.time_s
+            if self.device.time_s - self._operational_since > self._tpdo_stop[0]:
+                frames = self._without_stopped_tpdo(frames)
         if frames:
             send_frames(self.network, frames)     # one burst: the bench's receive thread wakes once per SYNC
+
+    def _without_stopped_tpdo(self, frames: list[tuple[int, bytes]]) -> list[tuple[int, bytes]]:
+        """The quirk of a drive whose TPDO goes silent (a firmware bug, a PDO inhibit gone wrong)."""
+        number = self._tpdo_stop[1]
+        if number == 0:
+            return []
+        silent = {pdo.cob_id for k, pdo in enumerate(self.pdos.tpdos, 1) if k == number}
+        return [f for f in frames if f[0] not in silent]
 
     # -- EMCY / heartbeat ----------------------------------------------------------------------------
     def _send_emcy(self, code: int, register: int) -> None:
@@ -187,6 +205,12 @@ class SimCanopenNode:
 
     def _on_master_lost(self) -> None:
         """0x1029 sub 1 (communication error): 0 -> pre-operational, 2 -> stopped, 1 -> no change."""
+        try:
+            for code in self.device.take_emcy():   # at once, as a drive does: not with the next SYNC
+                self._send_emcy(code, error_register_for(code))
+                self._was_fault = True
+        except Exception as exc:                   # bus closed while stopping
+            log.debug("EMCY on master lost: %s", exc)
         behaviour = self._raw(o.ERROR_BEHAVIOUR, 1) if o.ERROR_BEHAVIOUR in self.od else 1
         if behaviour in (0, 2):
             self.node.nmt.state = "PRE-OPERATIONAL" if behaviour == 0 else "STOPPED"

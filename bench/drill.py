@@ -1,0 +1,154 @@
+"""Before the first motion of every run (and `drivebench probe --drill`): the bench-death drill on the drive and the
+load machine, and what the record, the verdict table and the service show about it.
+
+The drive is drilled by its link (CANopen: heartbeat withheld, drivers.canopen.drill; serial: requests withheld);
+once the drive holds the shaft at zero velocity the load machine is drilled alongside (its watchdog feed withheld),
+so the drill costs the longer of the two times, not their sum. A drive or load machine that fails, or whose reaction
+cannot be observed, refuses the run (`DrillRefused`, one line naming what and the config line to write); one whose
+bench config states an external stop chain is run and shown as unverified comm-loss reaction everywhere.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+from drivers.api import LinkError
+from drivers.comm_loss import EXTERNAL_HINT
+
+UNVERIFIED = "unverified comm-loss reaction"
+LOAD_JOIN_MARGIN_S = 10.0     # the load drill's own wait is its watchdog time plus margin; this bounds the rest
+
+
+class DrillRefused(LinkError):
+    """The drive or the load machine failed the drill, or its reaction cannot be observed."""
+
+
+def run_drills(drive: Any, load: Any | None) -> dict[str, Any]:
+    """Drill the drive (and the load machine alongside); the record's `comm_loss` section. Both are left disabled
+    with their watchdogs fed again."""
+    load_out: dict[str, Any] = {}
+    thread: threading.Thread | None = None
+    load_drill = getattr(load, "drill", None) if load is not None else None
+
+    def drill_load() -> None:
+        try:
+            load_out["result"] = load_drill()
+        except BaseException as exc:       # re-raised on the caller's thread
+            load_out["error"] = exc
+
+    def start_load() -> None:
+        nonlocal thread
+        if load_drill is not None and thread is None:
+            thread = threading.Thread(target=drill_load, name="load-drill", daemon=True)
+            thread.start()
+
+    drive_drill = getattr(drive, "drill", None)
+    if drive_drill is None:
+        drive_result = {"what": "drive", "result": "failed",
+                        "refusal": f"drive: its link ({type(drive).__name__}) has no comm-loss drill, so its reaction "
+                                   f"to the bench's death cannot be observed; where the rig stops it by other means "
+                                   f"write [drive] {EXTERNAL_HINT}"}
+    else:
+        try:
+            drive_result = drive_drill(before_withhold=start_load)
+        finally:
+            # a drive whose watchdog only sees requests (serial) must hear from the bench while the load's drill
+            # goes on, or it reacts a second time
+            keepalive = getattr(drive, "keepalive", None)
+            deadline = LOAD_JOIN_MARGIN_S + 60.0
+            while thread is not None and thread.is_alive() and deadline > 0:
+                thread.join(0.05)
+                deadline -= 0.05
+                if keepalive is not None:
+                    keepalive()
+    if load is None:
+        load_result: Any = "none: free shaft"
+    else:
+        if load_drill is not None and thread is None:
+            drill_load()                   # the drive was not enabled for its drill (external): the load alone
+        if "error" in load_out:
+            raise load_out["error"]
+        load_result = load_out.get("result") or {
+            "what": "load machine", "result": "failed",
+            "refusal": "load machine: its link has no comm-loss drill (or it did not finish); where the rig stops it "
+                       f"by other means write [load] {EXTERNAL_HINT}"}
+    results = [r for r in (drive_result, load_result) if isinstance(r, dict)]
+    return {"verified": all(r.get("result") == "passed" for r in results),
+            "drive": drive_result, "load": load_result}
+
+
+def refusal(summary: dict[str, Any]) -> str | None:
+    lines = [r["refusal"] for r in (summary.get("drive"), summary.get("load"))
+             if isinstance(r, dict) and r.get("result") == "failed"]
+    return "; ".join(lines) or None
+
+
+def unverified(summary: dict[str, Any] | None) -> str | None:
+    """One line for the verdict table and the service: what was not proved and what the config states instead."""
+    if not summary or summary.get("verified"):
+        return None
+    parts = []
+    for r in (summary.get("drive"), summary.get("load")):
+        if isinstance(r, dict) and r.get("result") == "unverified":
+            parts.append(f"{r.get('what')}: stopped by the rig's own chain ({r.get('external_stop') or 'not said'}), "
+                         "stated in the bench config, not proved")
+    return f"{UNVERIFIED}: " + "; ".join(parts) if parts else None
+
+
+def timings(summary: dict[str, Any] | None) -> str | None:
+    """The drill in one line (verdict table): reaction vs consumer time."""
+    if not summary:
+        return None
+    parts = []
+    drive, load = summary.get("drive"), summary.get("load")
+    if isinstance(drive, dict) and drive.get("result") == "passed":
+        parts.append(f"drive left OPERATION ENABLED {drive['left_operation_enabled_ms']:.0f} ms after the bench's "
+                     f"heartbeat stopped (consumer {drive['consumer_ms']} ms + margin {drive['margin_ms']} ms)")
+    if isinstance(load, dict) and load.get("result") == "passed":
+        parts.append(f"load machine disabled within {load['disabled_within_ms']:.0f} ms of silence "
+                     f"(watchdog {load['timeout_ms']} ms)")
+    return "comm-loss drill passed: " + "; ".join(parts) if parts else None
+
+
+def stated_external(cfg: Any) -> str | None:
+    """From a bench config alone (the service's rig list): the stop chains it states instead of a drill."""
+    parts = []
+    if cfg.drive.get("comm_loss") == "external":
+        parts.append(f"drive: {cfg.drive.get('external_stop') or 'not said'}")
+    if cfg.load and cfg.load.get("comm_loss") == "external":
+        parts.append(f"load machine: {cfg.load.get('external_stop') or 'not said'}")
+    return f"{UNVERIFIED}: the rig's own stop chain, stated, not proved ({'; '.join(parts)})" if parts else None
+
+
+def drill_rig(live_cfg: Any, base_dir: Any, live_signals: tuple[str, ...]) -> dict[str, Any]:
+    """`drivebench probe --drill`: connect as a run does (comm-loss armed, PDOs set for `live_signals`), drill, leave
+    both off, close. The only probe step that writes to the drive and enables it (at zero velocity)."""
+    from bench.links import make_links
+    from bench.supervisor import SafeStop
+    from drivers.reference import ReferenceConfig
+
+    drive, load = make_links(live_cfg, base_dir)
+    opened = []
+    try:
+        drive.open()
+        opened.append(drive)
+        if load is not None:
+            load.open()
+            opened.append(load)
+        drive.configure(live_signals, (), 1)
+        reference = ReferenceConfig(live_cfg.reference_source).signals(load is not None)
+        set_reference = getattr(drive, "set_reference_speed", None)
+        if set_reference is not None and load is not None and "speed_true_mech_rad_s" in reference:
+            set_reference(lambda: load.feedback().speed_mech_rad_s)
+        return run_drills(drive, load)
+    except BaseException:
+        if opened:
+            SafeStop(drive if drive in opened else None, load if load in opened else None).run()
+        raise
+    finally:
+        for link in reversed(opened):
+            try:
+                link.close()
+            except Exception:
+                pass
