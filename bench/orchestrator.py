@@ -400,6 +400,9 @@ class _Run:
     def _note_link_reports(self) -> None:
         """What each link read from its device and set in it (profile, units, PDOs, comm loss, watchdog)."""
         self.recorder.note("drive_settings", getattr(self.drive, "report", {}))
+        sync_report = getattr(self.drive, "sync_report", None)
+        if sync_report is not None:        # SYNC interval statistics at the bench, how samples were placed in time
+            self.recorder.note("sync", sync_report())
         if self.load is not None:
             self.recorder.note("load_settings", getattr(self.load, "report", {}))
 
@@ -601,7 +604,9 @@ class _Run:
         duration = float(self.scenario.duration_s)
         row_period = self._row_period_s()
         # live samples of a drive without a clock are stamped on receipt in real time: they jitter, allow for it
-        tolerance = 1.9 if self.realtime and self.data_source == "pdo" else 1.5
+        # (placed on the SYNC they answer, or on the drive's clock, they do not: a single missing row is a gap)
+        receive_stamped = getattr(self.drive, "time_base", "receive time") == "receive time"
+        tolerance = 1.9 if self.realtime and self.data_source == "pdo" and receive_stamped else 1.5
         if row_period:
             axis = TimeAxis(row_period, tolerance)
             for chunk in self.recorder.iter_back([], t_max=duration + 1e-9):

@@ -70,6 +70,7 @@ class RunRecord(TypedDict, total=False):
     injections_applied: list[dict[str, Any]]
     drive_settings: dict[str, Any]  # what the link configured and read from the drive (units, comm-loss reaction)
     load_settings: dict[str, Any]
+    sync: dict[str, Any]            # SYNC intervals at the bench (p50/p99/max ms, late, skipped), time base, placement
     # at the end
     trips: list[dict[str, Any]]
     supervisor_trip: dict[str, Any]

@@ -178,7 +178,7 @@ def spec_for_bench(bench_cfg: dict, seed: int) -> RigSpec:
 
 
 GENERIC_KEYS = ("velocity_unit", "encoder_increments_per_rev", "rated_current_a", "rated_torque_nm",
-                "fixed_pdo_mapping")
+                "fixed_pdo_mapping", "csv_only", "event_tpdos_only", "boot_delay_s")
 
 
 def drive_spec(simulator: dict) -> DriveSpec | None:
