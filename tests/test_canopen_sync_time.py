@@ -374,8 +374,8 @@ def test_event_driven_tpdos_are_used_where_the_drive_refuses_sync_transmission(t
         assert report["time_base"] == "receive time"
         assert report["answers"] > 200 and report["interval_p50_ms"] == pytest.approx(10.0, abs=3.0)
         assert report["interval_p99_ms"] is not None and report["interval_max_ms"] >= report["interval_p50_ms"]
-        t = np.array([s.t_s for s in samples])
-        assert np.all(np.diff(t) > 0) and t[-1] == pytest.approx(len(t) * PERIOD, rel=0.1)
+        t = np.array([s.t_s for s in samples])      # receive time on the bench clock: increasing, about 10 ms apart
+        assert np.all(np.diff(t) > 0) and len(t) > 200 and float(np.median(np.diff(t))) == pytest.approx(0.01, abs=0.003)
 
 
 def test_a_booting_drive_is_waited_for_up_to_boot_timeout_s():

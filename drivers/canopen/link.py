@@ -329,6 +329,8 @@ class CanopenDriveLink:
                                    (o.TRACE_CONTROL, o.TRACE_CLEAR), (o.TRACE_CONTROL, o.TRACE_START)):
                     self.sdo.write(o.EXT_TRACE, sub, value)
         self.read_statusword()
+        if self.profile is not None:      # known before the SYNC producer starts: CSV needs ours (RPDO before SYNC)
+            self.mode = self._velocity_mode()
         self._configure_sync_counter()
         self.node.nmt.state = "OPERATIONAL"
         if self.timing == "realtime":
@@ -590,12 +592,11 @@ class CanopenDriveLink:
         if self.profile is None:
             raise LinkError(f"{self.where}: the drive's velocity unit is not known: not enabling")
 
-        self.mode = self._velocity_mode()
-        self.report["velocity_mode"] = {cia402.Mode.PROFILE_VELOCITY: "profile velocity (3)",
-                                        cia402.Mode.CYCLIC_SYNC_VELOCITY: "cyclic synchronous velocity (9): a target "
-                                                                          "with every SYNC"}[self.mode]
-
         def select_mode() -> None:
+            self.mode = self._velocity_mode()
+            self.report["velocity_mode"] = {cia402.Mode.PROFILE_VELOCITY: "profile velocity (3)",
+                                            cia402.Mode.CYCLIC_SYNC_VELOCITY: "cyclic synchronous velocity (9): a "
+                                                                              "target with every SYNC"}[self.mode]
             self._target = 0
             self.sdo.write_standard(o.TARGET_VELOCITY, 0, 0, 4, signed=True)
             try:

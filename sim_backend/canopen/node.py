@@ -68,8 +68,7 @@ class SimCanopenNode:
             for n in range(o.N_TPDO_MAX):
                 if o.TPDO_COMM + n in od and 2 in od[o.TPDO_COMM + n].subindices:
                     var = od[o.TPDO_COMM + n][2]
-                    if var.default is None or var.default <= 240:
-                        var.default = 255
+                    var.default = var.value = 255
         self.pdos = PdoEngine(od, self._raw, self.node.get_data, self.node.set_data, self._fast_getter,
                               fixed_mapping=spec.fixed_pdo_mapping, event_only=spec.event_tpdos_only)
         self.node.add_read_callback(self._on_read)
