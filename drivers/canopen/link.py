@@ -683,7 +683,11 @@ class CanopenDriveLink:
         self._target = 0
         if self._rpdo_frame is not None:
             self._pack_rpdo()
-        cia402.disable_voltage(self, self._step_timeout_s, self.where)
+        try:
+            cia402.disable_voltage(self, self._step_timeout_s, self.where)
+        finally:
+            if self._sync is not None:       # the SYNC statistics are the run's, not of the bench writing its files
+                self._sync.freeze()
 
     def status(self) -> DriveStatus:
         with self._lock:

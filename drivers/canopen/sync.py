@@ -22,6 +22,7 @@ from __future__ import annotations
 import bisect
 import collections
 import math
+import os
 import sys
 import threading
 import time
@@ -35,6 +36,7 @@ SWITCH_INTERVAL_S = 0.0005   # sys.setswitchinterval while a SYNC thread runs (P
 HIST_BIN_S = 10e-6           # interval histogram resolution
 HIST_PERIODS = 8             # histogram range; longer intervals count in the last bin (max is kept exactly)
 EPOCH_WINDOW_S = 3600.0      # an interface timestamp within this of time.time() is on the bench's clock
+SYNC_RT_PRIORITY = 10        # SCHED_FIFO priority of the SYNC thread (1-99; kernel threads of IRQs run at 50)
 
 
 def has_native_cyclic(bus: can.BusABC) -> bool:
@@ -78,6 +80,18 @@ class IntervalStats:
                 "late_means": f"interval > {LATE_PERIODS:g} periods"}
 
 
+def raise_priority() -> str:
+    """The calling thread (the SYNC thread) in the real-time class where the OS allows it (Linux SCHED_FIFO: root or
+    CAP_SYS_NICE), so a busy host does not keep it off the CPU; what it got, for the record."""
+    if not hasattr(os, "sched_setscheduler"):
+        return "normal (no SCHED_FIFO on this OS)"
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(SYNC_RT_PRIORITY))
+        return f"SCHED_FIFO {SYNC_RT_PRIORITY}"
+    except (PermissionError, OSError) as exc:
+        return f"normal (SCHED_FIFO refused: {exc.strerror or exc}; give the bench CAP_SYS_NICE)"
+
+
 class SyncProducer:
     """`send(data)` puts one SYNC on the bus (data: b"" or the counter byte). `counter_overflow` > 1: CiA 301 SYNC
     counter 1..overflow in the SYNC's data byte (0x1019 of the drive)."""
@@ -94,11 +108,13 @@ class SyncProducer:
         self.skipped = 0                             # SYNC slots given up because the thread was late
         self.send_times_ns: collections.deque[int] = collections.deque(maxlen=keep_times)
         self.stats = IntervalStats(period_s)
+        self.frozen = False                          # freeze(): the statistics stop here (the run's part is over)
         self.native = False
         self._epochs: list[float] = []               # time.time() just before SYNC n+1 went out (n from 0)
         self._first_seq = 1
         self._lock = threading.Lock()                # guards _epochs only (O(1) under it)
         self._switch_interval: float | None = None
+        self.scheduling = "not started"
 
     def start(self) -> None:
         self.stop()
@@ -112,6 +128,7 @@ class SyncProducer:
         return bytes([(seq - 1) % self.counter_overflow + 1]) if self.counter_overflow > 1 else b""
 
     def _run(self) -> None:
+        self.scheduling = raise_priority()
         period_ns = round(self.period_s * 1e9)
         due = time.perf_counter_ns()
         last_sent: int | None = None
@@ -120,7 +137,8 @@ class SyncProducer:
             late = now - due
             if late > period_ns // 2:                # never two SYNCs closer than half a period: skip the slot
                 missed = late // period_ns + (1 if late % period_ns > period_ns // 2 else 0)
-                self.skipped += max(1, missed)
+                if not self.frozen:
+                    self.skipped += max(1, missed)
                 due += max(1, missed) * period_ns
                 continue
             seq = self.count + 1
@@ -137,7 +155,7 @@ class SyncProducer:
                 return
             sent = time.perf_counter_ns()
             self.send_times_ns.append(sent)
-            if last_sent is not None:
+            if last_sent is not None and not self.frozen:
                 self.stats.add((sent - last_sent) * 1e-9)
             last_sent = sent
             due += period_ns
@@ -147,6 +165,10 @@ class SyncProducer:
                     return
             while time.perf_counter_ns() < due:
                 pass
+
+    def freeze(self) -> None:
+        """Statistics end here; SYNC goes on (the drive is disabled; what the bench does next is not timed)."""
+        self.frozen = True
 
     def sent_before(self, epoch_s: float) -> tuple[int, float | None]:
         """(the last SYNC sent at or before epoch_s, 0 if none; its send time)."""
@@ -169,7 +191,8 @@ class SyncProducer:
             self._switch_interval = None
 
     def report(self) -> dict:
-        return {**self.stats.summary(), "sent": self.count, "skipped": self.skipped,
+        return {**self.stats.summary(), "sent": self.count, "skipped": self.skipped, "scheduling": self.scheduling,
+                "window": "from the start of SYNC to the drive disabled" if self.frozen else "whole connection",
                 "skipped_means": "SYNC slots not sent because the bench's SYNC thread woke > 0.5 period late"}
 
 
@@ -198,6 +221,9 @@ class NativeSync:
         return self._started_epoch + (seq - 1) * self.period_s
 
     def start(self) -> None:
+        pass
+
+    def freeze(self) -> None:
         pass
 
     def stop(self) -> None:
