@@ -6,6 +6,7 @@ config's [services] entry and the link classes its transports name.
 
 from __future__ import annotations
 
+import collections
 import math
 import os
 import signal
@@ -262,6 +263,7 @@ class _Run:
         self.live_recorded: tuple[str, ...] = LIVE_SIGNALS
         # t_s in the record is drive time since this run's first SYNC; the drive clock counts from power-up
         self._clock_start: float | None = None
+        self._reference_readings: collections.deque = collections.deque(maxlen=64)   # (drive time, values)
         self.signals: _StopSignals | None = None
         self.trips: list[dict] = []          # every cause of the abort, in the order they were seen
         self._link_in_use = "drive"          # which link a LinkError came from
@@ -423,11 +425,13 @@ class _Run:
                 break
             samples = self._run_time(self.drive.sync())
             if samples and self.reference_signals:
-                # the rig's reference sensor, read now, stamped with this SYNC's (batch's) drive time
+                # the rig's reference sensor, read now, stamped with the drive time of now: the last SYNC sent where
+                # the link knows it (real time: a batch may hold samples that arrived late), else this batch's
                 feedback = self._load_call(self.load.feedback)
-                values = values_from_load(feedback)
-                samples = [LiveSample(s.t_s, {**s.values, **values}) for s in samples]
-                self.supervisor.feed_load(samples[-1].t_s, feedback)
+                now = self._drive_now(samples[-1].t_s)
+                self._reference_readings.append((now, values_from_load(feedback)))
+                samples = [LiveSample(s.t_s, {**s.values, **self._reference_at(s.t_s)}) for s in samples]
+                self.supervisor.feed_load(now, feedback)
                 next_load_poll = samples[-1].t_s + LOAD_POLL_PERIOD_S
             k += 1
             if samples:
@@ -515,6 +519,22 @@ class _Run:
             return ""
         self._add_trip(cause.reason, cause.message, cause.values)
         return f"; the drive reports: {cause.message}"
+
+    def _drive_now(self, last_sample_t: float) -> float:
+        now = getattr(self.drive, "now_s", None)
+        now = now() if callable(now) else None
+        if now is None or self._clock_start is None:
+            return last_sample_t
+        return max(last_sample_t, now - self._clock_start)
+
+    def _reference_at(self, t_s: float) -> dict[str, float]:
+        """The reference reading taken last at or before drive time t_s (sample and hold); the oldest one kept for
+        samples older than every reading."""
+        readings = self._reference_readings
+        for t_read, values in reversed(readings):
+            if t_read <= t_s + 0.5 * self.sync_period_s:
+                return values
+        return readings[0][1]
 
     def _run_time(self, samples: list[LiveSample]) -> list[LiveSample]:
         """Shift drive-clock stamps to time since this run's first SYNC (the drive may have run before)."""

@@ -525,6 +525,17 @@ class CanopenDriveLink:
             return placer.place(stamp, received)
         return self._decoder.sync_count * self.sync_period_s
 
+    def now_s(self) -> float | None:
+        """Real time without a drive clock: the time of the last SYNC sent, on the samples' time axis (SYNC n at
+        n periods), so a reading taken now (the rig's reference sensor) can be paired with the samples of its time
+        and not with older ones that arrive late. None where the samples' own stamps are the clock."""
+        if self._sync is None or self.time_base not in ("sync answered", "receive time"):
+            return None
+        if self.time_base == "receive time":
+            origin = self._sync.epoch_of(1)
+            return None if origin is None else time.time() - origin + self.sync_period_s
+        return self._sync.count * self.sync_period_s
+
     def sync_report(self) -> dict:
         """The SYNC statistics at the bench and how samples were placed in time, for the record."""
         out: dict[str, Any] = {"period_ms": round(self.sync_period_s * 1e3, 6), "timing": self.timing,
