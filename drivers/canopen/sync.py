@@ -12,9 +12,10 @@ Time of a sample without a drive clock (`SyncTimeline`): the SYNC it answers x t
 TPDOs come in the order of the SYNCs (CAN and TCP keep order), so the n-th answer belongs to the n-th SYNC; a late
 frame (TCP, a busy host) is jitter and moves nothing. A missing answer shows as a backlog: every later answer is
 stamped (by the interface, on the bus, or on receipt) after one more SYNC went out than its place in the sequence says.
-When the smallest backlog over the last `window` answers is >= 1, that many SYNCs are counted unanswered and skipped:
-the time axis gets its gap there (at most `window` answers after the loss; the answers in between sit one period
-late), and the run is incomplete.
+When the backlog has been the same n >= 1 for the last `window` answers (0.5 s of them), n SYNCs are counted
+unanswered and skipped: the time axis gets its gap there (`window` answers after the loss; the answers in between sit
+n periods late), and the run is incomplete. A backlog that changes is a queue draining (a slow host, a TCP burst), not
+a loss: the n-th answer stays on the n-th SYNC.
 """
 
 from __future__ import annotations
@@ -248,7 +249,7 @@ class SyncTimeline:
         self.period_s = period_s
         self._sent_before = sent_before
         self._epoch_of = epoch_of
-        self.window = window or max(20, round(0.2 / period_s))
+        self.window = window or max(20, round(0.5 / period_s))
         self.last = 0                       # the SYNC the last answer was placed on
         self.unanswered = 0                 # SYNCs counted without an answer
         self.answers = 0
@@ -270,7 +271,8 @@ class SyncTimeline:
             self._lag0 = lag if self._lag0 is None else min(self._lag0, lag)
             latest, _ = self._sent_before(r - self._lag0 + 1e-6)
             self._backlog.append(latest - seq)
-            if len(self._backlog) == self.window and min(self._backlog) >= 1:
+            if len(self._backlog) == self.window and min(self._backlog) >= 1 and \
+                    min(self._backlog) == max(self._backlog):
                 missed = min(self._backlog)
                 self.unanswered += missed
                 seq += missed
