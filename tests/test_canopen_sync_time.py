@@ -398,3 +398,19 @@ def test_without_boot_timeout_s_a_booting_drive_fails_with_the_line_to_write():
             link.open()
         text = str(info.value)
         assert "0x1018" in text and "boot-up" in text and "boot_timeout_s = 5" in text
+
+
+def test_drivebench_show_prints_the_sync_statistics():
+    import io
+
+    from rich.console import Console
+
+    from bench.cli import print_record
+
+    out = io.StringIO()
+    record = {"verdict": "pass", "criteria": [], "scenario": {"name": "x"},
+              "sync": {"period_ms": 10.0, "intervals": 299, "p50_ms": 10.0, "p99_ms": 10.4, "max_ms": 12.1, "late": 0,
+                       "skipped": 1, "time_base": "sync answered", "unanswered": 0}}
+    print_record(Console(file=out, width=200), record, "runs/x")
+    assert ("SYNC 10.0 ms at the bench: p50 10.0 ms, p99 10.4 ms, max 12.1 ms, late 0 (> 1.5 periods), skipped 1; "
+            "time base: sync answered, 0 SYNCs unanswered") in out.getvalue()

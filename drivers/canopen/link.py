@@ -62,7 +62,6 @@ HEAD = {o.STATUSWORD: "_statusword", o.MODES_DISPLAY: "_mode"}
 SYNC_COUNTER_OVERFLOW = 0x1019      # CiA 301 synchronous counter overflow value (0: SYNC without a counter)
 SYNC_COUNTER_MAX = 240
 VELOCITY_MODES = {"auto": None, "pv": cia402.Mode.PROFILE_VELOCITY, "csv": cia402.Mode.CYCLIC_SYNC_VELOCITY}
-BOOT_UP = 0x00                      # NMT boot-up: the heartbeat COB-ID with state byte 0
 
 
 class CanopenDriveLink:
@@ -223,6 +222,7 @@ class CanopenDriveLink:
             try:
                 if self._guard is not None:
                     errors += self._guard.disarm()
+                errors += self._restore_sync_counter()
                 if self._snapshot is not None and self._snapshot.touched:
                     self.node.nmt.state = "PRE-OPERATIONAL"
                     errors += self._snapshot.restore(self.sdo)
@@ -353,6 +353,18 @@ class CanopenDriveLink:
         finally:
             self.sdo.write_standard(o.COMM_CYCLE_PERIOD, 0, round(self.sync_period_s * 1e6), 4)
 
+    def _restore_sync_counter(self) -> list[str]:
+        if self._sync_counter_restore is None:
+            return []
+        try:
+            self.sdo.write_standard(o.COMM_CYCLE_PERIOD, 0, 0, 4)
+            self.sdo.write_standard(SYNC_COUNTER_OVERFLOW, 0, self._sync_counter_restore, 1)
+            self.sdo.write_standard(o.COMM_CYCLE_PERIOD, 0, round(self.sync_period_s * 1e6), 4)
+            self._sync_counter_restore = None
+            return []
+        except LinkError as exc:
+            return [str(exc)]
+
     def _plan_pdos(self, live_signals: Sequence[str]) -> pdos.PdoPlan:
         if self.pdo_policy not in pdos.POLICIES:
             raise LinkError(f"{self.where}: pdo policy {self.pdo_policy!r} is not one of {', '.join(pdos.POLICIES)}")
@@ -384,7 +396,10 @@ class CanopenDriveLink:
         tpdos, rpdo_layout = pdos.apply_device_mapping(self.sdo, self._snapshot, od, roles, self.sync_period_s)
         carried = {e.role for t in tpdos for e in t.entries}
         if "_statusword" not in carried and not tpdos:
-            raise LinkError(f"{self.where}: no TPDO of the drive's fixed mapping carries anything the bench reads")
+            raise LinkError(f"{self.where}: no TPDO of the drive's fixed mapping (0x1A00-0x1A07, TPDO mapping "
+                            f"parameters) carries anything the bench reads (0x6041 statusword, 0x606C velocity "
+                            f"actual, ...): map them with the vendor's tool, or name the objects its TPDOs carry in "
+                            f"[drive.signals], e.g. speed_est_mech_rad_s = \"0x606C\"")
         load = pdos.load_pct([t.size for t in tpdos], self._bitrate, self.sync_period_s)
         return pdos.PdoPlan("device", tpdos, rpdo_layout, load,
                             [e.role for e in wanted if e.role not in carried], encoding)
