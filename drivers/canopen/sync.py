@@ -271,8 +271,8 @@ class SyncTimeline:
             self._lag0 = lag if self._lag0 is None else min(self._lag0, lag)
             latest, _ = self._sent_before(r - self._lag0 + 1e-6)
             self._backlog.append(latest - seq)
-            if len(self._backlog) == self.window and min(self._backlog) >= 1 and \
-                    min(self._backlog) == max(self._backlog):
+            if latest - seq >= 1 and len(self._backlog) == self.window and \
+                    min(self._backlog) == max(self._backlog):      # (the first test keeps the healthy case O(1))
                 missed = min(self._backlog)
                 self.unanswered += missed
                 seq += missed
