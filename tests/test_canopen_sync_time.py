@@ -414,3 +414,33 @@ def test_drivebench_show_prints_the_sync_statistics():
     print_record(Console(file=out, width=200), record, "runs/x")
     assert ("SYNC 10.0 ms at the bench: p50 10.0 ms, p99 10.4 ms, max 12.1 ms, late 0 (> 1.5 periods), skipped 1; "
             "time base: sync answered, 0 SYNCs unanswered") in out.getvalue()
+
+
+@pytest.mark.parametrize("quirk, drive_line, expect", [
+    ("csv_only = true", "", {"velocity_mode": "cyclic synchronous velocity (9): a target with every SYNC"}),
+    ("event_tpdos_only = true", "", {"transmission_type": 255}),
+    ("boot_delay_s = 2.0", "boot_timeout_s = 10", {"boot": True}),
+], ids=["csv-only", "event-tpdos-only", "boot-delay"])
+def test_the_rig_scenario_passes_on_a_drive_with_each_quirk(tmp_path, quirk, drive_line, expect):
+    """The whole bench (drivebench run's path) on the simulated e35 with one vendor quirk: it runs and passes."""
+    from bench.orchestrator import run_scenario
+
+    text = (REPO / "config/benches/sim-generic-e35.toml").read_text()
+    text = text.replace("[simulator]\n", f"[simulator]\n{quirk}\n")
+    if drive_line:
+        text = text.replace("[drive]\n", f"[drive]\n{drive_line}\n")
+    bench = tmp_path / "bench.toml"
+    bench.write_text(text.replace('"config/', f'"{REPO.as_posix()}/config/'))
+    result = run_scenario(REPO / "scenarios/rig/speed-step-20rads.toml", bench, out_root=tmp_path / "runs",
+                          rerun_mode="off")
+    record = result.record
+    assert result.verdict == "pass", (record.get("abort_reason"), [(c["name"], c["value"]) for c in record["criteria"]])
+    settings = record["drive_settings"]
+    if "velocity_mode" in expect:
+        assert settings["velocity_mode"] == expect["velocity_mode"]
+        assert settings["supported_modes_0x6502"] == "0x00000100"
+    if "transmission_type" in expect:
+        assert all(t["transmission_type"] == 255 and t["event_timer_ms"] == 10 for t in settings["pdo"]["tpdos"])
+    if "boot" in expect:
+        assert settings["boot_up_after_s"] > 0.5
+    assert record["sync"]["time_base"] == "sync count"
