@@ -427,8 +427,9 @@ class _Run:
             if samples and self.reference_signals:
                 # the rig's reference sensor, read now, stamped with the drive time of now: the last SYNC sent where
                 # the link knows it (real time: a batch may hold samples that arrived late), else this batch's
+                before = self._drive_now(samples[-1].t_s)
                 feedback = self._load_call(self.load.feedback)
-                now = self._drive_now(samples[-1].t_s)
+                now = 0.5 * (before + self._drive_now(samples[-1].t_s))    # the reading is of some time in between
                 self._reference_readings.append((now, values_from_load(feedback)))
                 samples = [LiveSample(s.t_s, {**s.values, **self._reference_at(s.t_s)}) for s in samples]
                 self.supervisor.feed_load(now, feedback)
