@@ -541,15 +541,21 @@ class CanopenDriveLink:
         return self._decoder.sync_count * self.sync_period_s
 
     def now_s(self) -> float | None:
-        """Real time without a drive clock: the time of the last SYNC sent, on the samples' time axis (SYNC n at
-        n periods), so a reading taken now (the rig's reference sensor) can be paired with the samples of its time
-        and not with older ones that arrive late. None where the samples' own stamps are the clock."""
+        """Real time without a drive clock: the drive's time now on the samples' time axis (SYNC n at n periods) —
+        the SYNC sent as long before now as the latest answer came after its SYNC (a drive answers at once: the last
+        SYNC sent; a simulator falling behind under load: the SYNC it is working on), so a reading taken now (the
+        rig's reference sensor) is paired with the samples of its time, not with older ones that arrive late.
+        None where the samples' own stamps are the clock."""
         if self._sync is None or self.time_base not in ("sync answered", "receive time"):
             return None
         if self.time_base == "receive time":
             origin = self._sync.epoch_of(1)
             return None if origin is None else time.time() - origin + self.sync_period_s
-        return self._sync.count * self.sync_period_s
+        lag = self._placer.last_lag if isinstance(self._placer, SyncTimeline) else None
+        if lag is None:
+            return self._sync.count * self.sync_period_s
+        seq, _ = self._sync.sent_before(time.time() - max(0.0, lag))
+        return max(seq, self._placer.last) * self.sync_period_s
 
     def sync_report(self) -> dict:
         """The SYNC statistics at the bench and how samples were placed in time, for the record."""

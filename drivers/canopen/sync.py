@@ -256,6 +256,7 @@ class SyncTimeline:
         self.bus_stamps = 0                 # answers placed by the interface's timestamp
         self._backlog: collections.deque[int] = collections.deque(maxlen=self.window)
         self._lag0: float | None = None     # smallest (answer time - its SYNC's send time) seen
+        self.last_lag: float | None = None  # the latest answer's time - its SYNC's send time: how far behind the drive is
         self.lag = IntervalStats(period_s)  # answer time - its SYNC's send time - lag0: the transport's jitter
 
     def place(self, stamp: float | None, received: float) -> int:
@@ -280,6 +281,7 @@ class SyncTimeline:
             sent = self._epoch_of(seq)
             if sent is not None:
                 self.lag.add(max(0.0, r - sent - self._lag0))
+                self.last_lag = r - sent
         self.last = seq
         return seq
 
