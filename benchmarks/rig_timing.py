@@ -108,8 +108,8 @@ def phase(rigs, n: int, workdir: Path, label: str) -> dict[str, dict]:
                 print(f"  {label:8s} {rig:13s} run {k + 1:2d}: {record.get('verdict'):10s} missing rows "
                       f"{axis.get('missing_rows')}, SYNC p50 {sync.get('p50_ms')} p99 {sync.get('p99_ms')} max "
                       f"{sync.get('max_ms')} ms, late {sync.get('late')}, skipped {sync.get('skipped')}, unanswered "
-                      f"{sync.get('unanswered')}" + (f" ({record.get('abort_reason')})"
-                                                     if record.get("verdict") not in ("pass",) else ""), flush=True)
+                      f"{sync.get('unanswered')}" + (f" ({why(record)})" if record.get("verdict") != "pass" else ""),
+                      flush=True)
         finally:
             proc.terminate()
             try:
@@ -118,6 +118,12 @@ def phase(rigs, n: int, workdir: Path, label: str) -> dict[str, dict]:
                 proc.kill()
         out[rig] = summarise(records)
     return out
+
+
+def why(record: dict) -> str:
+    failed = [f"{c.get('name')}: {c.get('value')} (limit {c.get('limit')})" for c in record.get("criteria") or []
+              if not c.get("passed")]
+    return "; ".join(filter(None, [record.get("abort_reason")] + failed))[:400]
 
 
 def summarise(records: list[dict]) -> dict:
