@@ -651,6 +651,12 @@ class CanopenDriveLink:
 
         cia402.enable_operation(self, fault_reset_policy=self.fault_reset_policy, timeout_s=self._step_timeout_s,
                                 where=self.where, select_mode=select_mode, fault_detail=fault_detail)
+        if self.timing == "realtime":
+            # the run's time starts here: what arrived while the bench configured and enabled the drive (SYNC runs
+            # from configure() on, 0.1-0.5 s of SDO round trips under load) would put the scenario's t = 0 back by
+            # that much, and its first command would jump into the profile (a 0.5 s ramp taken as a step at 0.4 s)
+            with self._lock:
+                self._samples.clear()
 
     def _velocity_mode(self) -> cia402.Mode:
         """Profile velocity where the drive has it, else cyclic synchronous velocity (0x6502 bits 2 and 8), unless
