@@ -146,9 +146,9 @@ def load_bench_config(path: str | Path, for_probe: bool = False) -> BenchConfig:
 
 
 def _probe_tells(line: str, file: str) -> bool:
-    for field in PROBE_TELLS:
-        if line.startswith(f"{file}: {field}:"):
-            return field != "load.map" or "no communication watchdog" in line
+    for key in PROBE_TELLS:
+        if line.startswith(f"{file}: {key}:"):
+            return key != "load.map" or "no communication watchdog" in line
     return False
 
 

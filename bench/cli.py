@@ -160,6 +160,14 @@ def print_record(console: Console, record: dict, run_dir: Path | str) -> None:
     if warnings:
         console.print(f"  [yellow]drive warning[/] (statusword bit 7) set {len(warnings)} time(s), first at "
                       f"t={warnings[0].get('t_s', float('nan')):.3f} s")
+    sync = record.get("sync") or {}
+    if sync.get("intervals"):
+        console.print(f"  SYNC {sync.get('period_ms')} ms at the bench: p50 {sync.get('p50_ms')} ms, p99 "
+                      f"{sync.get('p99_ms')} ms, max {sync.get('max_ms')} ms, late {sync.get('late')} (> 1.5 periods), "
+                      f"skipped {sync.get('skipped')}; time base: {sync.get('time_base')}"
+                      + (f", {sync['unanswered']} SYNCs unanswered" if sync.get("unanswered") is not None else ""))
+    elif sync.get("time_base"):
+        console.print(f"  time base: {sync['time_base']} ({sync.get('timing')})")
 
 
 # --- commands --------------------------------------------------------------------------------------------

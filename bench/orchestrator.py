@@ -463,6 +463,9 @@ class _Run:
     def _note_link_reports(self) -> None:
         """What each link read from its device and set in it (profile, units, PDOs, comm loss, watchdog)."""
         self.recorder.note("drive_settings", getattr(self.drive, "report", {}))
+        sync_report = getattr(self.drive, "sync_report", None)
+        if sync_report is not None:        # SYNC interval statistics at the bench, how samples were placed in time
+            self.recorder.note("sync", sync_report())
         if self.load is not None:
             self.recorder.note("load_settings", getattr(self.load, "report", {}))
 
@@ -487,14 +490,20 @@ class _Run:
                 break
             samples = self._run_time(self.drive.sync())
             if samples and self.reference_signals:
-                # the rig's reference sensor, read now, stamped with this SYNC's (batch's) drive time
+                # the rig's reference sensor, read now, stamped with the drive time of now: the last SYNC sent where
+                # the link knows it (real time: a batch may hold samples that arrived late), else this batch's
+                before = self._drive_now(samples[-1].t_s)
                 feedback = self._load_call(self.load.feedback)
                 values = values_from_load(feedback)
-                samples = [LiveSample(s.t_s, {**{name: v for name, v in s.values.items()
-                                                 if name not in self.not_from_drive}, **values}) for s in samples]
+                now = 0.5 * (before + self._drive_now(samples[-1].t_s))    # the reading is of some time in between
                 with self._live_lock:
-                    self._reference_readings.append((samples[-1].t_s, values))
-                self.supervisor.feed_load(samples[-1].t_s, feedback)
+                    self._reference_readings.append((now, values))
+                    if self.data_source != "trace" and len(self._reference_readings) > 64:
+                        del self._reference_readings[:-64]      # live rows only need the last few (sample and hold)
+                samples = [LiveSample(s.t_s, {**{name: v for name, v in s.values.items()
+                                                 if name not in self.not_from_drive}, **self._reference_at(s.t_s)})
+                           for s in samples]
+                self.supervisor.feed_load(now, feedback)
                 next_load_poll = samples[-1].t_s + LOAD_POLL_PERIOD_S
             k += 1
             if samples:
@@ -598,6 +607,22 @@ class _Run:
         self._add_trip(cause.reason, cause.message, cause.values)
         return f"; the drive reports: {cause.message}"
 
+    def _drive_now(self, last_sample_t: float) -> float:
+        now = getattr(self.drive, "now_s", None)
+        now = now() if callable(now) else None
+        if now is None or self._clock_start is None:
+            return last_sample_t
+        return max(last_sample_t, now - self._clock_start)
+
+    def _reference_at(self, t_s: float) -> dict[str, float]:
+        """The reference reading taken last at or before drive time t_s (sample and hold); the oldest one kept for
+        samples older than every reading."""
+        readings = self._reference_readings
+        for t_read, values in reversed(readings):
+            if t_read <= t_s + 0.5 * self.sync_period_s:
+                return values
+        return readings[0][1]
+
     def _run_time(self, samples: list[LiveSample]) -> list[LiveSample]:
         """Shift drive-clock stamps to time since this run's first SYNC (the drive may have run before)."""
         if not samples:
@@ -695,7 +720,9 @@ class _Run:
         duration = float(self.scenario.duration_s)
         row_period = self._row_period_s()
         # live samples of a drive without a clock are stamped on receipt in real time: they jitter, allow for it
-        tolerance = 1.9 if self.realtime and self.data_source == "pdo" else 1.5
+        # (placed on the SYNC they answer, or on the drive's clock, they do not: a single missing row is a gap)
+        receive_stamped = getattr(self.drive, "time_base", "receive time") == "receive time"
+        tolerance = 1.9 if self.realtime and self.data_source == "pdo" and receive_stamped else 1.5
         if row_period:
             axis = TimeAxis(row_period, tolerance)
             for chunk in self.recorder.iter_back([], t_max=duration + 1e-9):

@@ -27,6 +27,7 @@ from sim_backend.trace import TraceRecorder
 
 STANDSTILL_MECH_RAD_S = 0.5     # quick stop options 1-3: switch on disabled once the estimate is below this
 QUICK_STOP_TO_DISABLED = (1, 2, 3)
+VELOCITY_MODES = (Mode.PROFILE_VELOCITY, Mode.CYCLIC_SYNC_VELOCITY)   # the firmware follows the target in either
 
 
 @dataclass
@@ -177,7 +178,7 @@ class SimulatedDevice:
 
     def _apply_outputs(self) -> None:
         self.model.set_enabled(self.device.power_enabled)
-        running = self.device.state is State.OPERATION_ENABLED and self.mode_of_operation == Mode.PROFILE_VELOCITY
+        running = self.device.state is State.OPERATION_ENABLED and self.mode_of_operation in VELOCITY_MODES
         self.model.set_speed_ref(self.target_speed_mech_rad_s if running else 0.0)
 
     def advance(self, n_steps: int) -> np.ndarray:

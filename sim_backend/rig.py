@@ -230,7 +230,7 @@ def _instruments(simulator: dict, where: str):
 
 GENERIC_KEYS = ("velocity_unit", "velocity_side", "encoder_increments_per_rev", "rated_current_a", "rated_torque_nm",
                 "fixed_pdo_mapping", "comm_loss_reaction", "found_running_mech_rad_s", "tpdo_stops_after_s",
-                "tpdo_stops")
+                "tpdo_stops", "csv_only", "event_tpdos_only", "boot_delay_s")
 
 
 def drive_spec(simulator: dict) -> DriveSpec | None:

@@ -135,3 +135,24 @@ def test_canopen_base_node_402_drives_the_simulated_node_over_socketcand(served)
         network.sync.stop()
     finally:
         network.disconnect()
+
+
+def test_the_link_s_socketcand_connection_has_nagle_off_by_default(served):
+    """python-can's client leaves Nagle on unless tcp_tune: SYNCs and commands then leave in bursts. The link's
+    connection has TCP_NODELAY set; `[drive.can] tcp_tune = false` leaves python-can's default."""
+    from drivers.api import LinkSettings
+    from drivers.canopen.link import CanopenDriveLink
+
+    server, *_ = served
+    nodelay = {}
+    for name, can_options in (("default", {}), ("told not to", {"tcp_tune": False})):
+        link = CanopenDriveLink(dict(transport="canopen", interface="socketcand", channel=f"can0@127.0.0.1:{server.port}",
+                                     node_id=1, eds=str(EDS), sdo_timeout_s=2.0, heartbeat_timeout_s=5.0,
+                                     can=can_options), EDS.parent, LinkSettings())
+        try:
+            link.open()
+            sock = link.network.bus._SocketCanDaemonBus__socket      # python-can keeps it private
+            nodelay[name] = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY)
+        finally:
+            link.close()
+    assert nodelay["default"] and not nodelay["told not to"]

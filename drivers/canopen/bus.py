@@ -16,7 +16,8 @@ LINK_KEYS = frozenset({"transport", "sync_period_s", "heartbeat_timeout_s", "tra
                        "node_id", "eds", "sdo_timeout_s", "interface", "channel", "bitrate", "can", "profile",
                        "velocity_unit", "encoder_increments_per_rev", "gear_ratio", "rated_torque_nm",
                        "rated_current_a", "signals", "pdo", "comm_loss", "consumer_time_ms", "abort_option",
-                       "error_behaviour", "bench_node_id", "standstill_mech_rad_s", "stop_timeout_s"})
+                       "error_behaviour", "bench_node_id", "standstill_mech_rad_s", "stop_timeout_s",
+                       "boot_timeout_s", "velocity_mode"})
 
 
 def frame_bits(n_data_bytes: int) -> int:
@@ -30,7 +31,8 @@ def bus_kwargs(section: dict) -> dict[str, Any]:
 
     python-can's own options (fd, data_bitrate, app_name, serial, host, port, ...) pass through from the [drive.can]
     table, verbatim; the channel may be a name or a number, as the interface wants it. For socketcand the endpoint
-    may also be written in the channel as `can0@127.0.0.1:29536`.
+    may also be written in the channel as `can0@127.0.0.1:29536`. A socketcand connection is tuned for latency
+    (`tcp_tune = true`) unless [drive.can] says `tcp_tune = false`.
     """
     kwargs: dict[str, Any] = {"interface": section["interface"], "channel": section["channel"]}
     if section.get("bitrate"):
@@ -44,6 +46,10 @@ def bus_kwargs(section: dict) -> dict[str, Any]:
         kwargs.update(channel=name, host=host, port=int(port))
     if kwargs["interface"] == "virtual":
         kwargs.setdefault("receive_own_messages", False)
+    if kwargs["interface"] == "socketcand":
+        # python-can's client leaves Nagle on unless told: SYNCs and commands then leave in bursts of up to 40 ms.
+        # tcp_tune = TCP_NODELAY (+ TCP_QUICKACK); python-can drops it on Windows with a warning.
+        kwargs.setdefault("tcp_tune", True)
     return kwargs
 
 

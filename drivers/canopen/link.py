@@ -12,8 +12,14 @@ What the bench gets from a drive:
 - on a drive carrying drivebench's extension, its drive clock and the trace recorder uploaded by SDO block transfer.
 
 Timing: "lockstep" sends one SYNC per sync() and waits for that SYNC's TPDOs; "realtime" produces SYNC on the wall
-clock and sync() returns what arrived since the last call. Samples are stamped with the drive's own clock where the
-drive has one; otherwise SYNCs x period in lockstep and the receive time in real time.
+clock (drivers.canopen.sync) and sync() returns what arrived since the last call. Samples are stamped with the drive's
+own clock where the drive has one; otherwise with the SYNC they answer x period (lockstep: counted; real time:
+drivers.canopen.sync.SyncTimeline, so a late frame is jitter and a missing answer a gap), and event-driven TPDOs (a
+drive refusing SYNC transmission) with their receive time on the bench clock, their jitter stated in the record.
+
+Velocity mode: profile velocity (3) where 0x6502 has it, else cyclic synchronous velocity (9: the target goes out
+by RPDO with every SYNC); `velocity_mode` in [drive] chooses. `boot_timeout_s`: how long a drive that does not answer
+yet may take to send its NMT boot-up message.
 """
 
 from __future__ import annotations
@@ -44,7 +50,7 @@ from drivers.canopen import drill as drills
 from drivers.comm_loss import CommLossConfig
 from drivers.canopen.profile import DriveProfile, ProfileConfig, ProfileError, resolve
 from drivers.canopen.sdo import SdoAccess, block_upload
-from drivers.canopen.sync import NativeSync, SyncProducer, has_native_cyclic
+from drivers.canopen.sync import NativeSync, ReceiveClock, SyncProducer, SyncTimeline, has_native_cyclic
 from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
 from drivers.trace_format import decode_rows, mask_for
 
@@ -54,6 +60,9 @@ MIN_STALL_TIMEOUT_S = 2.0
 MAX_UPLOADS_PER_FETCH = 64     # bounds one fetch_trace() whatever the node reports as available; the rest comes next time
 REALTIME_BATCH_S = 0.01      # real time: sync() hands over samples in batches of at most this period
 HEAD = {o.STATUSWORD: "_statusword", o.MODES_DISPLAY: "_mode"}
+SYNC_COUNTER_OVERFLOW = 0x1019      # CiA 301 synchronous counter overflow value (0: SYNC without a counter)
+SYNC_COUNTER_MAX = 240
+VELOCITY_MODES = {"auto": None, "pv": cia402.Mode.PROFILE_VELOCITY, "csv": cia402.Mode.CYCLIC_SYNC_VELOCITY}
 
 
 class CanopenDriveLink:
@@ -68,6 +77,9 @@ class CanopenDriveLink:
         self.pdo_policy = section.get("pdo", "auto")
         self.standstill_mech_rad_s = float(section.get("standstill_mech_rad_s", cia402.STANDSTILL_MECH_RAD_S))
         self.stop_timeout_s = float(section.get("stop_timeout_s", cia402.STOP_TIMEOUT_S))
+        self.boot_timeout_s = float(section.get("boot_timeout_s", 0.0))
+        self.velocity_mode_choice = str(section.get("velocity_mode", "auto"))
+        self.mode = cia402.Mode.PROFILE_VELOCITY      # what enable_velocity_mode() selected
         self.profile_config = ProfileConfig.from_section(section)
         self.comm_loss_config = CommLossConfig.from_section(section)
         self.timing = settings.timing
@@ -90,6 +102,7 @@ class CanopenDriveLink:
         self._cancel = threading.Event()
         self._last_heartbeat = 0.0
         self._heartbeat_state: int | None = None
+        self._booted = threading.Event()
         self._emcy: list[tuple[int, str]] = []
         self._errors: list[str] = []
         self._samples: collections.deque[LiveSample] = collections.deque()
@@ -101,6 +114,10 @@ class CanopenDriveLink:
         self._quick_stop_state: cia402.State | None = None     # set by begin_quick_stop, taken by quick_stop
         self._trace_mask = 0
         self._sync: SyncProducer | NativeSync | None = None
+        self._placer: SyncTimeline | ReceiveClock | None = None
+        self._sync_counter_restore: int | None = None
+        self._rpdo_frame: bytes | None = None     # CSV: what goes out before every SYNC
+        self.time_base = "sync count"             # "drive clock" | "sync count" | "sync answered" | "receive time"
         self.commands: collections.deque[dict] = collections.deque(maxlen=10_000)   # realtime: with their SYNC
         self.frames_sent = 0
         self.live_bus_load_pct = 0.0
@@ -136,13 +153,7 @@ class CanopenDriveLink:
         self.network.subscribe(o.HEARTBEAT + self.node_id, self._on_heartbeat)
         self.network.subscribe(o.EMCY + self.node_id, self._on_emcy)
 
-        try:
-            vendor, product, revision, serial = (sdo.read(o.IDENTITY, k) for k in (1, 2, 3, 4))
-        except LinkError as exc:
-            if kwargs["interface"] == "socketcand":
-                raise LinkError(f"{exc} (a served simulator admits one bench at a time: is another bench "
-                                f"connected?)") from None
-            raise
+        vendor, product, revision, serial = self._read_identity_after_boot(kwargs["interface"])
         name, version = (self._optional_text(index) for index in (o.DEVICE_NAME, o.SOFTWARE_VERSION))
         try:
             self.profile = resolve(self.profile_config, vendor, product, sdo.read_standard, sdo.has)
@@ -163,6 +174,31 @@ class CanopenDriveLink:
                                       has_trace_recorder=has_trace)
         self.report["profile"] = self.profile.as_record()
         return self.identity
+
+    def _read_identity_after_boot(self, interface: str) -> tuple[int, int, int, int]:
+        """0x1018 (identity), the first SDO. A drive that does not answer may still be booting: with `boot_timeout_s`
+        the bench waits (that long from open()) for its NMT boot-up message (0x700 + id, data 0x00) or any heartbeat,
+        then asks again."""
+        deadline = time.monotonic() + self.boot_timeout_s
+        waited_from = time.monotonic()
+        while True:
+            try:
+                return tuple(self.sdo.read(o.IDENTITY, k) for k in (1, 2, 3, 4))
+            except LinkError as exc:
+                if "aborted" in str(exc):
+                    raise
+                if time.monotonic() >= deadline:
+                    hint = (f"no NMT boot-up (0x{o.HEARTBEAT + self.node_id:03X} data 00) within boot_timeout_s = "
+                            f"{self.boot_timeout_s:g} s" if self.boot_timeout_s > 0 else
+                            "a drive still booting sends its NMT boot-up message (0x700 + node id, data 00) when "
+                            "ready: write boot_timeout_s = 5 in [drive] to wait for it")
+                    served = (" (a served simulator admits one bench at a time: is another bench connected?)"
+                              if interface == "socketcand" else "")
+                    raise LinkError(f"{exc}: the drive does not answer; {hint}; check node_id, bitrate and wiring"
+                                    f"{served}") from None
+                if self._booted.wait(max(0.0, deadline - time.monotonic())):   # set also during the failed read
+                    self._booted.clear()
+                    self.report["boot_up_after_s"] = round(time.monotonic() - waited_from, 3)
 
     def _optional_text(self, index: int) -> str:
         """Device name / software version: informative; a drive that does not answer them still runs."""
@@ -189,6 +225,7 @@ class CanopenDriveLink:
             try:
                 if self._guard is not None:
                     errors += self._guard.disarm()
+                errors += self._restore_sync_counter()
                 if self._snapshot is not None and self._snapshot.touched:
                     self.node.nmt.state = "PRE-OPERATIONAL"
                     errors += self._snapshot.restore(self.sdo)
@@ -267,8 +304,15 @@ class CanopenDriveLink:
         our_cobs = {t.cob for t in self.plan.tpdos} | {c + self.node_id for c in o.TPDO_COB}
         for cob in our_cobs & set(self.network.subscribers):   # our decoder replaces canopen's PdoMap
             self.network.unsubscribe(cob)
+        event_driven = any(t.event_driven for t in self.plan.tpdos)
+        if self.has_drive_clock:
+            self.time_base = "drive clock"
+        elif self.timing != "realtime":
+            self.time_base = "sync count"
+        else:
+            self.time_base = "receive time" if event_driven else "sync answered"
         decoder = pdos.TpdoDecoder(self.sync_period_s, self.control_period_s,
-                                   use_receive_time=self.timing == "realtime" and not self.has_drive_clock)
+                                   placer=self._place if self.time_base in ("sync answered", "receive time") else None)
         for tpdo in self.plan.tpdos:
             decoder.add(tpdo)
         with self._lock:
@@ -288,9 +332,41 @@ class CanopenDriveLink:
                                    (o.TRACE_CONTROL, o.TRACE_CLEAR), (o.TRACE_CONTROL, o.TRACE_START)):
                     self.sdo.write(o.EXT_TRACE, sub, value)
         self.read_statusword()
+        if self.profile is not None:      # known before the SYNC producer starts: CSV needs ours (RPDO before SYNC)
+            self.mode = self._velocity_mode()
+        self._configure_sync_counter()
         self.node.nmt.state = "OPERATIONAL"
         if self.timing == "realtime":
             self._start_sync_producer()
+
+    def _configure_sync_counter(self) -> None:
+        """CiA 301 SYNC counter where the drive has 0x1019 (real time only: in lockstep each SYNC is answered before
+        the next). 0x1019 may only change while 0x1006 is 0 (CiA 301), so 0x1006 goes to 0 and back around it."""
+        if self.timing != "realtime" or not self.sdo.has(SYNC_COUNTER_OVERFLOW) or self._sync_counter_restore is not None:
+            self.report.setdefault("sync_counter", "not on this drive" if self.timing == "realtime" else "lockstep")
+            return
+        try:
+            old = self.sdo.read_standard(SYNC_COUNTER_OVERFLOW, 0)
+            self.sdo.write_standard(o.COMM_CYCLE_PERIOD, 0, 0, 4)
+            self.sdo.write_standard(SYNC_COUNTER_OVERFLOW, 0, SYNC_COUNTER_MAX, 1)
+            self._sync_counter_restore = old or 0
+            self.report["sync_counter"] = f"1..{SYNC_COUNTER_MAX} (0x1019)"
+        except LinkError as exc:
+            self.report["sync_counter"] = f"refused: {exc}"
+        finally:
+            self.sdo.write_standard(o.COMM_CYCLE_PERIOD, 0, round(self.sync_period_s * 1e6), 4)
+
+    def _restore_sync_counter(self) -> list[str]:
+        if self._sync_counter_restore is None:
+            return []
+        try:
+            self.sdo.write_standard(o.COMM_CYCLE_PERIOD, 0, 0, 4)
+            self.sdo.write_standard(SYNC_COUNTER_OVERFLOW, 0, self._sync_counter_restore, 1)
+            self.sdo.write_standard(o.COMM_CYCLE_PERIOD, 0, round(self.sync_period_s * 1e6), 4)
+            self._sync_counter_restore = None
+            return []
+        except LinkError as exc:
+            return [str(exc)]
 
     def _plan_pdos(self, live_signals: Sequence[str]) -> pdos.PdoPlan:
         if self.pdo_policy not in pdos.POLICIES:
@@ -307,7 +383,8 @@ class CanopenDriveLink:
             rpdo = [pdos.entry_for(od, i) for i in (o.CONTROLWORD, o.TARGET_VELOCITY, o.MODES_OF_OPERATION)
                     if self.sdo.has(i)]
             try:
-                tpdos, rpdo_layout = pdos.apply_remap(self.sdo, self._snapshot, self.node_id, groups, rpdo)
+                tpdos, rpdo_layout = pdos.apply_remap(self.sdo, self._snapshot, self.node_id, groups, rpdo,
+                                                      self.sync_period_s)
                 return pdos.PdoPlan("remap", tpdos, rpdo_layout, load, [e.role for e in dropped], encoding)
             except LinkError as exc:
                 if self.pdo_policy == "remap":
@@ -319,10 +396,13 @@ class CanopenDriveLink:
             head[o.EXT_STEP_COUNT] = "_step"
         roles = {(e.index, e.subindex): (e.role, e.factor) for e in wanted}
         roles.update({(i, 0): (r, 1.0) for i, r in head.items()})
-        tpdos, rpdo_layout = pdos.apply_device_mapping(self.sdo, self._snapshot, od, roles)
+        tpdos, rpdo_layout = pdos.apply_device_mapping(self.sdo, self._snapshot, od, roles, self.sync_period_s)
         carried = {e.role for t in tpdos for e in t.entries}
         if "_statusword" not in carried and not tpdos:
-            raise LinkError(f"{self.where}: no TPDO of the drive's fixed mapping carries anything the bench reads")
+            raise LinkError(f"{self.where}: no TPDO of the drive's fixed mapping (0x1A00-0x1A07, TPDO mapping "
+                            f"parameters) carries anything the bench reads (0x6041 statusword, 0x606C velocity "
+                            f"actual, ...): map them with the vendor's tool, or name the objects its TPDOs carry in "
+                            f"[drive.signals], e.g. speed_est_mech_rad_s = \"0x606C\"")
         load = pdos.load_pct([t.size for t in tpdos], self._bitrate, self.sync_period_s)
         return pdos.PdoPlan("device", tpdos, rpdo_layout, load,
                             [e.role for e in wanted if e.role not in carried], encoding)
@@ -337,6 +417,7 @@ class CanopenDriveLink:
         with self._lock:
             self._last_heartbeat = time.monotonic()
             self._heartbeat_state = data[0] & 0x7F if data else None
+        self._booted.set()                    # boot-up (state 0) or a heartbeat: the node is up
 
     def _on_emcy(self, can_id, data, timestamp):
         if len(data) < 3:
@@ -433,6 +514,8 @@ class CanopenDriveLink:
                 self._samples.clear()
                 return samples
             target = self._completed + 1
+        if self._rpdo_frame is not None:             # CSV: a target with every SYNC
+            self._send(self.plan.rpdo.cob, self._rpdo_frame)
         self._send(o.SYNC, b"")
         deadline = time.monotonic() + self.stall_timeout_s
         with self._lock:
@@ -458,18 +541,72 @@ class CanopenDriveLink:
 
     def _start_sync_producer(self) -> None:
         bus = self.network.bus
-        if has_native_cyclic(bus):
+        counter = SYNC_COUNTER_MAX if self._sync_counter_restore is not None else 0
+        if has_native_cyclic(bus) and not counter and self.mode is not cia402.Mode.CYCLIC_SYNC_VELOCITY:
             self._sync = NativeSync(bus, self.sync_period_s)
         else:
-            self._sync = SyncProducer(lambda: self.network.send_message(o.SYNC, b""), self.sync_period_s,
-                                      self._add_error)
+            self._sync = SyncProducer(self._send_sync, self.sync_period_s, self._add_error, counter_overflow=counter)
+        if self.time_base == "sync answered":
+            self._placer = SyncTimeline(self.sync_period_s, self._sync.sent_before, self._sync.epoch_of)
+        elif self.time_base == "receive time":
+            self._placer = ReceiveClock(self.sync_period_s, lambda: self._sync.epoch_of(1) if self._sync else None)
         self._sync.start()
         self.report["sync"] = {"period_s": self.sync_period_s,
                                "producer": "interface (native cyclic)" if self._sync.native else "bench thread"}
 
+    def _send_sync(self, data: bytes) -> None:
+        """The SYNC thread's one frame (and in CSV the target's RPDO just before it): python-can's send under the
+        network's send lock, held for that frame only; no SDO, heartbeat or journal work waits in front of it."""
+        rpdo = self._rpdo_frame
+        with self.network.send_lock:
+            if rpdo is not None:
+                self.network.bus.send(can.Message(arbitration_id=self.plan.rpdo.cob, data=rpdo, is_extended_id=False))
+            self.network.bus.send(can.Message(arbitration_id=o.SYNC, data=data, is_extended_id=False))
+
+    def _place(self, stamp: float | None, received: float) -> float:
+        """Decoder callback (under the link's lock): a real-time answer's time on the bench's SYNC clock."""
+        placer = self._placer
+        if isinstance(placer, SyncTimeline):
+            return placer.place(stamp, received) * self.sync_period_s
+        if isinstance(placer, ReceiveClock):
+            return placer.place(stamp, received)
+        return self._decoder.sync_count * self.sync_period_s
+
+    def now_s(self) -> float | None:
+        """Real time without a drive clock: the drive's time now on the samples' time axis (SYNC n at n periods) —
+        the SYNC sent as long before now as the latest answer came after its SYNC (a drive answers at once: the last
+        SYNC sent; a simulator falling behind under load: the SYNC it is working on), so a reading taken now (the
+        rig's reference sensor) is paired with the samples of its time, not with older ones that arrive late.
+        None where the samples' own stamps are the clock."""
+        if self._sync is None or self.time_base not in ("sync answered", "receive time"):
+            return None
+        if self.time_base == "receive time":
+            origin = self._sync.epoch_of(1)
+            return None if origin is None else time.time() - origin + self.sync_period_s
+        lag = self._placer.last_lag if isinstance(self._placer, SyncTimeline) else None
+        if lag is None:
+            return self._sync.count * self.sync_period_s
+        seq, _ = self._sync.sent_before(time.time() - max(0.0, lag))
+        return max(seq, self._placer.last) * self.sync_period_s
+
+    def sync_report(self) -> dict:
+        """The SYNC statistics at the bench and how samples were placed in time, for the record."""
+        out: dict[str, Any] = {"period_ms": round(self.sync_period_s * 1e3, 6), "timing": self.timing,
+                               "time_base": self.time_base}
+        if self._sync is not None:
+            out.update(self._sync.report())
+            out["producer"] = "interface (native cyclic)" if self._sync.native else "bench thread"
+            out["counter"] = self._sync.counter_overflow or None
+        if self._placer is not None:
+            out.update(self._placer.report())
+        with self._lock:
+            out["incomplete_answers"] = self._decoder.incomplete
+        return out
+
     def _stop_sync_producer(self) -> None:
         if self._sync is not None:
             self._sync.stop()
+            self.report["sync"] = self.sync_report()
             self._sync = None
 
     @property
@@ -482,11 +619,23 @@ class CanopenDriveLink:
         if rpdo is None:
             self.sdo.write_standard(o.TARGET_VELOCITY, 0, self._target, 4, signed=True)
             return
-        self._send(rpdo.cob, rpdo.pack({o.CONTROLWORD: self._controlword, o.TARGET_VELOCITY: self._target,
-                                        o.MODES_OF_OPERATION: cia402.Mode.PROFILE_VELOCITY}))
+        frame = self._pack_rpdo()
+        if self._rpdo_frame is not None and isinstance(self._sync, SyncProducer):
+            return                               # CSV in real time: the SYNC thread sends it before every SYNC
+        self._send(rpdo.cob, frame)
+
+    def _pack_rpdo(self) -> bytes:
+        """The RPDO as it is now; in CSV also what goes out before every SYNC (`_rpdo_frame`)."""
+        frame = self.plan.rpdo.pack({o.CONTROLWORD: self._controlword, o.TARGET_VELOCITY: self._target,
+                                     o.MODES_OF_OPERATION: self.mode})
+        if self.mode is cia402.Mode.CYCLIC_SYNC_VELOCITY:
+            self._rpdo_frame = frame
+        return frame
 
     def write_controlword(self, word: int) -> None:
         self._controlword = word
+        if self._rpdo_frame is not None:         # CSV: the cyclic RPDO carries the new word before the SDO lands
+            self._pack_rpdo()
         self.sdo.write(o.CONTROLWORD, 0, word)
 
     def read_statusword(self) -> int:
@@ -508,12 +657,25 @@ class CanopenDriveLink:
             raise LinkError(f"{self.where}: the drive's velocity unit is not known: not enabling")
 
         def select_mode() -> None:
+            self.mode = self._velocity_mode()
+            self.report["velocity_mode"] = {cia402.Mode.PROFILE_VELOCITY: "profile velocity (3)",
+                                            cia402.Mode.CYCLIC_SYNC_VELOCITY: "cyclic synchronous velocity (9): a "
+                                                                              "target with every SYNC"}[self.mode]
             self._target = 0
             self.sdo.write_standard(o.TARGET_VELOCITY, 0, 0, 4, signed=True)
-            self.sdo.write(o.MODES_OF_OPERATION, 0, cia402.Mode.PROFILE_VELOCITY)
+            try:
+                self.sdo.write(o.MODES_OF_OPERATION, 0, self.mode)
+            except LinkError as exc:
+                other = ('velocity_mode = "csv"' if self.mode is cia402.Mode.PROFILE_VELOCITY
+                         else 'velocity_mode = "pv"')
+                raise LinkError(f"{exc}: the drive refuses mode of operation {int(self.mode)} "
+                                f"({self.mode.name.lower().replace('_', ' ')}) in 0x6060 (modes of operation); "
+                                f"0x6502 (supported drive modes) says which it has; write {other} in [drive] if it "
+                                f"has that one") from None
             mode = self.sdo.read(o.MODES_DISPLAY) if self.sdo.has(o.MODES_DISPLAY) else None
-            if mode is not None and mode != cia402.Mode.PROFILE_VELOCITY:
-                raise LinkError(f"{self.where}: mode of operation display is {mode}, not profile velocity")
+            if mode is not None and mode != self.mode:
+                raise LinkError(f"{self.where}: 0x6061 (mode of operation display) is {mode} after 0x6060 = "
+                                f"{int(self.mode)}: the drive did not take the mode")
 
         def fault_detail() -> str:
             code = self.sdo.read_standard(o.ERROR_CODE, 0)
@@ -523,6 +685,32 @@ class CanopenDriveLink:
         cia402.enable_operation(self, fault_reset_policy=self.fault_reset_policy, timeout_s=self._step_timeout_s,
                                 where=self.where, select_mode=select_mode, fault_detail=fault_detail,
                                 bring_to_rest=self._bring_to_rest)
+        if self.timing == "realtime":
+            # the run's time starts here: what arrived while the bench configured and enabled the drive (SYNC runs
+            # from configure() on, 0.1-0.5 s of SDO round trips under load) would put the scenario's t = 0 back by
+            # that much, and its first command would jump into the profile (a 0.5 s ramp taken as a step at 0.4 s)
+            with self._lock:
+                self._samples.clear()
+
+    def _velocity_mode(self) -> cia402.Mode:
+        """Profile velocity where the drive has it, else cyclic synchronous velocity (0x6502 bits 2 and 8), unless
+        [drive] velocity_mode says; a drive with neither is refused with what to write."""
+        if self.velocity_mode_choice not in VELOCITY_MODES:
+            raise LinkError(f"{self.where}: velocity_mode {self.velocity_mode_choice!r} is not one of "
+                            f"{', '.join(VELOCITY_MODES)}")
+        chosen = VELOCITY_MODES[self.velocity_mode_choice]
+        bits = self.sdo.read_standard(o.SUPPORTED_DRIVE_MODES, 0) if self.sdo.has(o.SUPPORTED_DRIVE_MODES) else None
+        self.report["supported_modes_0x6502"] = None if bits is None else f"0x{bits:08X}"
+        if chosen is not None or bits is None:
+            return chosen or cia402.Mode.PROFILE_VELOCITY
+        have = cia402.supported_modes(bits)
+        for mode in (cia402.Mode.PROFILE_VELOCITY, cia402.Mode.CYCLIC_SYNC_VELOCITY):
+            if mode in have:
+                return mode
+        raise LinkError(f"{self.where}: 0x6502 (supported drive modes) = 0x{bits:08X}: neither profile velocity (3, "
+                        f"bit 2) nor cyclic synchronous velocity (9, bit 8); the bench commands a velocity. If the "
+                        f"drive has one that 0x6502 does not report, write velocity_mode = \"pv\" or "
+                        f"velocity_mode = \"csv\" in [drive]")
 
     def _rest_speed(self) -> float | None:
         """|speed| for 'at rest': the larger of the drive's report and the reference sensor's (either may be None)."""
@@ -614,7 +802,13 @@ class CanopenDriveLink:
 
     def disable(self) -> None:
         self._target = 0
-        cia402.disable_voltage(self, self._step_timeout_s, self.where)
+        if self._rpdo_frame is not None:
+            self._pack_rpdo()
+        try:
+            cia402.disable_voltage(self, self._step_timeout_s, self.where)
+        finally:
+            if self._sync is not None:       # the SYNC statistics are the run's, not of the bench writing its files
+                self._sync.freeze()
 
     def status(self) -> DriveStatus:
         with self._lock:

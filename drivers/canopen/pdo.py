@@ -11,8 +11,9 @@ from __future__ import annotations
 import logging
 import math
 import struct
+import time
 from dataclasses import dataclass, field
-from typing import Iterable, Sequence
+from typing import Callable, Iterable, Sequence
 
 from canopen import objectdictionary
 
@@ -30,6 +31,7 @@ STRUCT_CODES = {(o.BOOLEAN, 8): "B", (o.UNSIGNED8, 8): "B", (o.INTEGER8, 8): "b"
 COMM_SUBS = (1, 2, 3, 5)     # COB-ID, transmission type, inhibit time, event timer
 SYNC_EVERY_CYCLE = 1
 EVENT_DRIVEN = 255
+SYNC_TYPES = range(0, 241)   # CiA 301 transmission types answering SYNC (0 acyclic, 1-240 every n-th SYNC)
 
 
 @dataclass(frozen=True)
@@ -54,6 +56,12 @@ class Tpdo:
     number: int                 # 1-based
     cob: int
     entries: list[Entry]
+    trans_type: int = SYNC_EVERY_CYCLE
+    event_timer_ms: int = 0
+
+    @property
+    def event_driven(self) -> bool:
+        return self.trans_type not in SYNC_TYPES
 
     @property
     def layout(self) -> struct.Struct:
@@ -86,7 +94,8 @@ class PdoPlan:
 
     def as_record(self) -> dict:
         return {"policy": self.policy, "bus_load_pct": round(self.bus_load_pct, 2), "encoding": self.encoding,
-                "tpdos": [{"number": t.number, "cob_id": f"0x{t.cob:03X}",
+                "tpdos": [{"number": t.number, "cob_id": f"0x{t.cob:03X}", "transmission_type": t.trans_type,
+                           **({"event_timer_ms": t.event_timer_ms} if t.event_driven else {}),
                            "objects": [f"0x{e.index:04X}:{e.subindex:02X}" + (f" {e.role}" if e.role else "")
                                        for e in t.entries]} for t in self.tpdos],
                 "rpdo": None if self.rpdo is None else {"number": self.rpdo.number, "cob_id": f"0x{self.rpdo.cob:03X}",
@@ -195,9 +204,9 @@ class PdoSnapshot:
 # -- writing ------------------------------------------------------------------------------------------------------
 
 def write_pdo(sdo: SdoAccess, snap: PdoSnapshot, comm: int, cob: int, trans_type: int,
-              entries: list[Entry] | None) -> None:
-    """CiA 301 order: COB-ID invalid, (mapping count 0, entries, count), transmission type, COB-ID valid. On a
-    refusal the PDO is restored from the snapshot before the LinkError goes up."""
+              entries: list[Entry] | None, event_timer_ms: int = 0) -> None:
+    """CiA 301 order: COB-ID invalid, (mapping count 0, entries, count), transmission type (and event timer), COB-ID
+    valid. On a refusal the PDO is restored from the snapshot before the LinkError goes up."""
     mapping = comm + (o.RPDO_MAP - o.RPDO_COMM)
     snap.touch(comm)
     try:
@@ -209,6 +218,8 @@ def write_pdo(sdo: SdoAccess, snap: PdoSnapshot, comm: int, cob: int, trans_type
                 sdo.download(mapping, k, entry.mapping.to_bytes(4, "little"))
             sdo.download(mapping, 0, bytes([len(entries)]))
         sdo.download(comm, 2, bytes([trans_type]))
+        if event_timer_ms:
+            sdo.download(comm, 5, event_timer_ms.to_bytes(2, "little"))
         sdo.download(comm, 1, cob.to_bytes(4, "little"))
     except LinkError:
         try:
@@ -230,14 +241,42 @@ def count_pdos(sdo: SdoAccess, comm_base: int, limit: int) -> int:
     return next((n for n in range(limit) if not sdo.has(comm_base + n)), limit)
 
 
+def event_timer_for(sync_period_s: float) -> int:
+    """An event-driven TPDO's event timer (0x18xx sub 5, ms): the SYNC period, rounded up, at least 1 ms."""
+    return max(1, min(0xFFFF, math.ceil(sync_period_s * 1000 - 1e-9)))
+
+
+def write_tpdo(sdo: SdoAccess, snap: PdoSnapshot, comm: int, cob: int, entries: list[Entry] | None,
+               sync_period_s: float) -> tuple[int, int]:
+    """A TPDO sent on every SYNC (type 1); where the drive refuses SYNC transmission (an abort on 0x18xx sub 2),
+    event-driven (type 255) with the event timer at the SYNC period. Returns (transmission type, event timer ms)."""
+    try:
+        write_pdo(sdo, snap, comm, cob, SYNC_EVERY_CYCLE, entries)
+        return SYNC_EVERY_CYCLE, 0
+    except LinkError as exc:
+        if f"0x{comm:04X}:02" not in str(exc) or "aborted" not in str(exc):
+            raise
+        log.info("TPDO 0x%04X: SYNC transmission refused (%s); event-driven instead", comm, exc)
+    timer = event_timer_for(sync_period_s)
+    try:
+        write_pdo(sdo, snap, comm, cob, EVENT_DRIVEN, entries, timer)
+    except LinkError as exc:
+        raise LinkError(f"{exc}: 0x{comm:04X} (TPDO communication parameter) refuses transmission type 1 (every SYNC) "
+                        f"and 255 (event-driven, event timer {timer} ms at 0x{comm:04X}:05); the bench cannot "
+                        f"receive this TPDO: map the signals into another TPDO, or write pdo = \"device\" in [drive] "
+                        f"to use the drive's own mapping") from None
+    return EVENT_DRIVEN, timer
+
+
 def apply_remap(sdo: SdoAccess, snap: PdoSnapshot, node_id: int, groups: list[list[Entry]],
-                rpdo_entries: list[Entry]) -> tuple[list[Tpdo], Rpdo]:
-    """Our mapping in TPDO 1..n (SYNC every cycle), the drive's other TPDOs off, RPDO1 <- rpdo_entries."""
+                rpdo_entries: list[Entry], sync_period_s: float = 0.001) -> tuple[list[Tpdo], Rpdo]:
+    """Our mapping in TPDO 1..n (SYNC every cycle, else event-driven), the drive's other TPDOs off,
+    RPDO1 <- rpdo_entries."""
     tpdos = []
     for n, group in enumerate(groups):
         cob = o.TPDO_COB[n] + node_id
-        write_pdo(sdo, snap, o.TPDO_COMM + n, cob, SYNC_EVERY_CYCLE, group)
-        tpdos.append(Tpdo(n + 1, cob, group))
+        trans_type, timer = write_tpdo(sdo, snap, o.TPDO_COMM + n, cob, group, sync_period_s)
+        tpdos.append(Tpdo(n + 1, cob, group, trans_type, timer))
     for n in range(len(groups), count_pdos(sdo, o.TPDO_COMM, o.N_TPDO_MAX)):
         disable_pdo(sdo, snap, o.TPDO_COMM + n)
     cob = o.RPDO_COB[0] + node_id
@@ -246,7 +285,8 @@ def apply_remap(sdo: SdoAccess, snap: PdoSnapshot, node_id: int, groups: list[li
 
 
 def apply_device_mapping(sdo: SdoAccess, snap: PdoSnapshot, od: objectdictionary.ObjectDictionary,
-                         roles: dict[tuple[int, int], tuple[str, float]]) -> tuple[list[Tpdo], Rpdo | None]:
+                         roles: dict[tuple[int, int], tuple[str, float]],
+                         sync_period_s: float = 0.001) -> tuple[list[Tpdo], Rpdo | None]:
     """Use the TPDOs whose mapping (read from the device) carries something the bench reads: made valid and sent on
     every SYNC (only their communication parameters are written). The RPDO that carries the target velocity, made
     valid and event-driven; None when there is none (target by SDO)."""
@@ -257,8 +297,8 @@ def apply_device_mapping(sdo: SdoAccess, snap: PdoSnapshot, od: objectdictionary
             continue
         entries = [_device_entry(od, i, s, bits, roles) for i, s, bits in mapped]
         cob = snap.raw(o.TPDO_COMM + n, 1) & 0x7FF
-        write_pdo(sdo, snap, o.TPDO_COMM + n, cob, SYNC_EVERY_CYCLE, None)
-        tpdos.append(Tpdo(n + 1, cob, entries))
+        trans_type, timer = write_tpdo(sdo, snap, o.TPDO_COMM + n, cob, None, sync_period_s)
+        tpdos.append(Tpdo(n + 1, cob, entries, trans_type, timer))
     rpdo = None
     for n in range(count_pdos(sdo, o.RPDO_COMM, o.N_RPDO_MAX)):
         mapped = snap.mapping(o.RPDO_MAP + n)
@@ -288,12 +328,13 @@ def _device_entry(od, index: int, subindex: int, bits: int, roles: dict) -> Entr
 @dataclass
 class TpdoDecoder:
     """Joins one SYNC's TPDOs into one LiveSample. Time: the drive clock when a TPDO carries it; else, in lockstep,
-    SYNCs counted x period (exact: the drive advances one period per SYNC); in real time the receive time of the
-    SYNC's first TPDO relative to the first one. Not thread-safe: the link calls it under its lock."""
+    SYNCs counted x period (exact: the drive advances one period per SYNC); in real time `placer(stamp, received)`
+    of the first TPDO (drivers.canopen.sync: the SYNC it answers, or for event-driven TPDOs the receive time on the
+    bench clock). Not thread-safe: the link calls it under its lock."""
 
     sync_period_s: float
     control_period_s: float | None
-    use_receive_time: bool = False
+    placer: Callable[[float | None, float], float] | None = None
     tpdos: dict[int, Tpdo] = field(default_factory=dict)
     statusword: int = 0
     sync_count: int = 0
@@ -301,7 +342,6 @@ class TpdoDecoder:
     _partial: dict[str, float] = field(default_factory=dict)
     _seen: set[int] = field(default_factory=set)
     _partial_t: float = 0.0
-    _first_rx: float | None = None
     _wraps: int = 0
     _last_step: int | None = None
 
@@ -345,10 +385,8 @@ class TpdoDecoder:
 
     def _start(self, timestamp: float) -> None:
         self.sync_count += 1
-        if self.use_receive_time:
-            if self._first_rx is None:
-                self._first_rx = timestamp - self.sync_period_s
-            self._partial_t = timestamp - self._first_rx
+        if self.placer is not None:
+            self._partial_t = self.placer(timestamp, time.time())
         else:
             self._partial_t = self.sync_count * self.sync_period_s
 

@@ -296,7 +296,8 @@ PROFILE_KEYS = ("profile", "velocity_unit", "velocity_side", "units_confirmed", 
                 "gear_ratio", "rated_torque_nm",
                 "rated_current_a", "signals", "pdo", "comm_loss", "external_stop", "consumer_time_ms", "abort_option",
                 "drill_margin_ms",
-                "error_behaviour", "bench_node_id", "standstill_mech_rad_s", "stop_timeout_s", "can")
+                "error_behaviour", "bench_node_id", "standstill_mech_rad_s", "stop_timeout_s", "can",
+                "boot_timeout_s", "velocity_mode")
 _POSITIVE = ("encoder_increments_per_rev", "rated_torque_nm", "rated_current_a")
 
 
@@ -362,6 +363,15 @@ def config_keys(section: dict) -> tuple[dict[str, Any], list[tuple[str, str]]]:
         elif key in _POSITIVE:
             if not _number(value) or value <= 0:
                 bad(key, f"must be a number > 0, got {value!r}")
+                continue
+        elif key == "velocity_mode":
+            if value not in ("auto", "pv", "csv"):
+                bad(key, f"must be \"auto\" (profile velocity where 0x6502 has it, else cyclic synchronous velocity), "
+                         f"\"pv\" or \"csv\", got {value!r}")
+                continue
+        elif key == "boot_timeout_s":
+            if not _number(value) or not 0 <= value <= 600:
+                bad(key, f"must be seconds, 0-600 (how long the drive may take to send its NMT boot-up), got {value!r}")
                 continue
         elif key == "can":
             if not isinstance(value, dict):

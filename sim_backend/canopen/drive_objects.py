@@ -62,8 +62,11 @@ class Cia402Objects:
     """0x6040/0x6041 state machine, modes, velocity target/demand/actual in the drive's units, torque and current
     actual (per mille of rated), DC link (mV), position actual, the factor group, error code and register."""
 
-    def __init__(self, device: SimulatedDevice, on_controlword: Callable[[], None], units: DriveUnits | None = None):
+    def __init__(self, device: SimulatedDevice, on_controlword: Callable[[], None], units: DriveUnits | None = None,
+                 supported_modes: int | None = None):
+        """`supported_modes`: 0x6502 as this drive has it (None: the EDS default, every mode accepted)."""
         self.device = device
+        self.supported_modes = supported_modes
         self._on_controlword = on_controlword
         self.units = units or DriveUnits()
         self._position_rad = 0.0
@@ -75,6 +78,8 @@ class Cia402Objects:
             return dev.device.statusword
         if index == o.MODES_DISPLAY:
             return dev.mode_of_operation
+        if index == o.SUPPORTED_DRIVE_MODES and self.supported_modes is not None:
+            return self.supported_modes
         if index == o.ERROR_CODE:
             return dev.device.error_code
         if index == o.ERROR_REGISTER:
@@ -118,6 +123,8 @@ class Cia402Objects:
                 dev.write_controlword(value)
             self._on_controlword()
         elif index == o.MODES_OF_OPERATION:
+            if self.supported_modes is not None and value and not self.supported_modes >> (value - 1) & 1:
+                raise SdoAbortedError(o.ABORT_INVALID_VALUE)
             with dev.lock:
                 dev.mode_of_operation = value
         elif index == o.TARGET_VELOCITY:

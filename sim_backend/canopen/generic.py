@@ -14,6 +14,10 @@ per SYNC in lockstep), the simulated drive still has them, with CiA defaults: th
 reads the device, not the EDS, so a real drive without them is refused (0x1016) or told nothing (0x1006) instead.
 Objects whose EDS entry has no default get one (0, strings "sim"; a mapping's count: its non-zero entries), as a
 device does.
+
+Quirks real drives have, as options: `csv_only` (0x6502 = 0x100, 0x6060 = 3 aborted with 0x06090030),
+`event_tpdos_only` (0x18xx sub 2 refuses 0-240; TPDOs go out on change and every event timer 0x18xx sub 5 of drive
+time), `boot_delay_s` (no answer at all until the boot-up message 0x700 + id, data 00).
 """
 
 from __future__ import annotations
@@ -46,6 +50,9 @@ class DriveSpec:
     found_running_mech_rad_s: float | None = None   # enabled and turning at this speed when the bench connects
     tpdo_stops_after_s: float | None = None   # TPDO `tpdo_stops` (0: all) goes silent after this much drive time
     tpdo_stops: int = 0
+    csv_only: bool = False                    # 0x6502 = 0x100: cyclic synchronous velocity, no profile velocity
+    event_tpdos_only: bool = False            # TPDO transmission types 0-240 (SYNC) refused: 254/255 + event timer
+    boot_delay_s: float = 0.0                 # silent this long after power-up, then the NMT boot-up message
 
 
 def is_drivebench(od: objectdictionary.ObjectDictionary) -> bool:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import struct
+import threading
 from pathlib import Path
 
 import can
@@ -34,6 +35,7 @@ from sim_backend.device import SimulatedDevice
 log = logging.getLogger(__name__)
 
 NMT_START_BOOT_UP, NMT_ENTER_PRE_OPERATIONAL = 0x81, 0x80     # NmtSlave.send_command: reset node, pre-operational
+CSV_ONLY_MODES = 1 << 8             # 0x6502 of a drive with cyclic synchronous velocity only (many servo drives)
 
 
 class SimCanopenNode:
@@ -49,6 +51,7 @@ class SimCanopenNode:
         self.network.NOTIFIER_CYCLE = 0.02      # stop() returns within 20 ms (the notifier thread polls)
         od = canopen.import_od(str(eds_path), node_id)
         spec = drive or generic.DriveSpec()
+        self.spec = spec
         self.added_objects = generic.add_missing_standard_objects(od, spec.comm_loss_objects, spec.comm_loss_reaction)
         device.cia402_comm_loss_reaction = spec.comm_loss_reaction
         self._tpdo_stop = (None if spec.tpdo_stops_after_s is None else
@@ -57,16 +60,21 @@ class SimCanopenNode:
         generic.fill_defaults(od)
         self.od = od
         self.node = DriveLocalNode(node_id, od)
-        self.network.add_node(self.node)
-        self.cia402 = Cia402Objects(device, self._emcy_reset_if_cleared, generic.units(od, spec))
+        self.cia402 = Cia402Objects(device, self._emcy_reset_if_cleared, generic.units(od, spec),
+                                    supported_modes=CSV_ONLY_MODES if spec.csv_only else None)
         if generic.is_drivebench(od):
             self.extension: ExtensionObjects | None = ExtensionObjects(device, od)
             self._handlers = (self.cia402, self.extension)
         else:
             self.extension = None
             self._handlers = (self.cia402,)
+        if spec.event_tpdos_only:           # the drive's own TPDOs are event-driven too
+            for n in range(o.N_TPDO_MAX):
+                if o.TPDO_COMM + n in od and 2 in od[o.TPDO_COMM + n].subindices:
+                    var = od[o.TPDO_COMM + n][2]
+                    var.default = var.value = 255
         self.pdos = PdoEngine(od, self._raw, self.node.get_data, self.node.set_data, self._fast_getter,
-                              fixed_mapping=spec.fixed_pdo_mapping)
+                              fixed_mapping=spec.fixed_pdo_mapping, event_only=spec.event_tpdos_only)
         self.node.add_read_callback(self._on_read)
         self.node.add_write_callback(self._on_write)
         if self.extension is not None:
@@ -75,7 +83,6 @@ class SimCanopenNode:
         self._sync_count = 0
         self._was_fault = False
         self.rpdo_length_errors = 0
-        self.network.subscribe(o.SYNC, self._on_sync)
         self.steps_per_sync = self._read_steps_per_sync()
         self._rebuild_pdos()
         self.network.connect()
@@ -90,8 +97,20 @@ class SimCanopenNode:
         nmt.start_heartbeat = self.heartbeat.set_period_ms
         nmt.stop_heartbeat = lambda: self.heartbeat.set_period_ms(0)
         nmt.update_heartbeat = lambda: None   # the producer reads the state when it sends
-        nmt.send_command(NMT_START_BOOT_UP)   # boot-up message, then PRE-OPERATIONAL with heartbeat
-        nmt.send_command(NMT_ENTER_PRE_OPERATIONAL)
+        self._boot_timer: threading.Timer | None = None
+        if spec.boot_delay_s > 0:             # still booting: not on the bus (no SDO, no SYNC) until the boot-up
+            self._boot_timer = threading.Timer(spec.boot_delay_s, self._boot)
+            self._boot_timer.daemon = True
+            self._boot_timer.start()
+        else:
+            self._boot()
+
+    def _boot(self) -> None:
+        """On the bus: SDO server, NMT and SYNC answered; boot-up message, then PRE-OPERATIONAL with heartbeat."""
+        self.network.add_node(self.node)
+        self.network.subscribe(o.SYNC, self._on_sync)
+        self.node.nmt.send_command(NMT_START_BOOT_UP)
+        self.node.nmt.send_command(NMT_ENTER_PRE_OPERATIONAL)
 
     @property
     def nmt_state(self) -> int:
@@ -176,7 +195,7 @@ class SimCanopenNode:
         if self.nmt_state != o.NMT_OPERATIONAL:
             self._operational_since = None
             return
-        frames = self.pdos.tpdo_frames(self._sync_count)
+        frames = self.pdos.tpdo_frames(self._sync_count, self.device.time_s)
         if self._tpdo_stop is not None:
             if self._operational_since is None:
                 self._operational_since = self.device.time_s
@@ -220,6 +239,8 @@ class SimCanopenNode:
         self.node.nmt.stop_heartbeat()
 
     def stop(self) -> None:
+        if self._boot_timer is not None:
+            self._boot_timer.cancel()
         self.heartbeat.close()
         self.network.disconnect()
 

@@ -25,6 +25,8 @@ class Pdo:
     entries: list[tuple[int, int, int]]     # (index, subindex, bits)
     last: bytes = b""
     packer: tuple | None = None             # (struct, getters) when every mapped object has a fast getter
+    event_timer_ms: int = 0                 # TPDO 254/255: sent at least this often (0x18xx sub 5), 0 = on change only
+    last_sent_s: float | None = None        # drive time of the last event-driven send
 
     @property
     def length(self) -> int:
@@ -42,9 +44,10 @@ class PdoEngine:
     def __init__(self, od: objectdictionary.ObjectDictionary, raw: Callable[[int, int], int],
                  get_data: Callable[[int, int], bytes], set_data: Callable[[int, int, bytes], None],
                  fast_getter: Callable[[int, int], tuple[str, Callable[[], object]] | None],
-                 fixed_mapping: bool = False):
+                 fixed_mapping: bool = False, event_only: bool = False):
         self.od = od
         self.fixed_mapping = fixed_mapping      # a drive whose mappings cannot be changed (only COB-ID, type)
+        self.event_only = event_only            # a drive whose TPDOs refuse SYNC transmission types (0-240)
         self._raw = raw
         self._get = get_data
         self._set = set_data
@@ -56,6 +59,8 @@ class PdoEngine:
 
     def check_write(self, index: int, subindex: int, value: int) -> None:
         """SDO abort for a mapping a drive would refuse: too long, an object that cannot be mapped."""
+        if self.event_only and o.TPDO_COMM <= index < o.TPDO_MAP and subindex == 2 and value <= 240:
+            raise SdoAbortedError(o.ABORT_INVALID_VALUE)
         if not is_mapping_parameter(index):
             return
         if self.fixed_mapping:
@@ -82,7 +87,8 @@ class PdoEngine:
 
     def _read(self, comm: int, mapping: int) -> Pdo:
         entries = [o.unpack_mapping_entry(self._raw(mapping, k)) for k in range(1, self._raw(mapping, 0) + 1)]
-        return Pdo(cob_id=self._raw(comm, 1), trans_type=self._raw(comm, 2), entries=entries)
+        timer = self._raw(comm, 5) if comm >= o.TPDO_COMM and 5 in getattr(self.od[comm], "subindices", {}) else 0
+        return Pdo(cob_id=self._raw(comm, 1), trans_type=self._raw(comm, 2), entries=entries, event_timer_ms=timer)
 
     def rebuild(self) -> tuple[list[int], list[int]]:
         """Re-read every PDO; returns (RPDO COB-IDs no longer used, RPDO COB-IDs now used)."""
@@ -143,17 +149,22 @@ class PdoEngine:
             getters.append(fast[1])
         return struct.Struct(fmt), getters
 
-    def tpdo_frames(self, sync_count: int) -> list[tuple[int, bytes]]:
-        """The TPDOs due at this SYNC: cyclic ones every n-th SYNC, acyclic/event ones when their data changed."""
+    def tpdo_frames(self, sync_count: int, drive_time_s: float | None = None) -> list[tuple[int, bytes]]:
+        """The TPDOs due at this SYNC: cyclic ones every n-th SYNC, acyclic/event ones when their data changed, and
+        event ones with an event timer also when it ran out (drive time: the drive advances on SYNC)."""
         frames = []
         for pdo in self.tpdos:
             t = pdo.trans_type
             if 1 <= t <= 240:
                 if sync_count % t == 0:
                     frames.append((pdo.cob_id, self.pack(pdo)))
-            else:                       # 0 (acyclic synchronous), 254/255 (event): on change
+            else:                       # 0 (acyclic synchronous), 254/255 (event): on change, or the timer ran out
                 payload = self.pack(pdo)
-                if payload != pdo.last:
+                timer_due = (t >= 254 and pdo.event_timer_ms and drive_time_s is not None and
+                             (pdo.last_sent_s is None
+                              or drive_time_s - pdo.last_sent_s >= pdo.event_timer_ms * 1e-3 - 1e-9))
+                if payload != pdo.last or timer_due:
                     pdo.last = payload
+                    pdo.last_sent_s = drive_time_s
                     frames.append((pdo.cob_id, payload))
         return frames
