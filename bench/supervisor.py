@@ -171,10 +171,10 @@ class UnitCheck:
                 return None
             which = " and ".join(n for n, v in (("the drive's speed", est), ("the reference sensor's", true))
                                  if v is None or v != v)
-            return Trip("unit_mismatch", t_s, {"speed_est_mech_rad_s": math.nan if est is None else est,
+            return Trip("feedback_lost", t_s, {"speed_est_mech_rad_s": math.nan if est is None else est,
                                                "speed_true_mech_rad_s": math.nan if true is None else true},
-                        f"unit check at t={t_s:.4f} s: {which} missing for {self._bad} SYNC periods while the shaft "
-                        "turns: the drive's units cannot be checked, stopping")
+                        f"feedback lost at t={t_s:.4f} s: {which} missing for {self._bad} SYNC periods while the "
+                        "shaft turns, during the unit check: the drive's units cannot be checked, stopping")
         self.max_speed = max(self.max_speed, abs(true))
         self._angle_est += est * dt
         self._angle_true += true * dt

@@ -212,8 +212,9 @@ def test_a_tpdo_that_stops_in_real_time_trips_feedback_lost_and_stops_the_run(tm
     trip = record["trips"][0]
     assert result.verdict == "aborted" and trip["reason"] == "feedback_lost", record["trips"]
     # the TPDO stops 1 s after the drive went operational (the enable's SDO steps come before the run's t = 0):
-    # the trip follows within 5 SYNC periods of it, long before the 3 s run would have ended on NaN rows
-    assert 0.7 <= trip["t_s"] <= 2.0, trip
+    # the trip follows within 5 SYNC periods of it (or 0.5 s of silence, plus a loaded host's scheduling when every
+    # TPDO stops), long before the 3 s run would have ended on NaN rows
+    assert 0.7 <= trip["t_s"] <= 2.5, trip
     assert record["safe_stop"]["errors"] == [] and record["drive_settings"]["stop"]["standstill"]
 
 
@@ -349,7 +350,7 @@ def test_the_unit_cross_check_does_not_pass_on_missing_drive_speed():
     trips = [check.check(k * 0.01, {"speed_est_mech_rad_s": nan, "speed_true_mech_rad_s": 20.0})
              for k in range(3, 200)]            # ... then the drive's speed goes missing
     first = next(i for i, t in enumerate(trips) if t is not None)
-    assert first <= 2 and trips[first].reason == "unit_mismatch" and "missing" in trips[first].message
+    assert first <= 2 and trips[first].reason == "feedback_lost" and "missing" in trips[first].message
     assert not check.done                       # never passed
 
 

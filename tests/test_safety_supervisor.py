@@ -247,7 +247,7 @@ def test_the_unit_check_passes_a_sensorless_estimate_within_its_noise():
 
 def test_a_missing_speed_never_counts_as_agreement():
     trip, _, check = unit_check_run(1.0, nan_at=range(10, 200))     # the drive's speed stops arriving
-    assert trip is not None and trip.reason == "unit_mismatch" and "missing" in trip.message
+    assert trip is not None and trip.reason == "feedback_lost" and "missing" in trip.message
     assert check.missing == 3
     # a NaN between two disagreeing samples does not reset the count: 1.5x trips as soon as without the NaN
     plain, _, _ = unit_check_run(1.5)
