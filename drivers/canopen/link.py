@@ -38,7 +38,7 @@ from drivers import cia402
 from drivers.api import DriveIdentity, DriveStatus, LinkError, LinkSettings, LiveSample
 from drivers.canopen import objects as o
 from drivers.canopen import pdo as pdos
-from drivers.canopen.bus import BusErrorCounter, bus_kwargs, open_bus
+from drivers.canopen.bus import BusErrorCounter, SocketcandRefusal, bus_kwargs, open_bus
 from drivers.canopen.comm_loss import CommLossGuard
 from drivers.comm_loss import CommLossConfig
 from drivers.canopen.profile import DriveProfile, ProfileConfig, ProfileError, resolve
@@ -106,17 +106,16 @@ class CanopenDriveLink:
         self._rx_lag_s = 0.0
         self._last_return = 0.0
         self.bus_errors = BusErrorCounter()
+        self._refusal: SocketcandRefusal | None = None
 
     # -- connection ----------------------------------------------------------------------------------
     def open(self) -> DriveIdentity:
         kwargs = bus_kwargs(self.section)
-        if kwargs["interface"] == "socketcand":
-            # python-can's client warns on every TCP read that ends mid-message, which is normal at load
-            logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
         try:
             self.network = canopen.Network()
             self.network.NOTIFIER_CYCLE = 0.02  # close() returns within 20 ms (the notifier thread polls)
             open_bus(kwargs, lambda: self.network.connect(**kwargs))
+            self._refusal = SocketcandRefusal(self.network.bus) if kwargs["interface"] == "socketcand" else None
         except (can.CanError, OSError, ValueError, TimeoutError, TypeError) as exc:
             raise LinkError(f"CAN interface {self.section.get('interface')!r} channel "
                             f"{self.section.get('channel')!r}: cannot open: {exc}") from None
@@ -136,6 +135,9 @@ class CanopenDriveLink:
         try:
             vendor, product, revision, serial = (sdo.read(o.IDENTITY, k) for k in (1, 2, 3, 4))
         except LinkError as exc:
+            if self._refusal is not None and self._refusal.reason:
+                raise LinkError(f"{self._refusal.reason} ({self.section.get('interface')} "
+                                f"{kwargs.get('host')}:{kwargs.get('port')})") from None
             if kwargs["interface"] == "socketcand":
                 raise LinkError(f"{exc} (a served simulator admits one bench at a time: is another bench "
                                 f"connected?)") from None
