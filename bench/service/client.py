@@ -13,9 +13,11 @@ from pathlib import Path
 from typing import Any, Callable
 from xml.etree import ElementTree as ET
 
+from bench.service.limits import MAX_SCENARIO_CHARS
+
 FINAL = ("pass", "fail", "aborted", "error", "cancelled")
 REQUEST_TIMEOUT_S = 30.0
-MAX_SCENARIO_BYTES = 1_000_000     # the service's limit on a submitted scenario (bench/service/limits.py says the same)
+
 
 
 class ClientError(Exception):
@@ -79,9 +81,9 @@ class Client:
                 raise ClientError([f"{scenario}: (file): not a text file (UTF-8 TOML expected)"]) from None
             except OSError as exc:
                 raise ClientError([f"{scenario}: (file): cannot read: {exc.strerror or exc}"]) from None
-            if len(text.encode("utf-8")) > MAX_SCENARIO_BYTES:
-                raise ClientError([f"{scenario}: (file): {len(text.encode('utf-8'))} bytes; the service takes "
-                                   f"scenarios up to {MAX_SCENARIO_BYTES} bytes"])
+            if len(text) > MAX_SCENARIO_CHARS:
+                raise ClientError([f"{scenario}: (file): {len(text)} characters; the service takes scenarios up to "
+                                   f"{MAX_SCENARIO_CHARS}"])
             body.update(scenario_toml=text, filename=scenario)
         else:
             body["scenario"] = scenario

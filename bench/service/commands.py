@@ -103,8 +103,8 @@ def serve(db_url, data_dir, host, port, rigs_path, scenario_root, lease_ttl_s, m
     click.echo(f"drivebench serve: http{'s' if ssl_certfile else ''}://{host}:{port}/ "
                f"({'SQLite in ' + str(settings.data_dir) if service.db.is_sqlite else 'PostgreSQL'}, "
                f"{len(settings.rigs)} rigs)", err=True)
-    uvicorn.run(create_app(service=service), host=host, port=port, log_level="warning", ssl_keyfile=ssl_keyfile,
-                ssl_certfile=ssl_certfile, timeout_graceful_shutdown=5)
+    from bench.service.guard import run_server
+    run_server(create_app(service=service), host, port, ssl_keyfile, ssl_certfile)
 
 
 @click.group()
