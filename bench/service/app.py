@@ -58,7 +58,9 @@ class AuthMiddleware:
                 jar = SimpleCookie()
             token = jar[COOKIE].value if COOKIE in jar else None
         service: Service = self.service_getter()
-        principal = await anyio.to_thread.run_sync(service.tokens.lookup, token) if token else None
+        found, principal = service.tokens.cached(token) if token else (True, None)
+        if not found:
+            principal = await anyio.to_thread.run_sync(service.tokens.lookup, token)
         if principal is None:
             return await self._deny(scope, receive, send, "a valid token is needed (Authorization: Bearer TOKEN)"
                                     if token is None else "unknown or revoked token")
