@@ -7,13 +7,16 @@ transport-free so tests can feed it frames directly. sim_backend.rig puts these 
 
 from __future__ import annotations
 
+import array
 import errno
+import fcntl
 import logging
 import math
 import os
 import select
 import socket
 import struct
+import termios
 import threading
 import time
 import tty
@@ -253,6 +256,17 @@ class _Session:
         return out
 
 
+def _waiting(conn: socket.socket) -> bool:
+    """Bytes from the client wait unread (the server thread has not run since they came); a closed connection has
+    none (FIONREAD: nothing is consumed, nothing waits)."""
+    count = array.array("i", [0])
+    try:
+        fcntl.ioctl(conn.fileno(), termios.FIONREAD, count, True)
+    except (OSError, ValueError):
+        return False
+    return count[0] > 0
+
+
 def _left(conn: socket.socket) -> bool:
     """The client closed or reset its side (without waiting)."""
     try:
@@ -423,6 +437,13 @@ class SerialTcpServer(_ServerBase):
         finds the line free."""
         session = _Session(self.device, self.stats)
         last_byte = time.monotonic()
+        self.device.master_watchdog.arrived = lambda: _waiting(conn)
+        try:
+            self._serve_loop(conn, session, last_byte)
+        finally:
+            self.device.master_watchdog.arrived = None
+
+    def _serve_loop(self, conn: socket.socket, session: "_Session", last_byte: float) -> None:
         with conn:
             while True:
                 timeout = session.idle_timeout or IDLE_TIMEOUT_S

@@ -280,3 +280,32 @@ def test_second_socketcand_bench_reads_the_refusal_as_one_line_rig_busy(caplog, 
                 and not r.name.startswith("canopen")]
     assert not [r for r in caplog.records if "Traceback" in r.getMessage()]
     assert "Traceback" not in capfd.readouterr().err
+
+
+def test_serial_watchdog_counts_a_request_waiting_unread_as_the_masters_sign_but_not_a_closed_line():
+    """A loaded host may not schedule the simulator for longer than the drive's comm-loss time: a request that arrived
+    meanwhile is what a real drive's UART would have received. A bench that closed its line sends nothing."""
+    import fcntl  # noqa: F401  (the server's FIONREAD check)
+    from sim_backend.serial_server import _waiting
+
+    a, b = socket.socketpair()
+    try:
+        assert not _waiting(b)
+        a.sendall(b"\x55")
+        time.sleep(0.05)
+        assert _waiting(b)
+        b.recv(1)
+        a.close()
+        time.sleep(0.05)
+        assert not _waiting(b)                            # EOF is not a request
+    finally:
+        b.close()
+    from sim_backend.comm_watchdog import Watchdog
+    dog = Watchdog("drive")
+    dog.arm(0.3)
+    dog.touch()
+    waiting = [True]
+    dog.arrived = lambda: waiting[0]
+    assert not dog.expired(time.monotonic() + 1.0)       # bytes waiting: not silent
+    waiting[0] = False
+    assert dog.expired(time.monotonic() + 2.0)           # nothing waiting: it trips
