@@ -2,7 +2,8 @@
 1,024-descriptor limit, two run processes at once, the rigs of benchmarks/service.py):
 
 1. baseline: one client, 100 API requests one after the other (the ratio's denominator);
-2. 50 clients x 20 requests at once (rigs, runs, one run, leases, health): p99, errors, the service's RSS;
+2. 50 client processes x 20 requests, released at once (rigs, runs, one run, leases, health): p99, errors, the
+   service's RSS;
 3. 100 concurrent GET /trend.png of 100 different plots while /api/health is timed;
 4. four 100 MB request bodies at once from a viewer token and four from an operator: refused before they are read,
    the service's RSS before and after;
@@ -80,29 +81,35 @@ def start(work: Path, port: int) -> tuple[subprocess.Popen, dict[str, str]]:
             time.sleep(0.2)
 
 
+def _client_process(url: str, token: str, k: int, gate, out) -> None:
+    c = Client(url, token, timeout_s=10)
+    latencies, errors = [], 0
+    gate.wait()
+    for i in range(REQUESTS):
+        try:
+            latencies.append(timed(c, PATHS[(k + i) % len(PATHS)]))
+        except Exception:
+            errors += 1
+    out.put((latencies, errors))
+
+
 def load(url: str, token: str) -> tuple[list[float], int]:
+    """CLIENTS client processes (a lab's browsers and CI jobs are not threads of one Python process: 50 threads
+    sharing one interpreter lock measured the client as much as the service), all released at once."""
+    import multiprocessing as mp
+
+    gate, out = mp.Barrier(CLIENTS), mp.Queue()
+    procs = [mp.Process(target=_client_process, args=(url, token, k, gate, out)) for k in range(CLIENTS)]
+    for p in procs:
+        p.start()
     latencies: list[float] = []
     errors = 0
-    lock = threading.Lock()
-    start_gate = threading.Barrier(CLIENTS)
-
-    def client(k: int) -> None:
-        nonlocal errors
-        c = Client(url, token, timeout_s=10)
-        start_gate.wait()
-        for i in range(REQUESTS):
-            try:
-                ms = timed(c, PATHS[(k + i) % len(PATHS)])
-                with lock:
-                    latencies.append(ms)
-            except Exception:
-                with lock:
-                    errors += 1
-    threads = [threading.Thread(target=client, args=(k,)) for k in range(CLIENTS)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(120)
+    for _ in procs:
+        got, bad = out.get(timeout=300)
+        latencies += got
+        errors += bad
+    for p in procs:
+        p.join(30)
     return latencies, errors
 
 

@@ -24,7 +24,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from bench.service.auth import COOKIE, ROLES, Principal, bearer, create_token
 from bench.service.core import MEDIA, Service, ServiceSettings
 from bench.service.errors import ApiError, bad_input
-from bench.service.guard import BodyLimitMiddleware, rate_limited_accept_errors
+from bench.service.guard import BodyLimitMiddleware, ReadCache, rate_limited_accept_errors
 from bench.service.limits import MAX_SCENARIO_CHARS
 from bench.service.leases import extend, lease_dict, release, reserve, active_leases
 from bench.service.queue import Submission, submit
@@ -165,6 +165,7 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
 
     app = FastAPI(title="drivebench bench service", version="1", lifespan=lifespan, docs_url=None,
                   redoc_url=None, openapi_url="/openapi.json")
+    app.add_middleware(ReadCache, generation=lambda: holder["service"].events.generation)
     app.add_middleware(BodyLimitMiddleware)          # inner: runs only for a request the token let through
     app.add_middleware(AuthMiddleware, service_getter=lambda: holder["service"])
 
