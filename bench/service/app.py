@@ -12,10 +12,10 @@ import asyncio
 import errno
 from contextlib import asynccontextmanager
 from http.cookies import SimpleCookie
-from typing import Annotated, Any, Callable
+from typing import Any, Callable
 
 import anyio
-from fastapi import Body, Depends, FastAPI, Path, Request, WebSocket, WebSocketDisconnect
+from fastapi import Body, Depends, FastAPI, Request, WebSocket, WebSocketDisconnect
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import BaseModel, Field
@@ -26,12 +26,11 @@ from bench.service.core import MEDIA, Service, ServiceSettings
 from bench.service.errors import ApiError, bad_input
 from bench.service.guard import BodyLimitMiddleware, ReadCache, rate_limited_accept_errors
 from bench.service.limits import MAX_SCENARIO_CHARS
+from bench.service.params import MAX_ID, Id
 from bench.service.leases import extend, lease_dict, release, reserve, active_leases
 from bench.service.queue import Submission, submit
 
 PUBLIC = {("GET", "/api/health"), ("GET", "/login"), ("POST", "/login")}
-MAX_ID = 2**63 - 1                 # ids are 64-bit signed in SQLite and PostgreSQL: a larger one is 422, not a 500
-Id = Annotated[int, Path(ge=1, le=MAX_ID)]
 READ_METHODS = ("GET", "HEAD", "OPTIONS")
 
 

@@ -19,13 +19,13 @@ from fastapi.templating import Jinja2Templates
 
 import anyio
 
-from bench.service.app import Id
 from bench.service.auth import COOKIE, Principal
 from bench.service.core import RUN_FILES, Service
 from bench.service.db import FINAL_STATES, STATES, iso
 from bench.service.errors import ApiError
 from bench.service.leases import release, reserve
 from bench.service.limits import MAX_RENDERS, RENDER_WAIT_S
+from bench.service.params import Id
 from bench.service.queue import Submission, submit
 
 HERE = Path(__file__).resolve().parent

@@ -89,8 +89,11 @@ class SocketcandRefusal:
 
     PATTERN = re.compile(r"< error ([^<>]*)>")
 
+    WAIT_S = 1.0      # a request that timed out: how long a refusal may still be on its way (a loaded server)
+
     def __init__(self, bus: can.BusABC):
         self.reason: str | None = None
+        self.refused = threading.Event()
         self._bus = bus
         self._recv = bus._recv_internal
         bus._recv_internal = self._recv_internal
@@ -115,6 +118,7 @@ class SocketcandRefusal:
             if found is None:
                 raise
             self.reason = found.group(1).strip()
+            self.refused.set()
             log.info("socketcand server refused this bench: %s", self.reason)
             return None, False
 

@@ -135,7 +135,7 @@ class CanopenDriveLink:
         try:
             vendor, product, revision, serial = (sdo.read(o.IDENTITY, k) for k in (1, 2, 3, 4))
         except LinkError as exc:
-            if self._refusal is not None and self._refusal.reason:
+            if self._refusal is not None and self._refusal.refused.wait(SocketcandRefusal.WAIT_S):
                 raise LinkError(f"{self._refusal.reason} ({self.section.get('interface')} "
                                 f"{kwargs.get('host')}:{kwargs.get('port')})") from None
             if kwargs["interface"] == "socketcand":
