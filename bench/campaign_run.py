@@ -156,12 +156,32 @@ def _error_row(point: Point, error: str) -> dict[str, Any]:
             "wall_s": None, "run_dir": None, "criteria": [], "worker_pid": None, "host": None, "node": None}
 
 
+RAY_CONNECT_TIMEOUT_S = 5.0
+
+
+def _check_ray_address(address: str) -> None:
+    """ray.init() waits minutes for a cluster that is not there: a dead or wrong --address is one line at once."""
+    import socket
+
+    from bench.errors import InputError
+
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise InputError([f"--address: {address!r}: expected HOST:PORT (or ray://HOST:PORT, auto)"])
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=RAY_CONNECT_TIMEOUT_S).close()
+    except OSError as exc:
+        raise InputError([f"--address: {address}: no Ray cluster answers there ({exc.strerror or exc})"]) from None
+
+
 def _run_ray(todo: list[Point], runs_dir: str, address: str | None, record: Callable[[dict], None]) -> None:
     try:
         import ray
     except ImportError:
         from bench.errors import InputError
         raise InputError(["--engine ray: ray is not installed (pip install -e \".[ray]\")"]) from None
+    if address not in (None, "auto", "local"):
+        _check_ray_address(address)
     ray.init(address=address, ignore_reinit_error=True, log_to_driver=False)
     remote = ray.remote(num_cpus=1, max_retries=1)(run_point)     # a node or worker lost: the point runs once more
     pending = {}

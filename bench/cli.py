@@ -656,9 +656,33 @@ def _add_plugin_commands() -> None:
 _add_plugin_commands()
 
 
+def quiet_third_party_logs() -> None:
+    """pymodbus and Rerun write their own lines (a refused connection, a viewer not found) before the bench's one clear
+    line: quiet unless asked for (DRIVEBENCH_DEBUG=1, or RUST_LOG set for Rerun)."""
+    import logging
+
+    if os.environ.get("DRIVEBENCH_DEBUG"):
+        return
+    os.environ.setdefault("RUST_LOG", "off")     # Rerun's SDK logs through Rust's env_logger
+    for name in ("pymodbus", "pymodbus.logging"):
+        logging.getLogger(name).setLevel(logging.CRITICAL)
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Every bad argument, click's own usage errors included, is one line on stderr and exit 2."""
+    quiet_third_party_logs()
     try:
-        cli.main(args=argv, prog_name="drivebench", standalone_mode=True)
+        result = cli.main(args=argv, prog_name="drivebench", standalone_mode=False)
     except SystemExit as exc:
         return int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_ERROR
-    return EXIT_PASS
+    except click.UsageError as exc:
+        where = exc.ctx.command_path if exc.ctx is not None else "drivebench"
+        click.echo(f"{where}: {' '.join(exc.format_message().split())}", err=True)
+        return EXIT_ERROR
+    except click.ClickException as exc:
+        click.echo(f"drivebench: {' '.join(exc.format_message().split())}", err=True)
+        return EXIT_ERROR
+    except click.Abort:                          # Ctrl-C outside a run (a run handles it itself)
+        click.echo("drivebench: aborted", err=True)
+        return EXIT_FAIL
+    return result if isinstance(result, int) else EXIT_PASS

@@ -50,6 +50,7 @@ TRACE_SIGNALS: tuple[str, ...] = (
     "speed_ref_mech_rad_s", "speed_est_mech_rad_s", "speed_true_mech_rad_s", "pos_est_elec_rad",
     "pos_err_elec_rad", "flux_est_wb", "flux_true_wb", "i_sx_a", "i_sy_a", "u_sx_v", "u_sy_v", "torque_load_nm",
 )
+MAX_DEFERRED_APPENDS = 8   # lockstep: trace blocks waiting for the journal writer before the command thread waits
 FETCH_PERIOD_S = 0.25      # upload the trace recorder every 0.25 s of drive time (a killed bench loses at most that)
 RERUN_MAX_RATE_HZ = 2000.0 # run.rrd / viewer: a 10 kHz trace is thinned to 2 kHz (3.6 -> 0.8 MB/s); parquet has all
 STATUS_PERIOD_S = 0.02     # poll the drive's status (fault, EMCY, heartbeat) every 20 ms of drive time
@@ -546,7 +547,7 @@ class _Run:
                     if not self.telemetry.busy:                  # never queue uploads behind a slow one
                         self.telemetry.submit(self._record_pending)
                 else:
-                    self._record_pending()
+                    self._record_pending(defer_append=True)
                 next_fetch = t_drive + FETCH_PERIOD_S
             if self.progress is not None and t_drive >= next_progress:
                 self.progress(min(t_drive, duration), duration)
@@ -632,9 +633,19 @@ class _Run:
             self.recorder.note("drive_clock_start_s", self._clock_start)
         return [LiveSample(s.t_s - self._clock_start, s.values) for s in samples]
 
-    def _record_pending(self) -> None:
+    def _record_pending(self, defer_append: bool = False) -> None:
         """One upload (trace mode) or the live samples since the last call (pdo mode), recorded; on the telemetry
-        worker during the run, on the main thread for the final upload."""
+        worker during a real-time run, on the main thread for the final upload. Lockstep uploads on the command
+        thread (drive time stands still meanwhile) and, with defer_append, hands the writing to the worker: the
+        journal's start (its file, the first Parquet and Rerun calls) took hundreds of ms on a loaded host, a pause
+        in the request stream long enough for a drive's 300 ms comm-loss watchdog."""
+        append = self._append
+        if defer_append:
+            if self.telemetry.pending > MAX_DEFERRED_APPENDS:     # the journal fell far behind: let it catch up
+                self.telemetry.drain(STALL_TIMEOUT_S)
+
+            def append(block: dict[str, np.ndarray]) -> None:
+                self.telemetry.submit(lambda: self._append(block))
         if self.data_source == "trace":
             block = self.drive.fetch_trace()
             if block is not None and len(block.get(TIME_COLUMN, ())):
@@ -654,12 +665,12 @@ class _Run:
                     block.pop(name, None)
                 if self.reference_signals:
                     block.update(onto_rows(block[TIME_COLUMN], readings, self.reference_signals))
-                self._append(block)
+                append(block)
         else:
             with self._live_lock:
                 pending, self.live_buffer = self.live_buffer, []
             if pending:
-                self._append(live_columns(pending, self.live_recorded))
+                append(live_columns(pending, self.live_recorded))
 
     def _record_live_tail(self) -> None:
         """The trace since the last upload is out of reach (dead link): keep the live samples of that time."""

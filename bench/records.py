@@ -92,6 +92,7 @@ RECORD_KEYS = frozenset(RunRecord.__annotations__)
 
 RECORD = "record.json"
 JOURNAL = "telemetry.arrows"
+RECORD_WRITE_S = 0.25        # a note reaches record.json within this (the flusher writes it, not the caller)
 PARQUET = "telemetry.parquet"
 JUNIT = "junit.xml"
 from bench.criteria import VERDICTS  # noqa: E402  (pass fail incomplete aborted error)
@@ -146,10 +147,13 @@ def json_safe(value: Any) -> Any:
 
 
 def write_json_atomic(path: Path, data: dict) -> None:
+    write_text_atomic(path, json.dumps(json_safe(data), indent=2, allow_nan=False) + "\n")
+
+
+def write_text_atomic(path: Path, text: str) -> None:
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(json_safe(data), f, indent=2, allow_nan=False)
-        f.write("\n")
+        f.write(text)
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
@@ -212,6 +216,8 @@ class RunRecorder:
         self._last_flush = time.monotonic()
         self._stop = threading.Event()
         self._closed = False
+        self._record_dirty = False
+        self._record_file_lock = threading.Lock()     # one writer of record.json at a time (flusher, finish)
         self._write_record()
         self._flusher = threading.Thread(target=self._flush_loop, name=f"journal-{self.run_dir.name}", daemon=True)
         self._flusher.start()
@@ -227,11 +233,13 @@ class RunRecorder:
             self._write_record()
 
     def note(self, key: str, value) -> None:
+        """Into the record now; onto the disk by the flusher within flush_interval_s / 2 (the caller is the command
+        thread: an fsync there paused a drive's request stream past a 300 ms comm-loss watchdog on a loaded host)."""
         if key not in RECORD_KEYS:
             raise ValueError(f"note(): {key!r} is not a field of RunRecord (bench/records.py)")
         with self._lock:
             self.record[key] = json_safe(value)
-            self._write_record()
+            self._record_dirty = True
 
     def append(self, columns: dict[str, np.ndarray]) -> None:
         """Rows: "t_s" + signal columns, equal lengths. Signals not given are NaN in the record."""
@@ -387,10 +395,14 @@ class RunRecorder:
     # --- internals ---------------------------------------------------------------------------------------
 
     def _flush_loop(self) -> None:
-        while not self._stop.wait(self.flush_interval_s / 2):
+        while not self._stop.wait(min(self.flush_interval_s / 2, RECORD_WRITE_S)):
             with self._lock:
                 if self._pending_sizes and time.monotonic() - self._last_flush >= self.flush_interval_s / 2:
                     self._flush_locked()
+                text = self._record_text() if self._record_dirty else None
+                self._record_dirty = False
+            if text is not None:        # written outside the lock: note() never waits for a disk
+                self._write_record_text(text)
 
     def _flush_locked(self) -> None:
         self._last_flush = time.monotonic()
@@ -453,10 +465,18 @@ class RunRecorder:
     def _write_record(self) -> None:
         """A full disk or a vanished directory must not end a run with the drive enabled: the error is kept (the
         record in memory stays current) and reported once the run is over (finish raises it)."""
-        try:
-            write_json_atomic(self.run_dir / RECORD, self.record)
-        except OSError as exc:
-            self._write_failed("record.json", exc)
+        self._record_dirty = False
+        self._write_record_text(self._record_text())
+
+    def _record_text(self) -> str:
+        return json.dumps(json_safe(self.record), indent=2, allow_nan=False) + "\n"
+
+    def _write_record_text(self, text: str) -> None:
+        with self._record_file_lock:
+            try:
+                write_text_atomic(self.run_dir / RECORD, text)
+            except OSError as exc:
+                self._write_failed("record.json", exc)
 
     def _write_failed(self, what: str, exc: OSError) -> None:
         if not self.write_errors:

@@ -30,6 +30,11 @@ class TelemetryWorker:
         self._jobs.put(job)
 
     @property
+    def pending(self) -> int:
+        with self._idle:
+            return self._pending
+
+    @property
     def busy(self) -> bool:
         with self._idle:
             return self._pending > 0

@@ -191,6 +191,12 @@ class ModbusServerHandle:
             self._loop.close()
             raise
 
+    def dead(self) -> str | None:
+        """Why the endpoint no longer serves (its loop ended without stop()), or None."""
+        if self.server is not None and not self._loop.thread.is_alive():
+            return f"{type(self).__name__}: its event loop ended"
+        return None
+
     def stop(self) -> None:
         if self.server is not None:
             try:

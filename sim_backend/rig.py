@@ -70,6 +70,15 @@ class Rig:
     endpoints: dict[str, str] = field(default_factory=dict)    # front end -> URL / channel / path, for people
     overrides: dict[str, dict] = field(default_factory=dict)   # bench config [drive]/[load] endpoint keys
     sessions: Any = None                           # BenchSessions of a served rig (spec.exclusive)
+    servers: list[Any] = field(default_factory=list)           # the protocol servers (each has dead())
+
+    def dead_endpoint(self) -> str | None:
+        """The first front end that stopped serving by itself (why), or None while all serve."""
+        for server in self.servers:
+            why = server.dead()
+            if why:
+                return why
+        return None
 
 
 def rig_model(spec: RigSpec) -> DriveModel:
@@ -157,6 +166,7 @@ def _canopen(stack: contextlib.ExitStack, rig: Rig) -> None:
         from sim_backend.socketcand_server import SocketcandServer
         server = SocketcandServer(rig.channel, *spec.socketcand, sessions=rig.sessions)
         stack.callback(server.stop)
+        rig.servers.append(server)
         rig.endpoints["canopen"] = f"{server.url} node={spec.node_id}"
 
 
@@ -167,6 +177,7 @@ def _serial(stack: contextlib.ExitStack, rig: Rig) -> None:
     server = (start_serial_pty(rig.device) if spec.serial == "pty"
               else start_serial_tcp(rig.device, *spec.serial_tcp, sessions=rig.sessions))
     stack.callback(server.stop)
+    rig.servers.append(server)
     port = server.serial_port
     if spec.wire_faults and spec.serial == "tcp":
         from sim_backend.wire_faults import FaultyStreamProxy
@@ -194,6 +205,7 @@ def _modbus(stack: contextlib.ExitStack, rig: Rig) -> None:
         rig.overrides.setdefault("load", {}).update(host=spec.modbus_tcp[0], port=server.port)
         rig.endpoints["modbus"] = f"tcp://{spec.modbus_tcp[0]}:{server.port} unit=1"
     stop = _stopper(server)
+    rig.servers.append(server)
     rig.device.faults.kill_load = stop
     stack.callback(stop)
 

@@ -7,12 +7,16 @@ transport-free so tests can feed it frames directly. sim_backend.rig puts these 
 
 from __future__ import annotations
 
+import array
 import errno
+import fcntl
+import logging
 import math
 import os
 import select
 import socket
 import struct
+import termios
 import threading
 import time
 import tty
@@ -29,7 +33,10 @@ from drivers.signals import SIGNAL_NAMES
 from drivers import extension, parameters
 from drivers.cia402 import FAULT_RESET_BIT, State
 from sim_backend.device import SimulatedDevice
+from drivers.ratelog import RateLimitedLog
 from sim_backend.trace import TRIGGER_IMMEDIATE, TRIGGER_ON_ENABLE
+
+log = logging.getLogger(__name__)
 
 MAX_SYNC_STEPS = 1_000_000
 ALL_SIGNALS = (1 << len(SIGNAL_NAMES)) - 1
@@ -249,6 +256,26 @@ class _Session:
         return out
 
 
+def _waiting(conn: socket.socket) -> bool:
+    """Bytes from the client wait unread (the server thread has not run since they came); a closed connection has
+    none (FIONREAD: nothing is consumed, nothing waits)."""
+    count = array.array("i", [0])
+    try:
+        fcntl.ioctl(conn.fileno(), termios.FIONREAD, count, True)
+    except (OSError, ValueError):
+        return False
+    return count[0] > 0
+
+
+def _left(conn: socket.socket) -> bool:
+    """The client closed or reset its side (without waiting)."""
+    try:
+        readable, _, _ = select.select([conn], [], [], 0)
+        return bool(readable) and conn.recv(1, socket.MSG_PEEK) == b""
+    except OSError:
+        return True
+
+
 class _ServerBase:
     def __init__(self, device: SimulatedDevice):
         self.device = device
@@ -261,9 +288,18 @@ class _ServerBase:
     def _run_guarded(self) -> None:
         try:
             self._run()
-        except BaseException as exc:  # the thread must not die silently; stop() re-raises nothing, tests read .error
+        except BaseException as exc:  # the thread must not die silently: logged once, and dead() says so
             if not self._stopping.is_set():
                 self.error = exc
+                log.error("%s: endpoint stopped: %s: %s", type(self).__name__, type(exc).__name__, exc)
+
+    def dead(self) -> str | None:
+        """Why the endpoint no longer serves (its thread ended without stop()), or None while it serves; a supervisor
+        (sim serve) polls it and exits non-zero, so a dead endpoint is a dead process."""
+        if self._stopping.is_set() or self._thread.is_alive() or self._thread.ident is None:
+            return None
+        return f"{type(self).__name__}: {type(self.error).__name__}: {self.error}" if self.error else \
+            f"{type(self).__name__}: its thread ended"
 
     def _run(self) -> None:
         raise NotImplementedError
@@ -298,7 +334,8 @@ class SerialTcpServer(_ServerBase):
     def __init__(self, device: SimulatedDevice, host: str, port: int, sessions: Any = None):
         super().__init__(device)
         self.sessions = sessions
-        self.stats.update(refused_busy=0, accept_errors=0, idle_dropped=0)
+        self.stats.update(refused_busy=0, accept_errors=0, idle_dropped=0, client_errors=0)
+        self._accept_log = RateLimitedLog(log, "serial endpoint: accept failed")
         self._listener = socket.create_server((host, port))
         self.host = host
         self.port = self._listener.getsockname()[1]
@@ -308,43 +345,53 @@ class SerialTcpServer(_ServerBase):
         self._thread.start()
 
     def _run(self) -> None:
-        conn: socket.socket | None = None
         backoff = ACCEPT_BACKOFF_S[0]
         while not self._stopping.is_set():
-            if conn is None:
-                ready, _, _ = select.select([self._listener, self._wake_r], [], [])
-                if self._wake_r in ready:
-                    return
-                conn, backoff = self._accept(backoff)
-                if conn is None:
-                    continue
-                who = f"serial client {conn.getpeername()[0]}:{conn.getpeername()[1]}"
-                holder = self.sessions.open(who) if self.sessions is not None else None
-                if holder is not None:
-                    self._refuse(conn, f"the rig is held by another bench ({holder}); one bench at a time")
-                    conn = None
-                    continue
-            try:
-                conn = self._serve(conn)
-            finally:
-                if self.sessions is not None:
-                    self.sessions.close(who)
-            if conn is not None:             # never: _serve returns None when its client leaves
-                conn.close()
-                conn = None
+            ready, _, _ = select.select([self._listener, self._wake_r], [], [])
+            if self._wake_r in ready:
+                return
+            conn, addr, backoff = self._accept(backoff)
+            if conn is not None:
+                self._hold(conn, addr)
 
-    def _accept(self, backoff: float) -> tuple[socket.socket | None, float]:
+    def _hold(self, conn: socket.socket, addr: Any) -> None:
+        """One client on the line until it leaves; whatever it does, the endpoint goes on accepting."""
+        who = f"serial client {addr[0]}:{addr[1]}" if isinstance(addr, tuple) and len(addr) >= 2 else "serial client"
         try:
-            conn, _ = self._listener.accept()
-        except OSError as exc:              # EMFILE/ENFILE: out of descriptors; wait and accept again later
+            holder = self.sessions.open(who) if self.sessions is not None else None
+        except Exception as exc:                 # the drive's restart failed: refuse this one, keep the endpoint
+            self._client_error(who, exc)
+            conn.close()
+            return
+        if holder is not None:
+            self._refuse(conn, f"the rig is held by another bench ({holder}); one bench at a time")
+            return
+        try:
+            self._serve(conn)
+        except Exception as exc:                 # a reset, a bad descriptor, a handler bug: this client only
+            self._client_error(who, exc)
+        finally:
+            conn.close()
+            if self.sessions is not None:
+                self.sessions.close(who)
+
+    def _client_error(self, who: str, exc: BaseException) -> None:
+        self.stats["client_errors"] += 1
+        log.warning("%s: %s: %s (dropped; the endpoint goes on)", who, type(exc).__name__, exc)
+
+    def _accept(self, backoff: float) -> tuple[socket.socket | None, Any, float]:
+        try:
+            conn, addr = self._listener.accept()
+            conn.settimeout(WRITE_TIMEOUT_S)
+        except OSError as exc:   # EMFILE/ENFILE: out of descriptors; ECONNABORTED: the client left at once
             self.stats["accept_errors"] += 1
+            self._accept_log.note(exc)
             if exc.errno in (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM):
                 self._stopping.wait(backoff)
-                return None, min(backoff * 2, ACCEPT_BACKOFF_S[1])
-            return None, backoff
-        conn.settimeout(WRITE_TIMEOUT_S)
+                return None, None, min(backoff * 2, ACCEPT_BACKOFF_S[1])
+            return None, None, backoff
         self.stats["sessions"] += 1
-        return conn, ACCEPT_BACKOFF_S[0]
+        return conn, addr, ACCEPT_BACKOFF_S[0]
 
     def _refuse(self, conn: socket.socket, reason: str) -> None:
         """Answer the newcomer's first request with ERROR BUSY (so its link reports why), then close it; on a thread
@@ -378,21 +425,36 @@ class SerialTcpServer(_ServerBase):
                 conn.close()
                 self._refusing.release()
 
-        threading.Thread(target=answer, name="serial-refuse", daemon=True).start()
+        try:
+            threading.Thread(target=answer, name="serial-refuse", daemon=True).start()
+        except RuntimeError:                     # no thread to spare: closed at once
+            conn.close()
+            self._refusing.release()
 
     def _serve(self, conn: socket.socket) -> None:
-        """Serve one client until it leaves, stays silent for IDLE_TIMEOUT_S, or the server stops."""
+        """Serve one client until it leaves, stays silent for IDLE_TIMEOUT_S, or the server stops. The holder's own
+        bytes and its leaving are read before a newcomer is looked at, so a bench that reconnects right after closing
+        finds the line free."""
         session = _Session(self.device, self.stats)
         last_byte = time.monotonic()
+        self.device.master_watchdog.arrived = lambda: _waiting(conn)
+        try:
+            self._serve_loop(conn, session, last_byte)
+        finally:
+            self.device.master_watchdog.arrived = None
+
+    def _serve_loop(self, conn: socket.socket, session: "_Session", last_byte: float) -> None:
         with conn:
             while True:
                 timeout = session.idle_timeout or IDLE_TIMEOUT_S
                 ready, _, _ = select.select([conn, self._listener, self._wake_r], [], [], timeout)
                 if self._wake_r in ready:
                     return None
-                if self._listener in ready:          # a second client while the line is held: refused
-                    newcomer, _ = self._accept(ACCEPT_BACKOFF_S[0])
-                    if newcomer is not None:
+                if self._listener in ready and conn not in ready:
+                    if _left(conn):                  # the holder left as the newcomer came: the newcomer gets the line
+                        return None
+                    newcomer, _, _ = self._accept(ACCEPT_BACKOFF_S[0])
+                    if newcomer is not None:         # a second client while the line is held: refused
                         self._refuse(newcomer, "the serial line is held by another client; one bench at a time")
                     continue
                 if conn in ready:

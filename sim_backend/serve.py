@@ -31,6 +31,10 @@ class ServeError(InputError):
         super().__init__([message])
 
 
+class EndpointDied(RuntimeError):
+    """A protocol server stopped serving by itself."""
+
+
 def _endpoint(path: Path, serve: dict, key: str) -> tuple[str, int] | None:
     value = serve.get(key)
     if value is None:
@@ -143,7 +147,9 @@ def serve(cfg: dict, stop: threading.Event, out=sys.stdout) -> None:
         print("ready (Ctrl-C to stop)", file=out, flush=True)
         # A signal may land on any thread; the handler only runs when the main thread wakes, so it must wake.
         while not stop.wait(0.2):
-            pass
+            why = rig.dead_endpoint()
+            if why:                      # a dead endpoint is a dead process: the supervisor must see it
+                raise EndpointDied(why)
 
 
 def main(config_path: str | Path) -> int:
@@ -156,6 +162,9 @@ def main(config_path: str | Path) -> int:
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         serve(cfg, stop)
+    except EndpointDied as exc:
+        print(f"error: {config_path}: endpoint stopped serving: {exc}", file=sys.stderr)
+        return 1
     except OSError as exc:
         print(f"error: {config_path}: simulator.serve: cannot open endpoint: {exc}", file=sys.stderr)
         return 2

@@ -23,6 +23,8 @@ from typing import Any
 
 import can
 
+from drivers.ratelog import RateLimitedLog
+
 log = logging.getLogger(__name__)
 
 HANDSHAKE_TIMEOUT_S = 5.0
@@ -238,12 +240,28 @@ class SocketcandServer:
         self._clients: list[_Client] = []
         self._lock = threading.Lock()
         self._stopping = threading.Event()
-        self._thread = threading.Thread(target=self._accept_loop, name="socketcand-accept", daemon=True)
+        self._accept_log = RateLimitedLog(log, "socketcand: accept failed")
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._accept_guarded, name="socketcand-accept", daemon=True)
         self._thread.start()
 
     def count(self, what: str) -> None:
         with self._lock:
             self.stats[what] = self.stats.get(what, 0) + 1
+
+    def _accept_guarded(self) -> None:
+        try:
+            self._accept_loop()
+        except BaseException as exc:        # logged once; dead() tells the supervisor
+            if not self._stopping.is_set():
+                self.error = exc
+                log.error("socketcand: endpoint stopped: %s: %s", type(exc).__name__, exc)
+
+    def dead(self) -> str | None:
+        """Why the endpoint no longer accepts (its thread ended without stop()), or None."""
+        if self._stopping.is_set() or self._thread.is_alive():
+            return None
+        return f"socketcand: {type(self.error).__name__}: {self.error}" if self.error else "socketcand: accept ended"
 
     def _accept_loop(self) -> None:
         backoff = ACCEPT_BACKOFF_S[0]
@@ -258,15 +276,20 @@ class SocketcandServer:
                 if self._stopping.is_set():
                     return
                 self.count("accept_errors")     # EMFILE/ENFILE: out of descriptors; a client that left at once
+                self._accept_log.note(exc)
                 if exc.errno in (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM):
-                    log.warning("socketcand: accept failed (%s); retrying in %.2f s", exc, backoff)
                     self._stopping.wait(backoff)
                     backoff = min(backoff * 2, ACCEPT_BACKOFF_S[1])
                 continue
             backoff = ACCEPT_BACKOFF_S[0]
             with self._lock:        # held while the client starts, so its _forget() comes after this
                 self.stats["accepted"] += 1
-                self._clients.append(_Client(self, conn, addr))
+                try:
+                    self._clients.append(_Client(self, conn, addr))
+                except RuntimeError as exc:     # no thread to spare for it: this client only
+                    self.stats["accept_errors"] += 1
+                    self._accept_log.note(exc)
+                    conn.close()
 
     def _forget(self, client: _Client) -> None:
         with self._lock:

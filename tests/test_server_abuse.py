@@ -197,3 +197,115 @@ def test_served_rig_one_bench_at_a_time_across_transports_each_from_a_restarted_
         assert serial.status().state == "SWITCH ON DISABLED"
         serial.close()
         assert rig.sessions.admitted == 2 and rig.sessions.refused == 2
+
+
+def _reset_storm(port: int, n: int) -> None:
+    """n connections that reset at once (SO_LINGER 0: an RST, no FIN), like a port scan."""
+    for _ in range(n):
+        s = socket.socket()
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        try:
+            s.connect(("127.0.0.1", port))
+        except OSError:
+            pass
+        s.close()
+
+
+def test_serial_endpoint_survives_a_connect_storm_of_resets_and_a_real_client_still_works():
+    device = SimulatedDevice(ToyDrive())
+    server = start_serial_tcp(device)
+    try:
+        _reset_storm(server.port, 200)
+        time.sleep(0.5)
+        assert server.dead() is None and server.error is None
+        link = serial_link(server.url)
+        link.open()
+        link.enable_velocity_mode()
+        assert link.status().state == "OPERATION ENABLED"
+        link.close()
+    finally:
+        server.stop()
+    assert server.stats["sessions"] + server.stats["accept_errors"] >= 1
+
+
+def test_serial_bench_reconnecting_right_after_closing_gets_the_line():
+    device = SimulatedDevice(ToyDrive())
+    server = start_serial_tcp(device)
+    try:
+        for _ in range(50):                              # close, and connect again within a millisecond
+            link = serial_link(server.url)
+            link.open()
+            link.close()
+    finally:
+        server.stop()
+    assert server.stats["refused_busy"] == 0 and server.error is None
+
+
+def test_a_dead_serial_endpoint_is_reported_not_silent():
+    """An error the endpoint cannot handle ends it loudly: dead() says why (sim serve polls it and exits 1)."""
+    device = SimulatedDevice(ToyDrive())
+    server = start_serial_tcp(device)
+    try:
+        def broken(backoff):
+            raise RuntimeError("accept broke")
+        server._accept = broken
+        socket.create_connection(("127.0.0.1", server.port)).close()
+        deadline = time.monotonic() + 5
+        while server.dead() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert "accept broke" in (server.dead() or "")
+    finally:
+        server.stop()
+    assert server.dead() is None                         # stopped on purpose: not dead
+
+
+def test_second_socketcand_bench_reads_the_refusal_as_one_line_rig_busy(caplog, capfd):
+    from drivers.canopen.link import CanopenDriveLink
+
+    spec = RigSpec(motor="toy", eds=EDS, socketcand=("127.0.0.1", 0), exclusive=True)
+    with build(spec) as rig:
+        port = int(rig.endpoints["canopen"].split(":")[2].split("/")[0])
+        first = handshake(port)
+        sdo_read_device_type(first)                      # the first bench holds the rig
+        link = CanopenDriveLink({"transport": "canopen", "interface": "socketcand", "channel": f"can0@127.0.0.1:{port}",
+                                 "node_id": 1, "eds": str(EDS), "sdo_timeout_s": 0.5}, Path("."), LinkSettings())
+        with caplog.at_level("WARNING"):
+            with pytest.raises(LinkError) as refused:
+                link.open()
+            link.close()
+        first.close()
+    assert str(refused.value).startswith("rig busy: another bench")
+    assert "\n" not in str(refused.value)
+    assert not [r for r in caplog.records if r.name.startswith("can") and r.levelname in ("ERROR", "CRITICAL")
+                and not r.name.startswith("canopen")]
+    assert not [r for r in caplog.records if "Traceback" in r.getMessage()]
+    assert "Traceback" not in capfd.readouterr().err
+
+
+def test_serial_watchdog_counts_a_request_waiting_unread_as_the_masters_sign_but_not_a_closed_line():
+    """A loaded host may not schedule the simulator for longer than the drive's comm-loss time: a request that arrived
+    meanwhile is what a real drive's UART would have received. A bench that closed its line sends nothing."""
+    import fcntl  # noqa: F401  (the server's FIONREAD check)
+    from sim_backend.serial_server import _waiting
+
+    a, b = socket.socketpair()
+    try:
+        assert not _waiting(b)
+        a.sendall(b"\x55")
+        time.sleep(0.05)
+        assert _waiting(b)
+        b.recv(1)
+        a.close()
+        time.sleep(0.05)
+        assert not _waiting(b)                            # EOF is not a request
+    finally:
+        b.close()
+    from sim_backend.comm_watchdog import Watchdog
+    dog = Watchdog("drive")
+    dog.arm(0.3)
+    dog.touch()
+    waiting = [True]
+    dog.arrived = lambda: waiting[0]
+    assert not dog.expired(time.monotonic() + 1.0)       # bytes waiting: not silent
+    waiting[0] = False
+    assert dog.expired(time.monotonic() + 2.0)           # nothing waiting: it trips

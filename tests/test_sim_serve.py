@@ -100,3 +100,37 @@ def test_serve_bad_config_is_one_line_and_exit_2(tmp_path):
     assert proc.returncode == 2
     assert err.strip().splitlines() == [
         f"error: {config}: simulator.serve.canopen_socketcand: expected 'host:port', got 'localhost'"]
+
+
+def test_an_endpoint_that_dies_ends_sim_serve_with_exit_1_and_one_line(tmp_path, monkeypatch):
+    """A dead endpoint is a dead process: the supervisor (systemd, a CI job) sees the exit, never a silent server."""
+    import io
+    import time
+
+    from sim_backend import serve as serve_module
+    from sim_backend.serial_server import SerialTcpServer
+
+    def broken(self, backoff):
+        raise RuntimeError("accept broke")
+    monkeypatch.setattr(SerialTcpServer, "_accept", broken)
+    config = tmp_path / "serve.toml"
+    config.write_text(CONFIG.format(eds=EDS))
+    out = io.StringIO()
+    result: dict = {}
+
+    def run():
+        try:
+            serve_module.serve(serve_module.load_serve_config(config), threading.Event(), out)
+        except BaseException as exc:
+            result["error"] = exc
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while "ready" not in out.getvalue() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    port = int(re.search(r"serial socket://127\.0\.0\.1:(\d+)", out.getvalue()).group(1))
+    socket.create_connection(("127.0.0.1", port)).close()
+    thread.join(10)
+    assert not thread.is_alive()
+    assert isinstance(result.get("error"), serve_module.EndpointDied)
+    assert "accept broke" in str(result["error"])

@@ -9,6 +9,7 @@ per endpoint (403).
 from __future__ import annotations
 
 import asyncio
+import errno
 from contextlib import asynccontextmanager
 from http.cookies import SimpleCookie
 from typing import Any, Callable
@@ -23,10 +24,14 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from bench.service.auth import COOKIE, ROLES, Principal, bearer, create_token
 from bench.service.core import MEDIA, Service, ServiceSettings
 from bench.service.errors import ApiError, bad_input
+from bench.service.guard import BodyLimitMiddleware, ReadCache, rate_limited_accept_errors
+from bench.service.limits import MAX_SCENARIO_CHARS
+from bench.service.params import MAX_ID, Id
 from bench.service.leases import extend, lease_dict, release, reserve, active_leases
 from bench.service.queue import Submission, submit
 
 PUBLIC = {("GET", "/api/health"), ("GET", "/login"), ("POST", "/login")}
+READ_METHODS = ("GET", "HEAD", "OPTIONS")
 
 
 class AuthMiddleware:
@@ -52,11 +57,19 @@ class AuthMiddleware:
                 jar = SimpleCookie()
             token = jar[COOKIE].value if COOKIE in jar else None
         service: Service = self.service_getter()
-        principal = await anyio.to_thread.run_sync(service.tokens.lookup, token) if token else None
+        found, principal = service.tokens.cached(token) if token else (True, None)
+        if not found:
+            principal = await anyio.to_thread.run_sync(service.tokens.lookup, token)
         if principal is None:
             return await self._deny(scope, receive, send, "a valid token is needed (Authorization: Bearer TOKEN)"
                                     if token is None else "unknown or revoked token")
         scope.setdefault("state", {})["principal"] = principal
+        if (scope["type"] == "http" and method not in READ_METHODS and scope["path"].startswith("/api/")
+                and not principal.at_least("operator")):
+            # a viewer only reads: refused before its body is read (a 100 MB body cost the service 300 MB)
+            response = JSONResponse({"detail": f"{principal.role} token {principal.name!r}: this needs the "
+                                               f"operator role"}, status_code=403)
+            return await response(scope, receive, send)
         return await self.app(scope, receive, send)
 
     async def _deny(self, scope, receive, send, message: str):
@@ -99,11 +112,11 @@ viewer, operator, admin = role("viewer"), role("operator"), role("admin")
 
 class RunSubmit(BaseModel):
     scenario: str | None = Field(None, description="a scenario path under the service's scenario root")
-    scenario_toml: str | None = Field(None, description="the scenario file's text")
+    scenario_toml: str | None = Field(None, max_length=MAX_SCENARIO_CHARS, description="the scenario file's text")
     filename: str | None = Field(None, description="how error lines name scenario_toml")
     rig: str | None = None
     tag: str | None = None
-    seed: int | None = None
+    seed: int | None = Field(None, ge=0, le=MAX_ID)
 
 
 class LeaseRequest(BaseModel):
@@ -142,6 +155,7 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
         holder["service"] = svc
         app.state.service = svc
         svc.events.bind(asyncio.get_running_loop())
+        rate_limited_accept_errors(asyncio.get_running_loop())
         svc.start()
         try:
             yield
@@ -150,6 +164,8 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
 
     app = FastAPI(title="drivebench bench service", version="1", lifespan=lifespan, docs_url=None,
                   redoc_url=None, openapi_url="/openapi.json")
+    app.add_middleware(ReadCache, generation=lambda: holder["service"].events.generation)
+    app.add_middleware(BodyLimitMiddleware)          # inner: runs only for a request the token let through
     app.add_middleware(AuthMiddleware, service_getter=lambda: holder["service"])
 
     def svc() -> Service:
@@ -167,6 +183,12 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
     async def validation_error(request: Request, exc: RequestValidationError):
         return JSONResponse({"detail": _validation_lines(exc)}, status_code=422)
 
+    @app.exception_handler(OSError)
+    async def os_error(request: Request, exc: OSError):
+        if exc.errno == errno.ENAMETOOLONG:   # a path component over the file system's 255 bytes
+            return JSONResponse({"detail": ["request: (path): a name in it is too long"]}, status_code=422)
+        raise exc
+
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException):
         return JSONResponse({"detail": exc.detail}, status_code=exc.status_code, headers=exc.headers)
@@ -174,7 +196,7 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
     # -- health, rigs, leases ------------------------------------------------------------------------------
 
     @app.get("/api/health")
-    def health() -> dict:
+    async def health() -> dict:                     # on the event loop: answers while worker threads are busy
         return {"status": "ok", "database": "sqlite" if svc().db.is_sqlite else "postgresql"}
 
     @app.get("/api/rigs")
@@ -200,13 +222,13 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
             return [lease_dict(l) for l in active_leases(s)]
 
     @app.post("/api/leases/{lease_id}/extend")
-    def extend_lease(lease_id: int, body: ExtendRequest | None = Body(None),
+    def extend_lease(lease_id: Id, body: ExtendRequest | None = Body(None),
                      who: Principal = Depends(operator)) -> dict:
         held = extend(svc().db, lease_id, who, body.ttl_s if body else None)
         return {"id": held.id, "expires_utc": lease_dict(held)["expires_utc"]}
 
     @app.delete("/api/leases/{lease_id}")
-    def delete_lease(lease_id: int, who: Principal = Depends(operator)) -> dict:
+    def delete_lease(lease_id: Id, who: Principal = Depends(operator)) -> dict:
         held = release(svc().db, lease_id, who)
         return {"id": held.id, "released": True, "released_by": held.released_by}
 
@@ -227,16 +249,16 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
         return [s.run_dict(r) for r in s.list_runs(rig, state, scenario, verdict, revision, owner, limit)]
 
     @app.get("/api/runs/{run_id}")
-    def get_run(run_id: int, who: Principal = Depends(viewer)) -> dict:
+    def get_run(run_id: Id, who: Principal = Depends(viewer)) -> dict:
         return svc().run_dict(svc().get_run(run_id))
 
     @app.post("/api/runs/{run_id}/abort")
-    def abort_run(run_id: int, who: Principal = Depends(operator)) -> dict:
+    def abort_run(run_id: Id, who: Principal = Depends(operator)) -> dict:
         run = svc().abort(run_id, who)
         return {"id": run.id, "state": run.state, "abort_requested_by": run.abort_requested_by}
 
     @app.get("/api/runs/{run_id}/files/{name}")
-    def run_file(run_id: int, name: str, who: Principal = Depends(viewer)):
+    def run_file(run_id: Id, name: str, who: Principal = Depends(viewer)):
         path = svc().run_file(run_id, name)
         return FileResponse(path, media_type=MEDIA.get(path.suffix, "application/octet-stream"), filename=name)
 
@@ -261,7 +283,7 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
         return svc().tokens_list()
 
     @app.delete("/api/tokens/{token_id}")
-    def revoke(token_id: int, who: Principal = Depends(admin)) -> dict:
+    def revoke(token_id: Id, who: Principal = Depends(admin)) -> dict:
         svc().revoke_token(token_id)
         return {"id": token_id, "revoked": True}
 

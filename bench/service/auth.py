@@ -60,6 +60,14 @@ class TokenCache:
         self._lock = threading.Lock()
         self._cache: dict[str, tuple[float, Principal | None]] = {}
 
+    def cached(self, token: str) -> tuple[bool, Principal | None]:
+        """(found, principal) from memory only: the event loop asks this first and goes to a thread only on a miss."""
+        with self._lock:
+            hit = self._cache.get(hash_token(token))
+        if hit is not None and hit[0] > time.monotonic():
+            return True, hit[1]
+        return False, None
+
     def lookup(self, token: str | None) -> Principal | None:
         if not token:
             return None

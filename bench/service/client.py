@@ -13,8 +13,11 @@ from pathlib import Path
 from typing import Any, Callable
 from xml.etree import ElementTree as ET
 
+from bench.service.limits import MAX_SCENARIO_CHARS
+
 FINAL = ("pass", "fail", "aborted", "error", "cancelled")
 REQUEST_TIMEOUT_S = 30.0
+
 
 
 class ClientError(Exception):
@@ -31,6 +34,17 @@ class Client:
     server: str
     token: str
     timeout_s: float = REQUEST_TIMEOUT_S
+
+    def __post_init__(self) -> None:
+        parsed = urllib.parse.urlsplit(self.server)
+        try:
+            parsed.port                      # raises on a port that is not a number or out of range
+        except ValueError as exc:
+            raise ClientError([f"{self.server}: (server): {exc}"]) from None
+        if parsed.scheme not in ("http", "https") or not parsed.hostname:
+            raise ClientError([f"{self.server}: (server): must be an http:// or https:// URL with a host"])
+        if any(c in self.token for c in "\r\n\0"):
+            raise ClientError(["(token): contains a line break or NUL"])
 
     def url(self, path: str) -> str:
         return urllib.parse.urljoin(self.server.rstrip("/") + "/", path.lstrip("/"))
@@ -61,7 +75,16 @@ class Client:
         body: dict[str, Any] = {"rig": rig} if rig else {"tag": tag}
         path = Path(scenario)
         if path.is_file():
-            body.update(scenario_toml=path.read_text(encoding="utf-8"), filename=scenario)
+            try:
+                text = path.read_text(encoding="utf-8")
+            except UnicodeDecodeError:
+                raise ClientError([f"{scenario}: (file): not a text file (UTF-8 TOML expected)"]) from None
+            except OSError as exc:
+                raise ClientError([f"{scenario}: (file): cannot read: {exc.strerror or exc}"]) from None
+            if len(text) > MAX_SCENARIO_CHARS:
+                raise ClientError([f"{scenario}: (file): {len(text)} characters; the service takes scenarios up to "
+                                   f"{MAX_SCENARIO_CHARS}"])
+            body.update(scenario_toml=text, filename=scenario)
         else:
             body["scenario"] = scenario
         if seed is not None:

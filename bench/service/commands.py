@@ -27,14 +27,36 @@ def _bad(lines: list[str]) -> None:
     sys.exit(EXIT_ERROR)
 
 
+DB_CONNECT_TIMEOUT_S = 5     # a database server that accepts and never answers: one line after this, not a hang
+MAX_ID = 2**63 - 1           # ids are 64-bit signed integers in SQLite and PostgreSQL
+
+
+def bounded_db_url(db_url: str) -> str:
+    """A PostgreSQL URL with libpq's connect_timeout (unless the URL sets its own)."""
+    from sqlalchemy.engine import make_url
+
+    url = make_url(db_url)
+    if url.drivername.startswith("postgres") and "connect_timeout" not in url.query:
+        url = url.update_query_dict({"connect_timeout": str(DB_CONNECT_TIMEOUT_S)})
+    return url.render_as_string(hide_password=False)
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return f"{type(exc).__name__}: {text.splitlines()[0] if text else ''}".rstrip(": ")
+
+
 def _open_db(db_url: str | None, data_dir: str):
     from bench.service.db import default_url, open_database
 
-    Path(data_dir).mkdir(parents=True, exist_ok=True)
     try:
-        return open_database(db_url or default_url(Path(data_dir)))
+        Path(data_dir).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        _bad([f"{data_dir}: (--data): cannot create the directory: {exc.strerror or exc}"])
+    try:
+        return open_database(bounded_db_url(db_url) if db_url else default_url(Path(data_dir)))
     except Exception as exc:   # a wrong URL, an unreachable server: one line, no traceback
-        _bad([f"{db_url or data_dir}: (database): cannot open: {type(exc).__name__}: {str(exc).splitlines()[0]}"])
+        _bad([f"{db_url or data_dir}: (database): cannot open: {_first_line(exc)}"])
 
 
 @click.command()
@@ -51,8 +73,10 @@ def _open_db(db_url: str | None, data_dir: str):
               help="Serve Rerun's gRPC server and web viewer (from the rerun-sdk wheel); runs stream to it.")
 @click.option("--live-grpc-port", type=int, default=9876, show_default=True)
 @click.option("--live-web-port", type=int, default=9090, show_default=True)
-@click.option("--ssl-keyfile", type=click.Path(dir_okay=False), help="TLS key (uvicorn); with --ssl-certfile.")
-@click.option("--ssl-certfile", type=click.Path(dir_okay=False), help="TLS certificate chain (uvicorn).")
+@click.option("--ssl-keyfile", type=click.Path(exists=True, dir_okay=False, readable=True),
+              help="TLS key (uvicorn); with --ssl-certfile.")
+@click.option("--ssl-certfile", type=click.Path(exists=True, dir_okay=False, readable=True),
+              help="TLS certificate chain (uvicorn).")
 @click.option("--host-id", help="Names this instance's runs when several share a database [default: host name].")
 def serve(db_url, data_dir, host, port, rigs_path, scenario_root, lease_ttl_s, max_parallel, live, live_grpc_port,
           live_web_port, ssl_keyfile, ssl_certfile, host_id) -> None:
@@ -84,8 +108,8 @@ def serve(db_url, data_dir, host, port, rigs_path, scenario_root, lease_ttl_s, m
     click.echo(f"drivebench serve: http{'s' if ssl_certfile else ''}://{host}:{port}/ "
                f"({'SQLite in ' + str(settings.data_dir) if service.db.is_sqlite else 'PostgreSQL'}, "
                f"{len(settings.rigs)} rigs)", err=True)
-    uvicorn.run(create_app(service=service), host=host, port=port, log_level="warning", ssl_keyfile=ssl_keyfile,
-                ssl_certfile=ssl_certfile, timeout_graceful_shutdown=5)
+    from bench.service.guard import run_server
+    run_server(create_app(service=service), host, port, ssl_keyfile, ssl_certfile)
 
 
 @click.group()
@@ -101,6 +125,8 @@ def token_create(role, name, db_url, data_dir) -> None:
     """Make a token and print it once on stdout (only its SHA-256 is stored)."""
     from bench.service.auth import create_token
 
+    if not name.strip() or len(name) > 200:
+        _bad([f"token create: --name: must be 1 to 200 characters, got {len(name)}"])
     db = _open_db(db_url, data_dir)
     token_id, value = create_token(db, name, role)
     db.dispose()
@@ -124,7 +150,7 @@ def token_list(db_url, data_dir) -> None:
 
 
 @token.command("revoke")
-@click.argument("token_id", type=int)
+@click.argument("token_id", type=click.IntRange(1, MAX_ID))
 @_data_option
 def token_revoke(token_id, db_url, data_dir) -> None:
     from bench.service.db import Token
@@ -162,7 +188,14 @@ def submit(scenarios, server, token_value, rig, tag, seed, wait, timeout_s, juni
         _bad(["submit: --rig: give exactly one of --rig NAME or --tag TAG"])
     if junit_path and not wait:
         _bad(["submit: --junit: needs --wait (the verdicts are written when the runs end)"])
-    client = Client(server, token_value)
+    if junit_path and not Path(junit_path).resolve().parent.is_dir():
+        _bad([f"submit: --junit: {junit_path}: its directory does not exist"])
+    if not 0 < timeout_s <= 7 * 24 * 3600:
+        _bad([f"submit: --timeout: must be within (0, 604800] s, got {timeout_s:g}"])
+    try:
+        client = Client(server, token_value)
+    except ClientError as exc:
+        _bad(exc.lines)
     submitted: list[int] = []
     problems: list[str] = []
     for scenario in scenarios:

@@ -13,6 +13,11 @@ class EventHub:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._subscribers: set[asyncio.Queue] = set()
         self._lock = threading.Lock()
+        self.generation = 0   # counts changes (events, API writes): cached API reads of an older generation are stale
+
+    def changed(self) -> None:
+        with self._lock:
+            self.generation += 1
 
     def bind(self, loop: asyncio.AbstractEventLoop) -> None:
         self._loop = loop
@@ -29,6 +34,7 @@ class EventHub:
 
     def publish(self, event: dict) -> None:
         """Thread-safe; a no-op before the loop is bound or after it closed."""
+        self.changed()
         loop = self._loop
         if loop is None or loop.is_closed():
             return

@@ -4,8 +4,12 @@ cookie, so a page of another site cannot make the browser post a form with it.""
 
 from __future__ import annotations
 
+import asyncio
+import hashlib
 import io
+import json
 import urllib.parse
+from collections import OrderedDict
 from pathlib import Path
 from typing import Callable
 
@@ -13,11 +17,15 @@ from fastapi import FastAPI, Form, Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
 
+import anyio
+
 from bench.service.auth import COOKIE, Principal
 from bench.service.core import RUN_FILES, Service
 from bench.service.db import FINAL_STATES, STATES, iso
 from bench.service.errors import ApiError
 from bench.service.leases import release, reserve
+from bench.service.limits import MAX_RENDERS, RENDER_WAIT_S
+from bench.service.params import Id
 from bench.service.queue import Submission, submit
 
 HERE = Path(__file__).resolve().parent
@@ -83,7 +91,7 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
                     tags=sorted({t for r in s.rigs() for t in r["tags"]}))
 
     @app.get("/runs/{run_id}", response_class=HTMLResponse)
-    def run_page(request: Request, run_id: int):
+    def run_page(request: Request, run_id: Id):
         s = svc()
         run = s.get_run(run_id)
         files = []
@@ -96,7 +104,7 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
         return page(request, "run.html", run=run, r=s.run_dict(run), files=files)
 
     @app.get("/runs/{run_id}/live", response_class=HTMLResponse)
-    def live_page(request: Request, run_id: int):
+    def live_page(request: Request, run_id: Id):
         s = svc()
         run = s.get_run(run_id)
         viewer = None
@@ -119,7 +127,7 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
         return RedirectResponse(f"/runs/{run.id}", status_code=303)
 
     @app.post("/ui/runs/{run_id}/abort")
-    def ui_abort(request: Request, run_id: int):
+    def ui_abort(request: Request, run_id: Id):
         need_operator(request, "aborting")
         svc().abort(run_id, who(request))
         return RedirectResponse(f"/runs/{run_id}", status_code=303)
@@ -143,10 +151,17 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
         return page(request, "trend.html", scenarios=s.scenario_names(), scenario=scenario,
                     criteria=s.criterion_names(scenario or None), criterion=criterion, points=points, query=query)
 
+    plots = app.state.plots = PlotCache()
+
     @app.get("/trend.png")
-    def trend_png(scenario: str = "", criterion: str = ""):
-        points = svc().trend(criterion, scenario or None) if criterion else []
-        return Response(_trend_png(points, criterion, scenario), media_type="image/png")
+    async def trend_png(scenario: str = "", criterion: str = ""):
+        points = await anyio.to_thread.run_sync(lambda: svc().trend(criterion, scenario or None)) if criterion else []
+        try:
+            png = await plots.get((criterion, scenario, points), lambda: _trend_png(points, criterion, scenario))
+        except TimeoutError:
+            return Response("plots are being rendered; retry shortly", status_code=503, media_type="text/plain",
+                            headers={"Retry-After": "2"})
+        return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=5"})
 
     @app.get("/rigs/{name}", response_class=HTMLResponse)
     def rig_page(request: Request, name: str):
@@ -161,7 +176,7 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
         return RedirectResponse(f"/rigs/{name}", status_code=303)
 
     @app.post("/ui/leases/{lease_id}/release")
-    def ui_release(request: Request, lease_id: int):
+    def ui_release(request: Request, lease_id: Id):
         need_operator(request, "releasing")
         lease = release(svc().db, lease_id, who(request))
         svc().runner.wake()
@@ -172,6 +187,49 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
         return Response((HERE / "static" / "app.js").read_text(encoding="utf-8"), media_type="text/javascript")
 
     return error
+
+
+class PlotCache:
+    """Plots rendered off the event loop, at most MAX_RENDERS at once, each once per content: the key is the plotted
+    data, so a new run (a new revision, a new value) makes a new plot and a hundred viewers of one page share one
+    render. A request that waits RENDER_WAIT_S for a renderer gets TimeoutError (the page says 503, retry)."""
+
+    def __init__(self, size: int = 64):
+        self.size = size
+        self._done: OrderedDict[str, bytes] = OrderedDict()
+        self._rendering: dict[str, asyncio.Future] = {}
+        self._limiter = anyio.CapacityLimiter(MAX_RENDERS)
+        self.renders = 0
+
+    async def get(self, key_data, render) -> bytes:
+        key = hashlib.sha256(json.dumps(key_data, default=str, sort_keys=True).encode()).hexdigest()
+        if key in self._done:
+            self._done.move_to_end(key)
+            return self._done[key]
+        if key in self._rendering:                   # someone is rendering this one: wait for it
+            return await asyncio.wait_for(asyncio.shield(self._rendering[key]), RENDER_WAIT_S)
+        future = asyncio.get_running_loop().create_future()
+        self._rendering[key] = future
+        try:
+            with anyio.fail_after(RENDER_WAIT_S):
+                await self._limiter.acquire()
+            try:
+                png = await anyio.to_thread.run_sync(render)
+                self.renders += 1
+            finally:
+                self._limiter.release()
+            self._done[key] = png
+            while len(self._done) > self.size:
+                self._done.popitem(last=False)
+            future.set_result(png)
+            return png
+        except BaseException as exc:
+            if not future.done():
+                future.set_exception(TimeoutError() if isinstance(exc, TimeoutError) else exc)
+                future.exception()                   # retrieved: no "never retrieved" warning
+            raise
+        finally:
+            self._rendering.pop(key, None)
 
 
 def _trend_png(points: list[dict], criterion: str, scenario: str) -> bytes:

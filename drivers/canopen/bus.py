@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import logging
+import re
 import socket
 import threading
 import time
 from typing import Any, Callable
 
 import can
+
+log = logging.getLogger(__name__)
 
 ERROR_PASSIVE_LEVEL = 128    # CAN receive error counter at which a controller goes error passive (ISO 11898-1)
 
@@ -79,6 +83,50 @@ def socketcand_greeting(host: str, port: int, timeout_s: float = CONNECT_TIMEOUT
                 break
         if not got.startswith(b"< hi >"):
             raise ConnectionError(f"{host}:{port} is not a socketcand server (it said {got[:32]!r})")
+
+
+class SocketcandRefusal:
+    """Reads a socketcand server's `< error ... >` (a served rig refusing a second bench) as a refusal, not a frame.
+
+    python-can's client parses every `< error ... >` as an error frame whose first word is a hex CAN id; the refusal's
+    words are not, so its receive thread logged a traceback and died with another (54 lines). Wrapped around the
+    bus's receive: the refusal text is kept in `.reason`, the bus goes quiet, and the link's first request fails with
+    one line naming it."""
+
+    PATTERN = re.compile(r"< error ([^<>]*)>")
+
+    WAIT_S = 1.0      # a request that timed out: how long a refusal may still be on its way (a loaded server)
+
+    def __init__(self, bus: can.BusABC):
+        self.reason: str | None = None
+        self.refused = threading.Event()
+        self._bus = bus
+        self._recv = bus._recv_internal
+        bus._recv_internal = self._recv_internal
+        # python-can's client warns on every TCP read that ends mid-message (normal at load) and logs a traceback for
+        # what it cannot parse; the link reports what matters in one line
+        logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.CRITICAL)
+
+    def _pending_text(self) -> str:
+        for name, value in vars(self._bus).items():      # python-can keeps the unparsed text in a private buffer
+            if name.endswith("__receive_buffer") and isinstance(value, str):
+                return value
+        return ""
+
+    def _recv_internal(self, timeout: float | None):
+        if self.reason is not None:
+            time.sleep(min(timeout or 0.0, 0.05))
+            return None, False
+        try:
+            return self._recv(timeout)
+        except can.CanError:
+            found = self.PATTERN.search(self._pending_text())
+            if found is None:
+                raise
+            self.reason = found.group(1).strip()
+            self.refused.set()
+            log.info("socketcand server refused this bench: %s", self.reason)
+            return None, False
 
 
 def open_bus(kwargs: dict[str, Any], connect: Callable[[], Any] | None = None,

@@ -44,7 +44,7 @@ from drivers import cia402
 from drivers.api import DriveIdentity, DriveStatus, LinkError, LinkSettings, LiveSample
 from drivers.canopen import objects as o
 from drivers.canopen import pdo as pdos
-from drivers.canopen.bus import BusErrorCounter, bus_kwargs, open_bus
+from drivers.canopen.bus import BusErrorCounter, SocketcandRefusal, bus_kwargs, open_bus
 from drivers.canopen.comm_loss import CommLossGuard
 from drivers.canopen import drill as drills
 from drivers.comm_loss import CommLossConfig
@@ -126,17 +126,16 @@ class CanopenDriveLink:
         self._last_return = 0.0
         self.bus_errors = BusErrorCounter()
         self._reference_speed: Callable[[], float | None] | None = None
+        self._refusal: SocketcandRefusal | None = None
 
     # -- connection ----------------------------------------------------------------------------------
     def open(self) -> DriveIdentity:
         kwargs = bus_kwargs(self.section)
-        if kwargs["interface"] == "socketcand":
-            # python-can's client warns on every TCP read that ends mid-message, which is normal at load
-            logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
         try:
             self.network = canopen.Network()
             self.network.NOTIFIER_CYCLE = 0.02  # close() returns within 20 ms (the notifier thread polls)
             open_bus(kwargs, lambda: self.network.connect(**kwargs))
+            self._refusal = SocketcandRefusal(self.network.bus) if kwargs["interface"] == "socketcand" else None
         except (can.CanError, OSError, ValueError, TimeoutError, TypeError) as exc:
             raise LinkError(f"CAN interface {self.section.get('interface')!r} channel "
                             f"{self.section.get('channel')!r}: cannot open: {exc}") from None
@@ -153,7 +152,13 @@ class CanopenDriveLink:
         self.network.subscribe(o.HEARTBEAT + self.node_id, self._on_heartbeat)
         self.network.subscribe(o.EMCY + self.node_id, self._on_emcy)
 
-        vendor, product, revision, serial = self._read_identity_after_boot(kwargs["interface"])
+        try:
+            vendor, product, revision, serial = self._read_identity_after_boot(kwargs["interface"])
+        except LinkError:
+            if self._refusal is not None and self._refusal.refused.wait(SocketcandRefusal.WAIT_S):
+                raise LinkError(f"{self._refusal.reason} ({self.section.get('interface')} "
+                                f"{kwargs.get('host')}:{kwargs.get('port')})") from None
+            raise
         name, version = (self._optional_text(index) for index in (o.DEVICE_NAME, o.SOFTWARE_VERSION))
         try:
             self.profile = resolve(self.profile_config, vendor, product, sdo.read_standard, sdo.has)
