@@ -82,7 +82,7 @@ def serve(db_url, data_dir, host, port, rigs_path, scenario_root, lease_ttl_s, m
           live_web_port, ssl_keyfile, ssl_certfile, host_id) -> None:
     """The bench service: HTTP API (OpenAPI at /openapi.json), run queue, leased rigs, web UI on HOST:PORT."""
     try:
-        import uvicorn  # noqa: F401  (installed? the server itself starts in bench.service.app)
+        import uvicorn  # noqa: F401  (installed? bench.service.guard starts the server)
 
         from bench.service.app import create_app
         from bench.service.core import Service, ServiceSettings, serve_option_problems
