@@ -26,7 +26,7 @@ from drivers.eds import DeviceDescription, EdsError, read_eds
 from drivers.load_map import LoadMapError, read_load_map
 from drivers.reference import check_section as check_reference
 
-_BENCH_KEYS = {"name", "description", "timing", "plant_injections", "wire_faults", "fault_reset", "served_by"}
+_BENCH_KEYS = {"name", "description", "timing", "plant_injections", "wire_faults", "fault_reset", "drill_valid_s", "served_by"}
 _SERVICES_KEYS = {"start"}
 _LOAD_COMM_LOSS = ("watchdog", "external")
 _DRIVE_COMMON = {"transport", "sync_period_s", "heartbeat_timeout_s", "trace_decimation", "trace_signals", "eds"}
@@ -51,6 +51,7 @@ class BenchSection:
     plant_injections: bool = False      # the rig may change the plant (a simulator)
     wire_faults: bool = False           # the rig may corrupt its own wire (a simulator)
     fault_reset: str = "once"           # drivers.api.FAULT_RESET_POLICIES
+    drill_valid_s: float = 0.0          # a passed bench-death drill holds this long in one bench process (0: every run)
 
 
 @dataclass(frozen=True)
@@ -108,6 +109,7 @@ def load_bench_config(path: str | Path, for_probe: bool = False) -> BenchConfig:
         wire_faults=problems.boolean(bench, "wire_faults", "bench", required=False, default=False),
         fault_reset=problems.string(bench, "fault_reset", "bench", required=False, default="once",
                                     choices=FAULT_RESET_POLICIES),
+        drill_valid_s=_drill_valid(problems, bench),
     )
 
     services = problems.table(raw, "services", "", required=False) or {}
@@ -150,6 +152,13 @@ def _probe_tells(line: str, file: str) -> bool:
         if line.startswith(f"{file}: {key}:"):
             return key != "load.map" or "no communication watchdog" in line
     return False
+
+
+def _drill_valid(problems: Problems, bench: dict) -> float:
+    value = problems.number(bench, "drill_valid_s", "bench", required=False, default=0.0, min_value=0.0)
+    if value is not None and not value <= 86400:
+        problems.add("bench.drill_valid_s", f"must be at most 86400 s (a day), got {value!r}")
+    return float(value or 0.0)
 
 
 def link_settings(cfg: BenchConfig) -> LinkSettings:

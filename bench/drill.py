@@ -11,6 +11,8 @@ bench config states an external stop chain is run and shown as unverified comm-l
 from __future__ import annotations
 
 import threading
+import time
+from datetime import datetime, timezone
 from typing import Any
 
 from drivers.api import LinkError
@@ -96,6 +98,28 @@ def unverified(summary: dict[str, Any] | None) -> str | None:
     return f"{UNVERIFIED}: " + "; ".join(parts) if parts else None
 
 
+DRILL_SETTINGS = ("comm_loss", "external_stop", "consumer_time_ms", "abort_option", "error_behaviour", "bench_node_id",
+                  "drill_margin_ms", "map", "unit_id", "node_id", "transport")
+_PROVED: dict[tuple, tuple[float, str, dict[str, Any]]] = {}     # key -> (monotonic, utc, summary) of a passed drill
+
+
+def proved_recently(key: tuple, valid_s: float) -> dict[str, Any] | None:
+    """A drill of this drive and load machine (same bench config, identity and comm-loss settings) that passed in
+    this process less than `valid_s` ago ([bench] drill_valid_s; 0: never), as a record section saying so."""
+    if valid_s <= 0 or key not in _PROVED:
+        return None
+    at, utc, summary = _PROVED[key]
+    age = time.monotonic() - at
+    if age >= valid_s:
+        return None
+    return {**summary, "reused": {"drilled_utc": utc, "age_s": round(age, 3), "drill_valid_s": valid_s}}
+
+
+def remember(key: tuple, summary: dict[str, Any]) -> None:
+    if summary.get("verified") and refusal(summary) is None:
+        _PROVED[key] = (time.monotonic(), datetime.now(timezone.utc).isoformat(timespec="milliseconds"), summary)
+
+
 def timings(summary: dict[str, Any] | None) -> str | None:
     """The drill in one line (verdict table): reaction vs consumer time."""
     if not summary:
@@ -108,7 +132,12 @@ def timings(summary: dict[str, Any] | None) -> str | None:
     if isinstance(load, dict) and load.get("result") == "passed":
         parts.append(f"load machine disabled within {load['disabled_within_ms']:.0f} ms of silence "
                      f"(watchdog {load['timeout_ms']} ms)")
-    return "comm-loss drill passed: " + "; ".join(parts) if parts else None
+    if not parts:
+        return None
+    reused = summary.get("reused")
+    when = (f" (drilled {reused['age_s']:.0f} s ago in this bench process, at {reused['drilled_utc']}; valid "
+            f"{reused['drill_valid_s']:g} s)" if isinstance(reused, dict) else "")
+    return "comm-loss drill passed" + when + ": " + "; ".join(parts)
 
 
 def stated_external(cfg: Any) -> str | None:

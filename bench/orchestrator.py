@@ -6,6 +6,7 @@ config's [services] entry and the link classes its transports name.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import signal
@@ -21,7 +22,8 @@ import numpy as np
 
 from bench.benchconfig import BenchConfig, load_bench_config
 from bench.criteria import TimeAxis, signals_of, time_axis
-from bench.drill import DrillRefused, refusal as drill_refusal, run_drills, unverified as drill_unverified
+from bench.drill import (DRILL_SETTINGS, DrillRefused, proved_recently, refusal as drill_refusal, remember, run_drills,
+                         unverified as drill_unverified)
 from bench.errors import InputError, find_repo_root
 from bench.links import make_links, started_services
 from bench.records import RunRecord, RunRecorder, freeze_long_lived, json_safe, release_freed_memory
@@ -451,7 +453,15 @@ class _Run:
     def _comm_loss_drill(self) -> None:
         """Before the first motion: prove the drive and the load machine stop themselves when the bench dies
         (bench.drill); refused when one does not, shown as unverified where the config states an external stop."""
-        summary = run_drills(self.drive, self.load)
+        # the drive and machine proved (identity, settings), not the endpoints a simulator's start hands out
+        settings = {k: v for k, v in {**self.cfg.drive, **{f"load.{k}": v for k, v in self.cfg.load.items()}}.items()
+                    if k.split(".")[-1] in DRILL_SETTINGS}
+        key = (self.cfg.path, tuple(sorted(asdict(self.identity).items())), self.load_name,
+               json.dumps(settings, sort_keys=True, default=str))
+        summary = proved_recently(key, self.cfg.bench.drill_valid_s)
+        if summary is None:
+            summary = run_drills(self.drive, self.load)
+            remember(key, summary)
         self.recorder.note("comm_loss", summary)
         note = drill_unverified(summary)
         if note is not None:

@@ -374,3 +374,28 @@ def test_an_operator_stop_during_the_drill_never_enables_the_drive_for_the_run(t
     assert result.verdict == "aborted" and "SIGTERM" in result.record["abort_reason"]
     assert "drive.enable_velocity_mode" not in rig.names()
     assert [n for n in rig.names() if n in SAFE_STOP] == SAFE_STOP
+
+
+def test_a_passed_drill_holds_for_drill_valid_s_in_one_bench_process_and_says_so(tmp_path):
+    """[bench] drill_valid_s: the second run of the same drive and settings in this process reuses the first one's
+    proof (the record and the verdict line say when it was drilled); with 0 (a rig's default) every run drills."""
+    from bench.cli import print_record, make_console
+    from bench.orchestrator import run_scenario
+
+    held = bench_with(tmp_path, replace=("drill_valid_s = 3600", "drill_valid_s = 600"))
+    first = run_scenario(SCENARIO, held, out_root=tmp_path / "a", rerun_mode="off").record["comm_loss"]
+    second = run_scenario(SCENARIO, held, out_root=tmp_path / "b", rerun_mode="off").record["comm_loss"]
+    assert "reused" not in first and first["drive"]["result"] == "passed"
+    assert second["reused"]["drill_valid_s"] == 600 and second["reused"]["age_s"] < 600
+    assert second["drive"] == first["drive"]                                # the proof it rests on, as it was
+    console = make_console()
+    with console.capture() as out:
+        print_record(console, {"verdict": "pass", "scenario": {"name": "x"}, "criteria": [], "comm_loss": second},
+                     tmp_path)
+    assert "drilled" in out.get() and "s ago in this bench process" in out.get()
+    every = tmp_path / "every"
+    every.mkdir()
+    each = bench_with(every, replace=("drill_valid_s = 3600", "drill_valid_s = 0"))
+    records = [run_scenario(SCENARIO, each, out_root=every / f"r{k}", rerun_mode="off").record["comm_loss"]
+               for k in range(2)]
+    assert all("reused" not in r and r["drive"]["result"] == "passed" for r in records)

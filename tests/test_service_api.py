@@ -18,7 +18,10 @@ from tests.service_fixtures import REPO, SCENARIOS, SHORT, Tokens, client_for, m
 
 H = Tokens.header
 CONTRACT_RUN_KEYS = {"id", "state", "verdict", "rig", "scenario", "criteria", "record_url", "live_url"}
-PARAMS = {"name": "sim-a", "run_id": "1", "lease_id": "1", "token_id": "1"}
+PARAMS = {"name": "sim-a", "run_id": "1", "lease_id": "1", "token_id": "1", "fmt": "csv",
+          "asset": "swagger-ui.css"}
+PUBLIC = {("GET", "/api/health"), ("GET", "/login"), ("POST", "/login"), ("GET", "/openapi.json"), ("GET", "/docs"),
+          ("GET", "/docs/{asset}")}
 
 
 @pytest.fixture
@@ -55,7 +58,7 @@ def test_every_endpoint_but_health_and_login_refuses_a_request_without_a_valid_t
     assert len(routes) > 25
     checked = 0
     for method, path in routes:
-        if (method, path) in (("GET", "/api/health"), ("GET", "/login"), ("POST", "/login")):
+        if (method, path) in PUBLIC:
             continue
         for headers in ({}, H("dbt_not-a-token"), {"Authorization": "Basic YWRhOmFkYQ=="}):
             if method == "WS":
@@ -65,7 +68,7 @@ def test_every_endpoint_but_health_and_login_refuses_a_request_without_a_valid_t
                 assert denied.value.status_code == 401, path
                 continue
             response = _call(api, method, path, headers)
-            if path.startswith("/api/") or path == "/openapi.json":
+            if path.startswith("/api/") or path == "/metrics":
                 assert response.status_code == 401, (method, path, response.status_code)
                 assert response.headers["www-authenticate"] == "Bearer"
             else:   # a page: the browser goes to the login page
@@ -142,6 +145,67 @@ def test_rigs_contract(api):
     assert "simulated" in rigs[1]["tags"] and "real" in rigs[0]["tags"]
     assert api.get("/api/rigs/nope", headers=H(api.tokens.viewer)).status_code == 404
     assert "paths" in api.get("/openapi.json", headers=H(api.tokens.viewer)).json()
+
+
+def test_the_api_documents_itself_without_a_token_from_local_assets(api):
+    """OpenAPI and its Swagger UI are public (they describe, they hold no data); the UI's script and style come from
+    the service itself, not a CDN a lab network may not reach."""
+    doc = api.get("/openapi.json")
+    assert doc.status_code == 200 and "/api/runs" in doc.json()["paths"]
+    page = api.get("/docs")
+    assert page.status_code == 200 and "/docs/swagger-ui-bundle.js" in page.text and "cdn" not in page.text.lower()
+    js = api.get("/docs/swagger-ui-bundle.js")
+    assert js.status_code == 200 and len(js.content) > 500_000 and "SwaggerUIBundle" in js.text[:2_000_000]
+    assert api.get("/docs/other.js", follow_redirects=False).status_code in (303, 404)    # not public, not there
+
+
+def test_metrics_in_prometheus_text(api):
+    from prometheus_client.parser import text_string_to_metric_families
+
+    op = H(api.tokens.operator)
+    assert api.get("/metrics").status_code == 401                          # a viewer token, like the API
+    api.patch("/api/rigs/sim-a", json={"enabled": False}, headers=H(api.tokens.admin))
+    for _ in range(3):
+        assert api.post("/api/runs", json={"scenario": f"service/{SHORT}", "rig": "sim-a"}, headers=op).status_code \
+            == 201
+    api.post("/api/rigs/real-a/lease", json={"ttl_s": 60, "reason": "wiring"}, headers=op)
+    response = api.get("/metrics", headers=H(api.tokens.viewer))
+    assert response.status_code == 200 and response.headers["content-type"].startswith("text/plain")
+    samples = {(s.name, tuple(sorted(s.labels.items()))): s.value
+               for family in text_string_to_metric_families(response.text) for s in family.samples}
+    assert samples[("drivebench_runs", (("state", "queued"),))] == 3
+    assert samples[("drivebench_queue_length", (("target", "sim-a"),))] == 3
+    assert samples[("drivebench_queue_oldest_wait_seconds", (("target", "sim-a"),))] >= 0
+    assert samples[("drivebench_leases_active", (("kind", "manual"),))] == 1
+    assert samples[("drivebench_lease_events_total", (("event", "created"),))] == 1
+    assert ("drivebench_run_duration_seconds_count", ()) in samples
+
+
+def test_a_queued_run_says_why_it_waits(api):
+    op, adm = H(api.tokens.operator), H(api.tokens.admin)
+    api.patch("/api/rigs/sim-a", json={"enabled": False}, headers=adm)
+    run = api.post("/api/runs", json={"scenario": f"service/{SHORT}", "rig": "sim-a"}, headers=op).json()
+    waiting = api.get(f"/api/runs/{run['id']}", headers=op).json()["waiting"]
+    assert waiting == "rig sim-a is disabled by an admin"
+    api.patch("/api/rigs/sim-a", json={"enabled": True}, headers=adm)
+    # the run queue is off in this fixture, so its host slots are what holds a startable run
+    api.service.runner.settings.max_parallel = 0
+    time.sleep(0.3)
+    assert api.get(f"/api/runs/{run['id']}", headers=op).json()["waiting"].startswith(
+        "host slots: this service instance runs 0 of its 0 runs at once (--max-parallel); rig sim-a is free")
+    api.service.runner.settings.max_parallel = 2
+    time.sleep(0.3)                           # GET answers are kept 0.25 s unless something was written meanwhile
+    assert api.get(f"/api/runs/{run['id']}", headers=op).json()["waiting"] == "starting: rig sim-a is free"
+    # a real rig reserved by someone else
+    api.post("/api/rigs/real-a/lease", json={"ttl_s": 60, "reason": "wiring"}, headers=H(api.tokens.operator2))
+    other = api.post("/api/runs", json={"scenario": f"service/{SHORT}", "rig": "real-a"}, headers=op)
+    if other.status_code == 201:         # submitting to a rig someone else reserved may be refused outright (409)
+        waiting = api.get(f"/api/runs/{other.json()['id']}", headers=op).json()["waiting"]
+        assert waiting.startswith("rig real-a is reserved by oscar until ")
+    else:
+        assert other.status_code == 409 and "reserved by oscar" in other.text
+    page = api.get(f"/runs/{run['id']}", headers=op)
+    assert 'id="waiting"' in page.text and "starting: rig sim-a is free" in page.text
 
 
 def test_submit_get_list_and_cancel_a_run(api):

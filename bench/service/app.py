@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import errno
+import threading
 from contextlib import asynccontextmanager
 from http.cookies import SimpleCookie
 from typing import Any, Callable
@@ -30,7 +31,8 @@ from bench.service.params import MAX_ID, Id
 from bench.service.leases import extend, lease_dict, release, reserve, active_leases
 from bench.service.queue import Submission, submit
 
-PUBLIC = {("GET", "/api/health"), ("GET", "/login"), ("POST", "/login")}
+PUBLIC = {("GET", "/api/health"), ("GET", "/login"), ("POST", "/login"), ("GET", "/openapi.json"), ("GET", "/docs"),
+          ("GET", "/docs/swagger-ui-bundle.js"), ("GET", "/docs/swagger-ui.css")}
 READ_METHODS = ("GET", "HEAD", "OPTIONS")
 
 
@@ -83,7 +85,7 @@ class AuthMiddleware:
             else:
                 await send({"type": "websocket.close", "code": 4401, "reason": "unauthorized"})
             return
-        if scope["path"].startswith("/api/") or scope["path"] == "/openapi.json":
+        if scope["path"].startswith("/api/") or scope["path"] in ("/openapi.json", "/metrics"):
             response = JSONResponse({"detail": message}, status_code=401, headers={"WWW-Authenticate": "Bearer"})
         else:
             from fastapi.responses import RedirectResponse
@@ -144,6 +146,10 @@ def _validation_lines(exc: RequestValidationError) -> list[str]:
         where = ".".join(loc[1:]) if loc and loc[0] in ("body", "query", "path") else ".".join(loc)
         lines.append(f"request: {where or '(body)'}: {err.get('msg', 'invalid')}")
     return lines
+
+
+EXPORTS = threading.BoundedSemaphore(2)
+EXPORT_MEDIA = {"mf4": "application/octet-stream", "csv": "text/csv"}
 
 
 def create_app(settings: ServiceSettings | None = None, service: Service | None = None) -> FastAPI:
@@ -261,6 +267,48 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
     def run_file(run_id: Id, name: str, who: Principal = Depends(viewer)):
         path = svc().run_file(run_id, name)
         return FileResponse(path, media_type=MEDIA.get(path.suffix, "application/octet-stream"), filename=name)
+
+    @app.get("/metrics", include_in_schema=False)
+    def metrics(who: Principal = Depends(viewer)):
+        from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+
+        from bench.service.metrics import registry_for
+
+        return Response(generate_latest(registry_for(svc().db)), media_type=CONTENT_TYPE_LATEST)
+
+    @app.get("/docs", include_in_schema=False)
+    def docs():
+        from fastapi.openapi.docs import get_swagger_ui_html
+
+        return get_swagger_ui_html(openapi_url="/openapi.json", title="drivebench API",
+                                   swagger_js_url="/docs/swagger-ui-bundle.js", swagger_css_url="/docs/swagger-ui.css",
+                                   swagger_favicon_url="data:,")
+
+    @app.get("/docs/{asset}", include_in_schema=False)
+    def docs_asset(asset: str):
+        from swagger_ui_bundle import swagger_ui_path      # served from the package: a lab may have no internet
+
+        if asset not in ("swagger-ui-bundle.js", "swagger-ui.css"):
+            return Response(f"/docs/{asset}: not found", status_code=404, media_type="text/plain")
+        media = "text/javascript" if asset.endswith(".js") else "text/css"
+        return FileResponse(swagger_ui_path / asset, media_type=media)
+
+    @app.get("/api/runs/{run_id}/export/{fmt}")
+    def export_run_file(run_id: Id, fmt: str, who: Principal = Depends(viewer)):
+        from bench.export import FORMATS, export_run
+
+        if fmt not in FORMATS:
+            raise ApiError(404, f"run {run_id}: export {fmt!r}: one of {', '.join(FORMATS)}")
+        record = svc().run_file(run_id, "record.json")
+        target = record.parent / f"telemetry.{fmt}"
+        if not target.is_file() or target.stat().st_mtime_ns < record.stat().st_mtime_ns:
+            if not EXPORTS.acquire(timeout=10.0):      # a long run's export is seconds of CPU: two at once
+                raise ApiError(503, "exports are being written; retry shortly")
+            try:
+                export_run(record.parent, fmt, target)
+            finally:
+                EXPORTS.release()
+        return FileResponse(target, media_type=EXPORT_MEDIA[fmt], filename=f"run-{run_id}.{fmt}")
 
     @app.get("/api/trend")
     def trend(criterion: str, scenario: str | None = None, limit: int = 500,

@@ -162,7 +162,16 @@ class Service:
             "abort_requested_by": run.abort_requested_by, "aborted_by": run.aborted_by, "drive": run.drive,
             "firmware_version": run.firmware_version, "revision": run.revision,
             "software": run.software, "host": run.host, "pid": run.pid,
+            "waiting": self.why_waiting(run) if run.state == "queued" else None,
         }
+
+    def why_waiting(self, run: Run) -> str:
+        """Why a queued run has not started (bench.service.waiting), from this instance's point of view."""
+        from bench.service.waiting import why_waiting
+
+        runner = self.runner
+        with self.db.session() as s:
+            return why_waiting(s, run, len(runner.children), runner.settings.max_parallel)
 
     def get_run(self, run_id: int) -> Run:
         with self.db.session() as s:

@@ -8,6 +8,7 @@ import asyncio
 import hashlib
 import io
 import json
+import tempfile
 import urllib.parse
 from collections import OrderedDict
 from pathlib import Path
@@ -53,7 +54,7 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
 
     def page(request: Request, name: str, **context) -> HTMLResponse:
         return templates.TemplateResponse(request, name, {"me": who(request), "live": svc().settings.live_viewer_url,
-                                                          **context})
+                                                          "waiting": svc().why_waiting, **context})
 
     def error(request: Request, exc: ApiError) -> HTMLResponse:
         lines = exc.detail if isinstance(exc.detail, list) else [exc.detail]
@@ -102,6 +103,29 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
             except ApiError:
                 pass
         return page(request, "run.html", run=run, r=s.run_dict(run), files=files)
+
+    @app.get("/compare", response_class=HTMLResponse)
+    def compare_page(request: Request, a: Id, b: Id):
+        from bench.compare import compare_runs
+
+        s = svc()
+        dirs = [s.run_file(run_id, "record.json").parent for run_id in (a, b)]
+        result = compare_runs(*dirs)
+        return page(request, "compare.html", a=s.get_run(a), b=s.get_run(b), result=result)
+
+    @app.get("/compare.png")
+    async def compare_png(a: Id, b: Id):
+        s = svc()
+        dirs = await anyio.to_thread.run_sync(lambda: [s.run_file(r, "record.json").parent for r in (a, b)])
+        stamps = [(str(d), (d / "record.json").stat().st_mtime_ns) for d in dirs]
+        try:
+            png = await plots.get(("compare", stamps), lambda: _compare_png(*dirs))
+        except TimeoutError:
+            return Response("plots are being rendered; retry shortly", status_code=503, media_type="text/plain",
+                            headers={"Retry-After": "2"})
+        if not png:
+            raise ApiError(404, f"runs {a} and {b}: no signal measured in both")
+        return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=30"})
 
     @app.get("/runs/{run_id}/live", response_class=HTMLResponse)
     def live_page(request: Request, run_id: Id):
@@ -230,6 +254,15 @@ class PlotCache:
             raise
         finally:
             self._rendering.pop(key, None)
+
+
+def _compare_png(dir_a: Path, dir_b: Path) -> bytes:
+    """bench.compare's overlay of two runs' signals on the drive clock; b"" when they share no measured signal."""
+    from bench.compare import write_plot
+
+    with tempfile.TemporaryDirectory() as scratch:
+        path = write_plot(dir_a, dir_b, Path(scratch) / "compare.png")
+        return path.read_bytes() if path is not None else b""
 
 
 def _trend_png(points: list[dict], criterion: str, scenario: str) -> bytes:

@@ -1,0 +1,49 @@
+"""Why a queued run waits, in words a lab reads: its rig (or every rig of its tag) disabled, reserved by someone
+else, busy with another run, or this service instance's run slots (--max-parallel) full — or, when nothing holds
+it, which earlier run goes first. Shown by GET /api/runs/{id} (`waiting`) and on the run and queue pages."""
+
+from __future__ import annotations
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from bench.service.db import Run
+from bench.service.leases import RigView, rig_views
+
+
+def _rig_reason(view: RigView, owner: str) -> str | None:
+    """None when this rig could take the owner's run now."""
+    lease = view.lease or {}
+    if view.state == "disabled":
+        return f"rig {view.name} is disabled by an admin"
+    if view.state == "reserved" and lease.get("holder") != owner:
+        return f"rig {view.name} is reserved by {lease.get('holder')} until {lease.get('expires_utc')}"
+    if view.state in ("busy", "full"):
+        run_id = lease.get("run_id")
+        return f"rig {view.name} is busy" + (f" with run {run_id}" if run_id else "") + (
+            f" ({view.running} of {view.max_concurrent} runs)" if view.simulated else "")
+    return None
+
+
+def why_waiting(s: Session, run: Run, running_here: int, max_parallel: int,
+                views: dict[str, RigView] | None = None) -> str:
+    views = views if views is not None else {v.name: v for v in rig_views(s)}
+    names = [run.rig] if run.rig else list(run.candidates or [n for n, v in views.items() if run.tag in v.tags])
+    if not names:
+        return f"no rig carries the tag {run.tag!r}" if run.tag else "no rig named"
+    reasons, free = [], []
+    for name in names:
+        view = views.get(name)
+        reason = f"rig {name} is not in the service's rigs" if view is None else _rig_reason(view, run.owner)
+        (reasons.append(reason) if reason else free.append(name))
+    if not free:
+        return "; ".join(reasons)
+    if running_here >= max_parallel:
+        return (f"host slots: this service instance runs {running_here} of its {max_parallel} runs at once "
+                f"(--max-parallel); rig {free[0]} is free")
+    earlier = s.execute(select(Run.id).where(Run.state == "queued", Run.submitted_ts < run.submitted_ts,
+                                             Run.rig.in_(free) | Run.tag.is_not(None))
+                        .order_by(Run.submitted_ts).limit(1)).scalar()
+    if earlier is not None:
+        return f"behind run {earlier}, queued earlier for a rig it may take (FIFO per rig); rig {free[0]} is free"
+    return f"starting: rig {free[0]} is free"
