@@ -280,7 +280,7 @@ def test_a_truly_missing_answer_makes_the_run_incomplete():
         link.enable_velocity_mode()
         link.set_speed_ref(20.0)
         lose["sync"] = rig.node._sync_count + 30           # 0.3 s into the run: the drive does not answer it
-        samples = run_for(link, 1.5)
+        samples = run_for(link, 3.0)
         link.quick_stop()
         link.disable()
         report = link.sync_report()
