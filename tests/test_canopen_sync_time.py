@@ -202,15 +202,15 @@ class DelayingWire:
         self.bench_side.shutdown()
 
 
-def record_answers(node, lose_sync: int | None = None) -> dict[int, dict[int, bytes]]:
-    """The drive's TPDO payloads per SYNC it answered (its own SYNC count); `lose_sync`: that SYNC goes unanswered."""
+def record_answers(node, lose: dict | None = None) -> dict[int, dict[int, bytes]]:
+    """The drive's TPDO payloads per SYNC it answered (its own SYNC count); lose["sync"]: that SYNC goes unanswered."""
     sent: dict[int, dict[int, bytes]] = {}
     frames_for = node.pdos.tpdo_frames
 
     def wrapped(sync_count, *args):
         frames = frames_for(sync_count, *args)
         if node.nmt_state == o.NMT_OPERATIONAL and frames:
-            if sync_count == lose_sync:
+            if lose is not None and sync_count == lose.get("sync"):
                 return []
             sent[sync_count] = dict(frames)
         return frames
@@ -272,17 +272,19 @@ def test_tpdos_delayed_on_the_wire_still_give_a_complete_run_with_the_right_time
 
 
 def test_a_truly_missing_answer_makes_the_run_incomplete():
+    lose: dict = {}
     with realtime_link_behind({"preserve": True}) as (link, rig, wire):
-        record_answers(rig.node, lose_sync=60)
+        record_answers(rig.node, lose)
         link.open()
         link.configure(LIVE, [], 1)
         link.enable_velocity_mode()
         link.set_speed_ref(20.0)
-        samples = run_for(link, 1.5)
+        lose["sync"] = rig.node._sync_count + 30           # 0.3 s into the run: the drive does not answer it
+        samples = run_for(link, 3.0)
         link.quick_stop()
         link.disable()
         report = link.sync_report()
-    assert report["unanswered"] == 1
+    assert report["unanswered"] == 1, report
     t = np.array([s.t_s for s in samples])
     holes = time_axis(t, PERIOD, 1.5)
     assert holes["missing_rows"] == 1 and holes["duplicates"] == 0

@@ -12,10 +12,11 @@ Time of a sample without a drive clock (`SyncTimeline`): the SYNC it answers x t
 TPDOs come in the order of the SYNCs (CAN and TCP keep order), so the n-th answer belongs to the n-th SYNC; a late
 frame (TCP, a busy host) is jitter and moves nothing. A missing answer shows as a backlog: every later answer is
 stamped (by the interface, on the bus, or on receipt) after one more SYNC went out than its place in the sequence says.
-When the backlog has been the same n >= 1 for the last `window` answers (0.5 s of them), n SYNCs are counted
-unanswered and skipped: the time axis gets its gap there (`window` answers after the loss; the answers in between sit
-n periods late), and the run is incomplete. A backlog that changes is a queue draining (a slow host, a TCP burst), not
-a loss: the n-th answer stays on the n-th SYNC.
+When the backlog has stayed at n >= 1 (n or n + 1: the drive's own jitter) for the last `window` answers (0.5 s of
+them), n SYNCs are counted unanswered and skipped: the time axis gets its gap there (`window` answers after the loss;
+the answers in between sit n periods late), and the run is incomplete. A backlog that falls by more is a queue
+draining (a slow host, a TCP burst), not a loss: the n-th answer stays on the n-th SYNC. (A drive that answers more
+than a period late for 0.5 s on end looks the same as a lost answer: no CiA 301 TPDO says which SYNC it answers.)
 """
 
 from __future__ import annotations
@@ -273,7 +274,7 @@ class SyncTimeline:
             latest, _ = self._sent_before(r - self._lag0 + 1e-6)
             self._backlog.append(latest - seq)
             if latest - seq >= 1 and len(self._backlog) == self.window and \
-                    min(self._backlog) == max(self._backlog):      # (the first test keeps the healthy case O(1))
+                    1 <= min(self._backlog) >= max(self._backlog) - 1:    # (the first test keeps the healthy case O(1))
                 missed = min(self._backlog)
                 self.unanswered += missed
                 seq += missed
