@@ -91,7 +91,7 @@ def test_rig_points_hold_their_rig_and_simulated_points_spread_over_both_nodes(t
     sim_proc, endpoints = _serve_pmsm(tmp_path)          # the "real rig": a served simulator, one bench at a time
     try:
         rig_bench = _bench(
-            tmp_path, RIG, "",
+            tmp_path, RIG, 'served_by = "drivebench sim serve"\n',   # lockstep without [services]: say who serves
             f'transport = "canopen"\ninterface = "socketcand"\nchannel = "can0@127.0.0.1:{endpoints["socketcand"]}"\n'
             f'node_id = 1\neds = "{EDS}"\nsdo_timeout_s = 5.0\n', f'port = {endpoints["modbus"]}')
         sim_bench = _bench(tmp_path, "simulated", '[services]\nstart = "sim_backend.rig:start"\n',

@@ -134,8 +134,7 @@ class CanopenDriveLink:
         try:
             self.network = canopen.Network()
             self.network.NOTIFIER_CYCLE = 0.02  # close() returns within 20 ms (the notifier thread polls)
-            open_bus(kwargs, lambda: self.network.connect(**kwargs))
-            self._refusal = SocketcandRefusal(self.network.bus) if kwargs["interface"] == "socketcand" else None
+            open_bus(kwargs, lambda: self._connect(kwargs))
         except (can.CanError, OSError, ValueError, TimeoutError, TypeError) as exc:
             raise LinkError(f"CAN interface {self.section.get('interface')!r} channel "
                             f"{self.section.get('channel')!r}: cannot open: {exc}") from None
@@ -179,6 +178,14 @@ class CanopenDriveLink:
                                       has_trace_recorder=has_trace)
         self.report["profile"] = self.profile.as_record()
         return self.identity
+
+    def _connect(self, kwargs: dict) -> canopen.Network:
+        """The bus first, a socketcand refusal watched on it before the network's receive thread starts (a refusal
+        that arrives first would otherwise be parsed as a frame and kill that thread)."""
+        bus = can.Bus(**kwargs)
+        self._refusal = SocketcandRefusal(bus) if kwargs["interface"] == "socketcand" else None
+        self.network.bus = bus
+        return self.network.connect(**kwargs)
 
     def _read_identity_after_boot(self, interface: str) -> tuple[int, int, int, int]:
         """0x1018 (identity), the first SDO. A drive that does not answer may still be booting: with `boot_timeout_s`
