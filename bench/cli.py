@@ -322,6 +322,7 @@ def validate(files, bench_path) -> None:
     criteria its bench cannot judge (signals it does not measure); for a campaign, each of its scenarios."""
     from bench.benchconfig import load_bench_config, measurable_signals
     from bench.criteria import signals_of
+    from bench.load_emulation import emulates_on
     from bench.orchestrator import prepare
 
     bad = False
@@ -340,6 +341,12 @@ def validate(files, bench_path) -> None:
                 scenario, cfg = prepare(path, bench_path)
                 click.echo(f"{path}: ok (scenario {scenario.name!r}, {scenario.duration_s:g} s, "
                            f"{len(scenario.criteria)} criteria, bench {cfg.bench.name!r})")
+                for i, seg in enumerate(scenario.load_segments):
+                    if emulates_on(cfg, seg.mode):
+                        click.echo(f"{path}: load[{i}] ({seg.kind}): emulated by the bench on {cfg.bench.name!r}: "
+                                   f"its load machine has no {seg.mode.name.lower()} mode; a torque setpoint from the "
+                                   f"measured shaft speed every SYNC ({cfg.drive['sync_period_s']:g} s; "
+                                   f"docs/scenarios.md, emulated loads)")
                 measurable = measurable_signals(cfg)
                 for i, criterion in enumerate(scenario.criteria):
                     missing = [s for s in signals_of(criterion) if s not in measurable]

@@ -26,6 +26,7 @@ from bench.drill import (DRILL_SETTINGS, DrillRefused, proved_recently, refusal 
                          unverified as drill_unverified)
 from bench.errors import InputError, find_repo_root
 from bench.links import make_links, started_services
+from bench.load_emulation import SPEED_SIGNAL, LoadEmulation
 from bench.records import RunRecord, RunRecorder, freeze_long_lived, json_safe, release_freed_memory
 from bench.rerun_view import RerunStream
 from bench.scenario import load_scenario
@@ -34,7 +35,7 @@ from bench.supervisor import FeedbackCheck, SafeStop, Supervisor, UnitCheck, che
 from bench.run_thread import LoopThread
 from bench.telemetry import TelemetryWorker
 from bench.verdict import judge_run
-from drivers.api import LinkError, LiveSample
+from drivers.api import LinkError, LiveSample, LoadMode
 from drivers.reference import ReferenceConfig, onto_rows, values_from_load
 from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
 
@@ -269,6 +270,8 @@ class _Run:
         self.reference = ReferenceConfig(self.cfg.reference_source)
         self.reference_signals = self.reference.signals(self.load is not None)
         self.not_from_drive = self.reference.not_from_drive()
+        self.emulation = LoadEmulation(tuple(getattr(self.load, "modes", None) or ()) or tuple(LoadMode),
+                                       SPEED_SIGNAL in self.reference_signals, self.sync_period_s)
         self._reference_readings: list[tuple[float, dict[str, float]]] = []   # (t_s, values), for the trace rows
         self.measured: frozenset[str] | None = None
         self.live_recorded: tuple[str, ...] = LIVE_SIGNALS
@@ -298,6 +301,8 @@ class _Run:
         self.recorder.note("instruments", self.reference.instruments(
             self.load is not None, getattr(self.load, "map", None),
             getattr(self.identity, "device_name", "") or "the drive"))
+        if any(self.emulation.emulates(seg.mode) for seg in self.scenario.load_segments):
+            self.recorder.note("load_emulation", self.emulation.as_record(s.mode for s in self.scenario.load_segments))
         self.recorder.note("bench", {"name": self.cfg.bench.name, "path": self.cfg.path,
                                      "timing": self.cfg.bench.timing})
         self._rerun_note = {"mode": self.rerun_mode, "url": self.rerun_url, "sinks": self.rerun.sinks}
@@ -423,7 +428,7 @@ class _Run:
         # after enabling: enable_velocity_mode starts the drive from a zero target (CiA 402 links reset it)
         self._speed_ref = self.scenario.speed_ref_at(0.0)
         self.drive.set_speed_ref(self._speed_ref)
-        mode, value = self.scenario.load_at(0.0)
+        mode, value = self._load_to_send(0.0)
         if self.load is not None:
             self._load_call(self.load.set_load, mode, value)
             self._load_call(self.load.enable, True)
@@ -591,10 +596,19 @@ class _Run:
         if ref != self._speed_ref:
             self.drive.set_speed_ref(ref)
             self._speed_ref = ref
-        setting = self.scenario.load_at(t_cmd)
+        setting = self._load_to_send(t_cmd)
         if setting != self._load_setting and self.load is not None:
             self._load_call(self.load.set_load, *setting)
             self._load_setting = setting
+
+    def _load_to_send(self, t_cmd: float) -> tuple:
+        """The profile's load at t_cmd, or the torque that emulates it from the last shaft speed read (load_emulation)."""
+        mode, value = self.scenario.load_at(t_cmd)
+        if not self.emulation.emulates(mode):
+            return mode, value
+        with self._live_lock:
+            speed = self._reference_readings[-1][1][SPEED_SIGNAL] if self._reference_readings else 0.0
+        return self.emulation.setting(mode, value, speed)
 
     def _row_period_s(self) -> float | None:
         """The drive-clock period recorded rows come at: the recorder's decimation x control period, else one SYNC."""

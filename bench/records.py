@@ -60,6 +60,7 @@ class RunRecord(TypedDict, total=False):
     load_machine: str
     reference: dict[str, Any]
     instruments: dict[str, str]     # rig-truth signal -> the instrument it came from (or "not measured")
+    load_emulation: dict[str, Any]  # modes the bench emulated from the measured speed (bench/load_emulation.py)
     rerun: dict[str, Any]
     data_source: str                # "trace" (the drive's recorder) or "pdo"
     trace_signals: list[str]

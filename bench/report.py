@@ -37,6 +37,7 @@ class Suites:
     folders: tuple[tuple[str, Path, str], ...] = ()      # (key, folder, heading)
     firmware_docs: Path | None = None
     deviations: tuple[str, ...] = ()
+    sections: tuple[Path, ...] = ()                      # hand-written markdown appended as it is (e.g. rig form)
 
     def key_of(self, scenario_path: Path | None) -> str:
         if scenario_path is not None:
@@ -78,10 +79,14 @@ def load_suites(path: str | Path | None) -> Suites:
     deviations = raw.get("deviations") or []
     if not isinstance(deviations, list) or not all(isinstance(d, str) for d in deviations):
         problems.append(f"{path}: deviations: must be a list of strings")
+    sections = raw.get("sections") or []
+    if not isinstance(sections, list) or not all(isinstance(f, str) and (root / f).is_file() for f in sections):
+        problems.append(f"{path}: sections: must be a list of markdown files (paths from the repository root)")
     if problems:
         raise InputError(problems)
     return Suites(str(raw.get("title") or "Validation report"), str(raw.get("regenerate") or ""), tuple(folders),
-                  (root / docs) if isinstance(docs, str) else None, tuple(deviations))
+                  (root / docs) if isinstance(docs, str) else None, tuple(deviations),
+                  tuple(root / f for f in sections))
 
 
 KIND_UNITS = {
@@ -342,6 +347,8 @@ def write_report(run_dirs: Sequence[Path], out_md: Path | None = None, suites: S
     lines += mutation_section(sorted({d.parent for d in run_dirs}), suites)
     if suites.folders:
         lines += _deviations(suites, out_md)
+    for section in suites.sections:
+        lines += section.read_text(encoding="utf-8").rstrip("\n").splitlines() + [""]
     out_md.write_text("\n".join(lines), encoding="utf-8")
     return out_md
 

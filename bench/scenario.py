@@ -17,6 +17,7 @@ from bench.benchconfig import (BenchConfig, drive_description, load_bench_config
                                resolve_path)
 from bench.criteria import CriterionSpec, parse_criteria
 from bench.errors import InputError, Problems, find_repo_root
+from bench.load_emulation import EMULABLE, emulable
 from drivers import parameters
 from drivers.api import LoadMode
 from drivers.load_map import read_load_map
@@ -343,10 +344,13 @@ def _check_load_machine(p: Problems, segments: tuple[LoadSegment, ...], bench_cf
     if not load.get("map"):
         return
     modes = read_load_map(load["map"]).modes
+    speed_measured = bench_cfg.reference_source == "load"
     for i, seg in enumerate(segments):
-        if seg.mode not in modes:
+        if seg.mode not in modes and not emulable(seg.mode, modes, speed_measured):
+            why = "" if seg.mode not in EMULABLE or LoadMode.TORQUE not in modes else (
+                " and the bench cannot emulate it without measuring the shaft speed ([reference] source = \"load\")")
             p.add(f"load[{i}].kind", f"{seg.kind!r} needs {seg.mode.name.lower()} mode; the load machine of bench "
-                                    f"config {bench_path} has {', '.join(m.name.lower() for m in modes)}")
+                                    f"config {bench_path} has {', '.join(m.name.lower() for m in modes)}{why}")
 
 
 def _check_injection_name(p: Problems, field_: str, name: str, kind: str | None,

@@ -130,7 +130,16 @@ def test_validate_refuses_plant_injections_and_dyno_modes_the_rig_lacks(tmp_path
     brake.write_text(RIG_SCENARIO.read_text().replace('kind = "torque"\nstart_s = 1.5',
                                                       'kind = "brake"\nstart_s = 1.5'))
     out = _cli("validate", str(brake), "--bench", str(REPO / "config/benches/sim-pmsm-instruments.toml"))
+    # the bench emulates the brake from the dyno encoder's speed (bench/load_emulation.py) and says so
+    assert out.returncode == 0, out.stderr
+    assert "load[0] (brake): emulated by the bench on 'sim-pmsm-instruments'" in out.stdout, out.stdout
+    # without a measured shaft speed it cannot: refused
+    blind = tmp_path / "blind.toml"
+    blind.write_text((REPO / "config/benches/sim-pmsm-instruments.toml").read_text()
+                     .replace('source = "load"', 'source = "none"'))
+    out = _cli("validate", str(brake), "--bench", str(blind))
     assert out.returncode == 2 and "'brake' needs brake mode" in out.stderr, out.stderr
+    assert "cannot emulate it without measuring the shaft speed" in out.stderr, out.stderr
 
 
 def test_validate_says_position_error_is_not_measured_on_an_instruments_rig():

@@ -50,6 +50,23 @@ def page():
             browser.close()
 
 
+def shot(page, name: str) -> None:
+    """A full-page screenshot where DRIVEBENCH_SCREENSHOTS names a directory (to look at, not to assert on)."""
+    folder = os.environ.get("DRIVEBENCH_SCREENSHOTS")
+    if folder:
+        page.screenshot(path=os.path.join(folder, f"{name}.png"), full_page=True)
+
+
+def _api(url: str, token: str, method: str, path: str, body: dict | None = None) -> dict:
+    import json
+    import urllib.request
+
+    request = urllib.request.Request(url + path, method=method, data=json.dumps(body).encode() if body else None,
+                                     headers={"Authorization": f"Bearer {token}", "Content-Type": "application/json"})
+    with urllib.request.urlopen(request, timeout=30) as response:
+        return json.loads(response.read())
+
+
 def login(page, url, token):
     page.goto(url + "/")
     assert page.url.endswith("/login")                         # no cookie: the login page
@@ -84,6 +101,14 @@ def test_an_operator_runs_a_scenario_and_reads_its_record_in_the_browser(served,
     with page.expect_download() as download:
         page.click("#downloads a:text('record.json')")
     assert b'"verdict": "pass"' in open(download.value.path(), "rb").read()
+    # units beside the limits; the telemetry as CSV (and MDF4) for other tools
+    header = page.locator("#criteria tr").first.inner_text()
+    assert "unit" in header and "\trad\t" in page.locator("#criteria").inner_text()
+    with page.expect_download() as download:
+        page.click("#exports a:text('CSV')")
+    csv_head = open(download.value.path(), "rb").read(200).decode()
+    assert csv_head.startswith('"t_s","speed_ref_mech_rad_s"'), csv_head
+    shot(page, "run-page")
 
     page.goto(url + "/runs/1/live")
     assert page.locator("#rrd-link").get_attribute("href") == "/api/runs/1/files/run.rrd"
@@ -97,10 +122,29 @@ def test_an_operator_runs_a_scenario_and_reads_its_record_in_the_browser(served,
     page.locator("#run-state", has_text="running").wait_for()
     page.wait_for_function("document.querySelector('#run-progress') "
                            "&& document.querySelector('#run-progress').value > 0.2")
+    # a run queued behind it says why it waits, on its page and in the queue
+    queued = _api(url, tokens.operator, "POST", "/api/runs", {"scenario": SHORT, "rig": "real-a"})
+    page.goto(f"{url}/runs/{queued['id']}")
+    assert page.locator("#waiting").inner_text() == "rig real-a is busy with run 2"
+    page.goto(url + "/")
+    assert "rig real-a is busy with run 2" in page.locator("#queue").inner_text()
+    shot(page, "queue-why-waiting")
+    page.goto(url + "/runs/2")
     page.on("dialog", lambda dialog: dialog.accept())
     page.click("#abort")
     page.locator("#run-state", has_text="aborted").wait_for()
     page.locator("#aborted-by", has_text="olga").wait_for()
+
+    # two runs side by side: what differs, criteria deltas, the signals overlaid
+    page.goto(url + "/runs/1")
+    page.fill("#exports input[name=b]", "2")
+    page.click("#exports button[type=submit]")
+    page.wait_for_url("**/compare?a=1&b=2")
+    identity = page.locator("#identity").inner_text()
+    assert "service-short" in identity and "service-long" in identity and "differs" in identity
+    assert page.locator("#compare-criteria tr").count() >= 2
+    page.wait_for_function("document.querySelector('#compare-plot').naturalWidth > 100")
+    shot(page, "compare")
 
     # history: filter by state
     page.goto(url + "/history?state=aborted")

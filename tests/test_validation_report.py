@@ -93,7 +93,8 @@ def suites(tmp_path: Path) -> Path:
     path = tmp_path / "config" / "paper-suites.toml"
     path.parent.mkdir(exist_ok=True)
     path.write_text((ROOT / "config/report/paper-suites.toml").read_text().replace('firmware_docs = "docs"',
-                                                                                    f'firmware_docs = "{ROOT}/docs"'))
+                                                                                    f'firmware_docs = "{ROOT}/docs"')
+                    .replace('"docs/validation-rig.md"', f'"{ROOT}/docs/validation-rig.md"'))
     return path
 
 
@@ -117,6 +118,9 @@ def test_report_tables_plots_and_gaps(tmp_path):
 
     # per paper, PMSM first
     assert md.index("## PMSM") < md.index("### pmsm-good") < md.index("## SPIM") < md.index("### spim-bad")
+    # the suites file's hand-written sections come last, as they are (the paper suite in rig form)
+    assert md.rstrip().endswith((ROOT / "docs/validation-rig.md").read_text().rstrip())
+    assert md.index("## Deviations from the papers") < md.index("## On the instruments rigs")
     good_rows = table_rows(md, "pmsm-good")
     assert good_rows["position error average is zero"][1].startswith("≤ 0.05 rad, window 1–2 s; basis: made up")
     assert good_rows["position error average is zero"][2].startswith("0.01 rad (mean +0.01")

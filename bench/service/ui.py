@@ -26,7 +26,7 @@ from bench.service.db import FINAL_STATES, STATES, iso
 from bench.service.errors import ApiError
 from bench.service.leases import release, reserve
 from bench.service.limits import MAX_RENDERS, RENDER_WAIT_S
-from bench.service.params import Id
+from bench.service.params import Id, QueryId
 from bench.service.queue import Submission, submit
 
 HERE = Path(__file__).resolve().parent
@@ -105,7 +105,7 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
         return page(request, "run.html", run=run, r=s.run_dict(run), files=files)
 
     @app.get("/compare", response_class=HTMLResponse)
-    def compare_page(request: Request, a: Id, b: Id):
+    def compare_page(request: Request, a: QueryId, b: QueryId):
         from bench.compare import compare_runs
 
         s = svc()
@@ -114,7 +114,7 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
         return page(request, "compare.html", a=s.get_run(a), b=s.get_run(b), result=result)
 
     @app.get("/compare.png")
-    async def compare_png(a: Id, b: Id):
+    async def compare_png(a: QueryId, b: QueryId):
         s = svc()
         dirs = await anyio.to_thread.run_sync(lambda: [s.run_file(r, "record.json").parent for r in (a, b)])
         stamps = [(str(d), (d / "record.json").stat().st_mtime_ns) for d in dirs]
