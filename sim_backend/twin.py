@@ -9,6 +9,10 @@ firmware kernels; no protocol server, no lockstep bench loop) with what the rig'
 - the injections at the times the record says (`injections_applied`; else the scenario file's [[injection]]s, read
   with tomllib when its sha256 is the one in the record).
 
+On an instruments rig (the run's bench config has [simulator.instruments]: `Instruments`) the replayed load is the
+transducer's reading minus the dyno rotor's J_dyno dw/dt, and the twin's shaft speed is shown through the encoder's
+gate at its reading instants (docs/twin.md, "On the instruments rigs").
+
 Time: a recorded row stamped t_s = n T (T the control period) is the firmware's output of its n-th period; the replay
 steps the model to the same period and takes that row. Each chunk between two recorded rows runs with the reference
 and the load of the chunk's last row (the load machine's setpoint changes on a SYNC, and the first row that shows a
