@@ -9,6 +9,10 @@ firmware kernels; no protocol server, no lockstep bench loop) with what the rig'
 - the injections at the times the record says (`injections_applied`; else the scenario file's [[injection]]s, read
   with tomllib when its sha256 is the one in the record).
 
+On an instruments rig (the run's bench config has [simulator.instruments]: `Instruments`) the replayed load is the
+transducer's reading minus the dyno rotor's J_dyno dw/dt, and the twin's shaft speed is shown through the encoder's
+gate at its reading instants (docs/twin.md, "On the instruments rigs").
+
 Time: a recorded row stamped t_s = n T (T the control period) is the firmware's output of its n-th period; the replay
 steps the model to the same period and takes that row. Each chunk between two recorded rows runs with the reference
 and the load of the chunk's last row (the load machine's setpoint changes on a SYNC, and the first row that shows a
@@ -37,6 +41,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 from scipy.ndimage import maximum_filter1d, minimum_filter1d
+from scipy.signal import lfilter
 
 from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
 from sim_backend.mechanics import LOAD_TORQUE
@@ -89,6 +94,7 @@ class RecordedRun:
     injections_source: str                         # "record", "scenario" or "none"
     motor_path: Path | None                        # the bench's [simulator] motor, when it names one
     notes: list[str] = field(default_factory=list)
+    instruments: "Instruments | None" = None       # the rig's reference sensors, when its bench config states them
 
     def measured(self, name: str) -> bool:
         values = self.columns.get(name)
@@ -155,7 +161,10 @@ def read_run(run_dir: str | Path) -> RecordedRun:
     if "torque_load_nm" not in columns or not np.isfinite(columns["torque_load_nm"]).any():
         notes.append("torque_load_nm not measured: replayed without load")
     injections, source = _injections(record, record_path, notes)
-    return RecordedRun(run_dir, record, t, columns, injections, source, _bench_motor(record, notes), notes)
+    motor_path, instruments = _bench_motor(record, notes)
+    if instruments is not None:
+        notes.append(instruments.describe())
+    return RecordedRun(run_dir, record, t, columns, injections, source, motor_path, notes, instruments)
 
 
 def _injections(record: dict, record_path: Path, notes: list[str]) -> tuple[list[Injection], str]:
@@ -192,21 +201,102 @@ def _injections(record: dict, record_path: Path, notes: list[str]) -> tuple[list
     return sorted(out, key=lambda inj: inj.at_s), "scenario"   # stable: same-time injections keep file order
 
 
-def _bench_motor(record: dict, notes: list[str]) -> Path | None:
+def _bench_motor(record: dict, notes: list[str]) -> tuple[Path | None, Instruments | None]:
     bench = record.get("bench") if isinstance(record.get("bench"), dict) else {}
     path = bench.get("path")
     if not path:
-        return None
+        return None, None
     path = _resolve(path, Path.cwd(), repo_root())
     try:
         cfg = tomllib.loads(path.read_text(encoding="utf-8"))
     except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError):
         notes.append(f"bench config {path} not readable: give the motor with --motor")
-        return None
+        return None, None
+    instruments = _instruments(cfg, path)
     motor = (cfg.get("simulator") or {}).get("motor")
     if not motor:
+        return None, instruments
+    return _resolve(motor, Path.cwd(), repo_root(), path.parent), instruments
+
+
+@dataclass(frozen=True)
+class Instruments:
+    """A rig's reference sensors as its bench config states them ([simulator.instruments] of an instruments rig,
+    sim_backend/instruments.py; on a real rig the same figures from the encoder's and the transducer's data sheets).
+
+    - encoder speed (M-method): counts over the last `encoder_speed_gate_s`, read every `reading_period_s` (the SYNC)
+      and interpolated onto the rows: the twin's shaft speed is shown through the same gate and reading instants, and
+      its tube is widened by one count over the gate (2 pi / counts_per_rev / gate: 0.153 rad/s at 4096 cpr, 10 ms);
+    - torque transducer in line between motor and dynamometer: it reads T_L + J_dyno dw/dt through a first-order
+      `torque_bandwidth_hz` lag. The twin's plant carries the whole shaft's inertia (dyno rotor included), so the
+      replayed load is the reading minus J_dyno times the recorded encoder speed's slope (advanced by half a gate,
+      through the same lag): the fitted J is then the whole shaft's, as the motor file means it.
+    """
+    encoder_counts_per_rev: float = 0.0            # 0: the shaft speed is not an encoder's reading
+    encoder_speed_gate_s: float = 0.0
+    torque_bandwidth_hz: float = 0.0               # 0: no lag
+    dyno_inertia_kgm2: float = 0.0
+    reading_period_s: float = 0.01
+
+    @property
+    def speed_count_rad_s(self) -> float:
+        if self.encoder_counts_per_rev <= 0 or self.encoder_speed_gate_s <= 0:
+            return 0.0
+        return 2.0 * math.pi / self.encoder_counts_per_rev / self.encoder_speed_gate_s
+
+    def describe(self) -> str:
+        return (f"instruments: encoder {self.encoder_counts_per_rev:g} counts/rev over a "
+                f"{self.encoder_speed_gate_s * 1e3:g} ms gate read every {self.reading_period_s * 1e3:g} ms (one count "
+                f"= {self.speed_count_rad_s:.3g} rad/s); torque transducer {self.torque_bandwidth_hz:g} Hz reading the "
+                f"dyno rotor's J_dyno = {self.dyno_inertia_kgm2:g} kg m^2 (subtracted from the replayed load)")
+
+
+def _instruments(cfg: dict, path: Path) -> Instruments | None:
+    table = (cfg.get("simulator") or {}).get("instruments")
+    if not isinstance(table, dict):
         return None
-    return _resolve(motor, Path.cwd(), repo_root(), path.parent)
+    sync = (cfg.get("drive") or {}).get("sync_period_s", 0.01)
+    try:
+        return Instruments(float(table.get("encoder_counts_per_rev", 0.0)),
+                           float(table.get("encoder_speed_gate_s", 0.0)),
+                           float(table.get("torque_bandwidth_hz", 0.0)), float(table.get("dyno_inertia_kgm2", 0.0)),
+                           float(sync))
+    except (TypeError, ValueError) as exc:
+        raise TwinInputError(f"{path}: simulator.instruments: {exc}") from None
+
+
+def encoder_view(t: np.ndarray, speed: np.ndarray, inst: Instruments) -> np.ndarray:
+    """A shaft speed as the encoder reads it: the angle's change over the last gate, at the reading instants,
+    interpolated onto the rows (as the bench records a reference sensor's readings)."""
+    ok = np.isfinite(speed)
+    if inst.encoder_speed_gate_s <= 0 or not ok.all():
+        return speed
+    angle = np.concatenate(([0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * np.diff(t))))
+    tk = np.arange(math.ceil(t[0] / inst.reading_period_s - 1e-9), math.floor(t[-1] / inst.reading_period_s + 1e-9)
+                   + 1) * inst.reading_period_s
+    gate = inst.encoder_speed_gate_s
+    wk = (np.interp(tk, t, angle) - np.interp(tk - gate, t, angle, left=0.0)) / gate
+    return np.interp(t, tk, wk)
+
+
+def dyno_torque(run: RecordedRun) -> np.ndarray:
+    """What the transducer's reading holds of the dynamometer rotor's acceleration: J_dyno dw/dt of the recorded
+    encoder speed (advanced by half a gate: its lag), through the transducer's first-order lag."""
+    inst = run.instruments
+    n = run.t.size
+    if inst is None or inst.dyno_inertia_kgm2 <= 0 or not run.measured("speed_true_mech_rad_s"):
+        return np.zeros(n)
+    speed = _held(run.columns["speed_true_mech_rad_s"], n)
+    acc = np.gradient(speed, run.t)
+    dt = float(np.median(np.diff(run.t)))
+    k = int(round(0.5 * inst.encoder_speed_gate_s / dt))
+    if k:
+        acc = np.concatenate((acc[k:], np.full(k, acc[-1])))
+    torque = inst.dyno_inertia_kgm2 * acc
+    if inst.torque_bandwidth_hz > 0:
+        alpha = 1.0 - math.exp(-2.0 * math.pi * inst.torque_bandwidth_hz * dt)
+        torque = lfilter([alpha], [1.0, alpha - 1.0], torque)
+    return torque
 
 
 # ---- motor files -----------------------------------------------------------------------------------------------
@@ -279,7 +369,7 @@ def replay(cfg: dict[str, Any], run: RecordedRun, *, noise: bool = False, seed: 
     if np.any(np.abs(steps * period - run.t) > 0.25 * period) and off_grid not in run.notes:
         run.notes.append(off_grid)             # a drive clock of another rate; rows closer than a period share one
     ref = _held(run.columns.get("speed_ref_mech_rad_s"), n)
-    load = _held(run.columns.get("torque_load_nm"), n)
+    load = _held(run.columns.get("torque_load_nm"), n) - dyno_torque(run)
     pending = [(int(math.ceil(inj.at_s / period - 1e-9)), inj) for inj in run.injections
                if not inj.name.startswith(NOT_REPLAYED_PREFIXES)]
     out = np.full((n, len(SIGNAL_NAMES)), np.nan)
@@ -298,7 +388,10 @@ def replay(cfg: dict[str, Any], run: RecordedRun, *, noise: bool = False, seed: 
             block = drive.step(stop - done)
             done = stop
             out[i] = block[-1]
-    return {name: out[:, c] for c, name in enumerate(SIGNAL_NAMES)}
+    twin = {name: out[:, c] for c, name in enumerate(SIGNAL_NAMES)}
+    if run.instruments is not None and run.measured("speed_true_mech_rad_s"):
+        twin["speed_true_mech_rad_s"] = encoder_view(run.t, twin["speed_true_mech_rad_s"], run.instruments)
+    return twin
 
 
 def _apply(drive: DriveModel, inj: Injection) -> None:
@@ -389,7 +482,10 @@ def tube(signal: str, t: np.ndarray, recorded: np.ndarray, twin: np.ndarray, tim
 
 def compare(run: RecordedRun, twin: dict[str, np.ndarray], tolerances: dict[str, float] | None = None,
             time_tol_s: float = TIME_TOL_S, blind_speed: float = BLIND_SPEED, kind: str = "pmsm") -> list[TubeResult]:
-    tolerances = {**TOLERANCES.get(kind, COMPARED), **(tolerances or {})}
+    defaults = dict(TOLERANCES.get(kind, COMPARED))
+    if run.instruments is not None:             # an encoder reading is off by up to one count over its gate
+        defaults["speed_true_mech_rad_s"] += run.instruments.speed_count_rad_s
+    tolerances = {**defaults, **(tolerances or {})}
     est = "speed_est_mech_rad_s"
     blind = blind_rows(run.t, [run.columns[est], twin[est]] if run.measured(est) else [], blind_speed)
     return [tube(name, run.t, run.columns[name], twin[name], time_tol_s, tol, blind if name in ESTIMATES else None)
