@@ -327,13 +327,18 @@ def mean(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
     return dev, f"mean {m:+.6g}, expected {expected:+.6g}"
 
 
-def reversal_time(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+def _from_after(w: _Window, spec: CriterionSpec) -> tuple[float, np.ndarray, np.ndarray]:
+    """(after_s, times, the signal) of the window's samples from after_s on."""
     x = w.signal(spec.signal)
     t0 = w.after(spec)
     sel = w.t >= t0
     if not np.any(sel):
         raise _Unusable(f"no samples after {t0:g} s in the window")
-    t, x = w.t[sel], x[sel]
+    return t0, w.t[sel], x[sel]
+
+
+def reversal_time(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
+    t0, t, x = _from_after(w, spec)
     target = float(spec.params.get("target", -x[0]))
     if target == 0 or (x[0] != 0 and math.copysign(1.0, target) == math.copysign(1.0, x[0])):
         raise _Unusable(f"target {target:g} is not a reversal from {x[0]:.4g}")
@@ -350,12 +355,7 @@ def _level(w: _Window, spec: CriterionSpec) -> float:
 
 
 def rise_time(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
-    x = w.signal(spec.signal)
-    t0 = w.after(spec)
-    sel = w.t >= t0
-    if not np.any(sel):
-        raise _Unusable(f"no samples after {t0:g} s in the window")
-    t, x = w.t[sel], x[sel]
+    t0, t, x = _from_after(w, spec)
     final = _level(w, spec)
     start = float(spec.params.get("from_value", x[0]))
     step = final - start
