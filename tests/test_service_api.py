@@ -325,3 +325,23 @@ def test_validation_errors_are_lines(api):
     response = api.post("/api/rigs/real-a/lease", json={"reason": "x"}, headers=H(api.tokens.operator))
     assert response.status_code == 422
     assert response.json()["detail"] == ["request: ttl_s: Field required"]
+
+
+def test_failing_since_names_the_run_and_revision_a_failing_streak_began_at(api):
+    from bench.service.db import CriterionValue, Run
+
+    with api.service.db.session() as s:
+        for k, (rev, x_ok, y_ok) in enumerate((("aaa", True, False), ("bbb", False, True), ("ccc", False, True)), 1):
+            s.add(Run(id=k, state="pass" if x_ok else "fail", verdict="pass" if x_ok else "fail", rig="sim-a",
+                      scenario="service/short.toml", scenario_file="x.toml", scenario_name="svc", owner="olga",
+                      revision=rev, submitted_ts=1000.0 + k, started_ts=1000.5 + k, ended_ts=1001.0 + k))
+            s.flush()
+            for name, ok in (("X", x_ok), ("Y", y_ok)):
+                s.add(CriterionValue(run_id=k, name=name, value=1.0, limit=0.5, passed=ok,
+                                     status="pass" if ok else "fail"))
+            s.add(CriterionValue(run_id=k, name="Z", value=None, limit=0.5, passed=False, status="not_judged"))
+    failing = api.get("/api/failing", headers=H(api.tokens.viewer)).json()
+    assert [(f["criterion"], f["since"]["run_id"], f["since"]["revision"], f["runs_failing"], f["last_pass"]["run_id"])
+            for f in failing] == [("X", 2, "bbb", 2, 1)]           # Y recovered; Z was never judged
+    page = api.get("/history", headers=H(api.tokens.viewer))
+    assert 'id="failing"' in page.text and "run #2</a>, revision bbb" in page.text

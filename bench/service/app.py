@@ -310,6 +310,11 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
                 EXPORTS.release()
         return FileResponse(target, media_type=EXPORT_MEDIA[fmt], filename=f"run-{run_id}.{fmt}")
 
+    @app.get("/api/failing")
+    def failing(scenario: str | None = None, who: Principal = Depends(viewer)) -> list[dict]:
+        """Criteria whose latest judged run fails, with the run and revision their failing streak began at."""
+        return svc().failing_since(scenario)
+
     @app.get("/api/trend")
     def trend(criterion: str, scenario: str | None = None, limit: int = 500,
               who: Principal = Depends(viewer)) -> list[dict]:

@@ -259,6 +259,12 @@ class Service:
         with self.db.session() as s:
             return sorted(s.execute(q).scalars())
 
+    def failing_since(self, scenario: str | None = None) -> list[dict]:
+        from bench.service.failing import failing_since
+
+        with self.db.session() as s:
+            return failing_since(s, scenario)
+
     def trend(self, criterion: str, scenario: str | None = None, limit: int = 500) -> list[dict]:
         q = (select(CriterionValue, Run).join(Run, Run.id == CriterionValue.run_id)
              .where(CriterionValue.name == criterion))

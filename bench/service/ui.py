@@ -162,8 +162,8 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
         s = svc()
         runs = s.list_runs(rig or None, state or None, scenario or None, verdict or None, revision or None,
                            owner or None, limit)
-        return page(request, "history.html", runs=runs, rigs=[r["name"] for r in s.rigs()],
-                    scenarios=s.scenario_names(),
+        return page(request, "history.html", runs=runs, failing=s.failing_since(scenario or None),
+                    rigs=[r["name"] for r in s.rigs()], scenarios=s.scenario_names(),
                     filters={"rig": rig, "state": state, "scenario": scenario, "verdict": verdict,
                              "revision": revision, "owner": owner})
 
