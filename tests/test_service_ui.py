@@ -129,6 +129,14 @@ def test_an_operator_runs_a_scenario_and_reads_its_record_in_the_browser(served,
     page.goto(url + "/")
     assert "rig real-a is busy with run 2" in page.locator("#queue").inner_text()
     shot(page, "queue-why-waiting")
+    # the operator's rig page: the run on it now with drive time, ETA and log tail; the scenario picker
+    page.goto(url + "/rigs/real-a")
+    assert page.locator("#current-run").inner_text().startswith("run #2 service-long")
+    assert "s drive time" in page.locator("#current-progress").inner_text()
+    options = page.locator("#rig-scenario option").all_inner_texts()
+    assert SHORT in options and "bad.toml" not in options                   # only what validates on the rig
+    assert not page.locator("code").first.inner_text().startswith("/")      # no absolute path of the host
+    shot(page, "rig-page")
     page.goto(url + "/runs/2")
     page.on("dialog", lambda dialog: dialog.accept())
     page.click("#abort")

@@ -189,9 +189,16 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
 
     @app.get("/rigs/{name}", response_class=HTMLResponse)
     def rig_page(request: Request, name: str):
+        from bench.service.rig_page import current_run, last_finished, rig_scenarios
+
         s = svc()
         rig = s.rig(name)
-        return page(request, "rig.html", rig=rig, runs=s.list_runs(rig=name, limit=20))
+        bench = Path(rig["bench"])
+        shown = bench.name if not bench.is_relative_to(s.settings.scenario_root.parent) \
+            else str(bench.relative_to(s.settings.scenario_root.parent))
+        return page(request, "rig.html", rig=rig, bench_shown=shown, runs=s.list_runs(rig=name, limit=20),
+                    current=current_run(s, name), last=last_finished(s, name),
+                    scenarios=rig_scenarios(s.settings.scenario_root, rig["bench"]))
 
     @app.post("/ui/rigs/{name}/reserve")
     def ui_reserve(request: Request, name: str, hours: float = Form(...), reason: str = Form("")):
