@@ -345,3 +345,10 @@ def test_failing_since_names_the_run_and_revision_a_failing_streak_began_at(api)
             for f in failing] == [("X", 2, "bbb", 2, 1)]           # Y recovered; Z was never judged
     page = api.get("/history", headers=H(api.tokens.viewer))
     assert 'id="failing"' in page.text and "run #2</a>, revision bbb" in page.text
+    # several criteria at once, over revisions (or time, or run id)
+    trend = api.get("/trend?scenario=svc&criterion=X&criterion=Y&x=revision", headers=H(api.tokens.viewer))
+    assert trend.status_code == 200 and trend.text.count('class="trend-points"') == 2
+    assert "/trend.png?scenario=svc&amp;criterion=X&amp;criterion=Y&amp;x=revision" in trend.text
+    for axis in ("revision", "time", "run"):
+        png = api.get(f"/trend.png?scenario=svc&criterion=X&criterion=Y&x={axis}", headers=H(api.tokens.viewer))
+        assert png.status_code == 200 and png.content[:8] == b"\x89PNG\r\n\x1a\n", axis

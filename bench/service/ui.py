@@ -14,7 +14,7 @@ from collections import OrderedDict
 from pathlib import Path
 from typing import Callable
 
-from fastapi import FastAPI, Form, Request
+from fastapi import FastAPI, Form, Query, Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
 
@@ -168,20 +168,25 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
                              "revision": revision, "owner": owner})
 
     @app.get("/trend", response_class=HTMLResponse)
-    def trend_page(request: Request, scenario: str = "", criterion: str = ""):
+    def trend_page(request: Request, scenario: str = "", criterion: list[str] = Query(default=[]), x: str = "run"):
         s = svc()
-        points = s.trend(criterion, scenario or None) if criterion else []
-        query = urllib.parse.urlencode({"scenario": scenario, "criterion": criterion})
+        chosen = [c for c in criterion if c][:MAX_TREND_CRITERIA]
+        x = x if x in TREND_AXES else "run"
+        series = [(c, s.trend(c, scenario or None)) for c in chosen]
+        query = urllib.parse.urlencode({"scenario": scenario, "criterion": chosen, "x": x}, doseq=True)
         return page(request, "trend.html", scenarios=s.scenario_names(), scenario=scenario,
-                    criteria=s.criterion_names(scenario or None), criterion=criterion, points=points, query=query)
+                    criteria=s.criterion_names(scenario or None), chosen=chosen, series=series, x=x,
+                    axes=TREND_AXES, query=query)
 
     plots = app.state.plots = PlotCache()
 
     @app.get("/trend.png")
-    async def trend_png(scenario: str = "", criterion: str = ""):
-        points = await anyio.to_thread.run_sync(lambda: svc().trend(criterion, scenario or None)) if criterion else []
+    async def trend_png(scenario: str = "", criterion: list[str] = Query(default=[]), x: str = "run"):
+        chosen = [c for c in criterion if c][:MAX_TREND_CRITERIA]
+        x = x if x in TREND_AXES else "run"
+        series = await anyio.to_thread.run_sync(lambda: [(c, svc().trend(c, scenario or None)) for c in chosen])
         try:
-            png = await plots.get((criterion, scenario, points), lambda: _trend_png(points, criterion, scenario))
+            png = await plots.get((chosen, scenario, x, series), lambda: _trend_png(series, scenario, x))
         except TimeoutError:
             return Response("plots are being rendered; retry shortly", status_code=503, media_type="text/plain",
                             headers={"Retry-After": "2"})
@@ -272,36 +277,56 @@ def _compare_png(dir_a: Path, dir_b: Path) -> bytes:
         return path.read_bytes() if path is not None else b""
 
 
-def _trend_png(points: list[dict], criterion: str, scenario: str) -> bytes:
-    """The criterion's value per run (x: run id), coloured by software revision, with its limit."""
+TREND_AXES = {"run": "run id", "time": "run end (UTC)", "revision": "software revision (in order of first run)"}
+MAX_TREND_CRITERIA = 6
+
+
+def _trend_png(series: list[tuple[str, list[dict]]], scenario: str, x: str) -> bytes:
+    """Each criterion's value per run in its own panel (their units differ), on a shared x axis — run id, end time
+    or revision — coloured by software revision, failures crossed, each with its limit."""
+    import datetime as dt
+
     import matplotlib
     matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(9, 3.6), dpi=100)
-    ax = fig.add_subplot()
-    if not points:
-        ax.text(0.5, 0.5, "no runs with this criterion yet" if criterion else "choose a criterion",
-                ha="center", va="center", transform=ax.transAxes)
-    else:
-        revisions = list(dict.fromkeys((p["revision"] or "unknown")[:10] for p in points))
-        cmap = matplotlib.colormaps["tab10"]
+    fig = Figure(figsize=(9, 1.2 + 2.4 * max(1, len(series))), dpi=100)
+    axes = fig.subplots(max(1, len(series)), 1, sharex=True, squeeze=False)[:, 0]
+    every = [p for _, points in series for p in points]
+    revisions = list(dict.fromkeys((p["revision"] or "unknown")[:10] for p in sorted(every, key=lambda p: p["run_id"])))
+    cmap = matplotlib.colormaps["tab10"]
+
+    def xof(p: dict):
+        if x == "time":
+            return dt.datetime.fromisoformat(p["ended_utc"].replace("Z", "+00:00")) if p.get("ended_utc") else None
+        if x == "revision":
+            return revisions.index((p["revision"] or "unknown")[:10]) + (p["run_id"] % 7) * 0.04
+        return p["run_id"]
+
+    if not series:
+        axes[0].text(0.5, 0.5, "choose one or more criteria", ha="center", va="center", transform=axes[0].transAxes)
+    for ax, (criterion, points) in zip(axes, series):
+        points = [p for p in points if xof(p) is not None]
+        if not points:
+            ax.text(0.5, 0.5, "no runs with this criterion yet", ha="center", va="center", transform=ax.transAxes)
         for i, rev in enumerate(revisions):
             chosen = [p for p in points if (p["revision"] or "unknown")[:10] == rev and p["value"] is not None]
-            ax.plot([p["run_id"] for p in chosen], [p["value"] for p in chosen], "o", color=cmap(i % 10),
-                    label=f"rev {rev}")
+            if chosen:
+                ax.plot([xof(p) for p in chosen], [p["value"] for p in chosen], "o", color=cmap(i % 10),
+                        label=f"rev {rev}")
             failed = [p for p in chosen if not p["passed"]]
-            ax.plot([p["run_id"] for p in failed], [p["value"] for p in failed], "x", color="red", ms=10)
-        ax.plot([p["run_id"] for p in points], [p["value"] for p in points], "-", color="0.7", lw=0.8, zorder=0)
-        limits = [(p["run_id"], p["limit"]) for p in points if p["limit"] is not None]
+            ax.plot([xof(p) for p in failed], [p["value"] for p in failed], "x", color="red", ms=10)
+        limits = [(xof(p), p["limit"]) for p in points if p["limit"] is not None]
         if limits:
-            ax.step([x for x, _ in limits], [y for _, y in limits], where="mid", color="red", lw=1, ls="--",
-                    label="limit")
-        ax.set_xlabel("run id")
-        ax.set_ylabel("value")
-        ax.legend(loc="best", fontsize=8)
+            ax.plot([a for a, _ in limits], [b for _, b in limits], "_", color="red", ms=12, label="limit")
+        ax.set_title(criterion + (f" ({scenario})" if scenario else ""), fontsize=9)
+        ax.set_ylabel("value", fontsize=8)
         ax.grid(alpha=0.3)
-    ax.set_title(f"{criterion}" + (f" ({scenario})" if scenario else ""), fontsize=9)
+        if points:
+            ax.legend(loc="best", fontsize=7)
+    if x == "revision" and revisions:
+        axes[-1].set_xticks(range(len(revisions)), revisions, rotation=30, fontsize=7)
+    axes[-1].set_xlabel(TREND_AXES[x])
     fig.tight_layout()
     out = io.BytesIO()
     fig.savefig(out, format="png")
