@@ -25,10 +25,11 @@ class CommLossConfig:
     @property
     def margin_ms(self) -> int:
         """How late after the consumer time the drive may leave OPERATION ENABLED in the drill: its own check period
-        and the bench's statusword polls (stated; default the larger of 100 ms and a tenth of the consumer time)."""
+        and the bench's statusword polls by SDO, whose round trips a loaded host stretches (stated; default the larger
+        of 200 ms and a quarter of the consumer time)."""
         if self.drill_margin_ms is not None:
             return self.drill_margin_ms
-        return max(100, self.consumer_time_ms // 10)
+        return max(200, self.consumer_time_ms // 4)
 
     @property
     def producer_period_s(self) -> float:

@@ -156,3 +156,38 @@ def test_the_link_s_socketcand_connection_has_nagle_off_by_default(served):
         finally:
             link.close()
     assert nodelay["default"] and not nodelay["told not to"]
+
+
+def test_a_handshake_reply_sharing_a_segment_with_the_first_frame_is_accepted_and_the_frame_kept():
+    """python-can's client compared each whole read with `< ok >`; a served drive's heartbeat in the same TCP segment
+    (`< ok >< frame 701 ... >`) made it refuse a healthy rig (seen under load in the Ray campaign test)."""
+    import socket
+    import threading
+
+    from drivers.canopen.bus import make_bus
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    port = server.getsockname()[1]
+
+    def serve() -> None:
+        conn, _ = server.accept()
+        with conn:
+            conn.sendall(b"< hi >")
+            conn.recv(256)                                   # < open can0 >
+            conn.sendall(b"< ok >")
+            conn.recv(256)                                   # < rawmode >
+            conn.sendall(b"< ok >< frame 701 1.5 7F >")      # one segment
+            conn.recv(256)                                   # until the bus closes
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    bus = make_bus({"interface": "socketcand", "channel": "can0", "host": "127.0.0.1", "port": port,
+                    "tcp_tune": True})
+    try:
+        msg = bus.recv(timeout=2.0)      # delivered from what came with the handshake: no new data arrives
+        assert msg is not None and msg.arbitration_id == 0x701 and bytes(msg.data) == b"\x7f"
+    finally:
+        bus.shutdown()
+        server.close()

@@ -129,6 +129,38 @@ class SocketcandRefusal:
             return None, False
 
 
+def make_bus(kwargs: dict[str, Any]) -> can.BusABC:
+    """can.Bus(**kwargs); for socketcand a client that reads the server's handshake replies as a prefix of what
+    arrives: python-can's compares the whole read with `< ok >`, and a served drive's first frame in the same TCP
+    segment (`< ok >< frame 701 ... >`, the more likely with TCP_NODELAY) made it refuse a healthy rig."""
+    if kwargs.get("interface") != "socketcand":
+        return can.Bus(**kwargs)
+    from can.interfaces.socketcand.socketcand import SocketCanDaemonBus, convert_ascii_message_to_can_message
+
+    class HandshakeTolerantBus(SocketCanDaemonBus):
+        def _expect_msg(self, msg: str) -> None:
+            sock = self._SocketCanDaemonBus__socket
+            text = ""
+            while len(text) < len(msg):
+                chunk = sock.recv(256).decode("ascii")
+                if not chunk:
+                    break
+                text += chunk
+            if not text.startswith(msg):
+                raise can.CanError(f"Expected '{msg}' got: '{text}'")
+            rest = text[len(msg):]
+            while "<" in rest and ">" in rest:             # whole frames that came along: delivered first
+                start, end = rest.index("<"), rest.index(">")
+                frame = convert_ascii_message_to_can_message(rest[start:end + 1])
+                if frame is not None:
+                    frame.channel = self.channel if hasattr(self, "channel") else None
+                    self._SocketCanDaemonBus__message_buffer.append(frame)
+                rest = rest[end + 1:]
+            self._SocketCanDaemonBus__receive_buffer += rest                  # a partial one: completed later
+
+    return HandshakeTolerantBus(**{k: v for k, v in kwargs.items() if k != "interface"})
+
+
 def open_bus(kwargs: dict[str, Any], connect: Callable[[], Any] | None = None,
              timeout_s: float = CONNECT_TIMEOUT_S) -> Any:
     """Open a CAN interface within timeout_s: connect() (default can.Bus(**kwargs)) runs on a helper thread so that
@@ -139,7 +171,7 @@ def open_bus(kwargs: dict[str, Any], connect: Callable[[], Any] | None = None,
 
     def run() -> None:
         try:
-            result["value"] = connect() if connect is not None else can.Bus(**kwargs)
+            result["value"] = connect() if connect is not None else make_bus(kwargs)
         except BaseException as exc:         # handed to the caller's thread
             result["error"] = exc
 

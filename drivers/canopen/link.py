@@ -44,7 +44,7 @@ from drivers import cia402
 from drivers.api import DriveIdentity, DriveStatus, LinkError, LinkSettings, LiveSample
 from drivers.canopen import objects as o
 from drivers.canopen import pdo as pdos
-from drivers.canopen.bus import BusErrorCounter, SocketcandRefusal, bus_kwargs, open_bus
+from drivers.canopen.bus import BusErrorCounter, SocketcandRefusal, bus_kwargs, make_bus, open_bus
 from drivers.canopen.comm_loss import CommLossGuard
 from drivers.canopen import drill as drills
 from drivers.comm_loss import CommLossConfig
@@ -182,7 +182,7 @@ class CanopenDriveLink:
     def _connect(self, kwargs: dict) -> canopen.Network:
         """The bus first, a socketcand refusal watched on it before the network's receive thread starts (a refusal
         that arrives first would otherwise be parsed as a frame and kill that thread)."""
-        bus = can.Bus(**kwargs)
+        bus = make_bus(kwargs)
         self._refusal = SocketcandRefusal(bus) if kwargs["interface"] == "socketcand" else None
         self.network.bus = bus
         return self.network.connect(**kwargs)
