@@ -703,6 +703,8 @@ class CanopenDriveLink:
             # that much, and its first command would jump into the profile (a 0.5 s ramp taken as a step at 0.4 s)
             with self._lock:
                 self._samples.clear()
+                if isinstance(self._placer, SyncTimeline):
+                    self._placer.rebase()
 
     def _velocity_mode(self) -> cia402.Mode:
         """Profile velocity where the drive has it, else cyclic synchronous velocity (0x6502 bits 2 and 8), unless

@@ -259,6 +259,18 @@ class SyncTimeline:
         self._lag0: float | None = None     # smallest (answer time - its SYNC's send time) seen
         self.last_lag: float | None = None  # the latest answer's time - its SYNC's send time: how far behind the drive is
         self.lag = IntervalStats(period_s)  # answer time - its SYNC's send time - lag0: the transport's jitter
+        self._rebase = False
+        self.unanswered_before_run = 0      # counted before rebase(): the drive silent on purpose (the drill)
+
+    def rebase(self) -> None:
+        """The run starts: the next answer is placed on the SYNC it answers by its arrival time (the transport's
+        smallest lag taken out), not after the last one placed. Before the run the drive may have been silent on
+        purpose — pre-operational after the comm-loss drill's withheld heartbeat — and those SYNCs are not the run's
+        missing data."""
+        self._rebase = True
+        self._backlog.clear()
+        self.unanswered_before_run += self.unanswered
+        self.unanswered = 0
 
     def place(self, stamp: float | None, received: float) -> int:
         """The sequence number (from 1) of the SYNC this answer belongs to."""
@@ -267,6 +279,10 @@ class SyncTimeline:
         self.bus_stamps += bool(on_clock)
         self.answers += 1
         seq = self.last + 1
+        if self._rebase and self._lag0 is not None:
+            latest, _ = self._sent_before(r - self._lag0 + 1e-6)
+            seq = max(seq, latest)
+        self._rebase = False
         sent = self._epoch_of(seq)
         if sent is not None:
             lag = r - sent
@@ -291,6 +307,7 @@ class SyncTimeline:
         return {"placement": "SYNC answered (n-th answer -> n-th SYNC; backlog over "
                              f"{self.window} answers -> unanswered)",
                 "answers": self.answers, "unanswered": self.unanswered,
+                "unanswered_before_run": self.unanswered_before_run,
                 "stamps": "interface (bus) time" if self.bus_stamps * 2 > max(1, self.answers) else "receive time",
                 "answer_jitter_p50_ms": lag["p50_ms"], "answer_jitter_p99_ms": lag["p99_ms"],
                 "answer_jitter_max_ms": lag["max_ms"]}
