@@ -92,6 +92,25 @@ def test_a_missing_answer_is_counted_and_leaves_a_gap(stamped):
     assert t[-1] == pytest.approx(300 * PERIOD)              # after the gap every answer is on its own SYNC again
 
 
+def test_a_silence_before_the_run_is_not_the_runs_gap():
+    """The drive is silent on purpose for SYNCs 101-107 (pre-operational during the comm-loss drill); the run starts
+    (rebase) and its answers are placed on the SYNCs they answer: no gap in the run, nothing unanswered in it."""
+    syncs = FakeSyncs(PERIOD)
+    timeline = SyncTimeline(PERIOD, syncs.sent_before, syncs.epoch_of)
+    t = []
+    for seq, stamp, received in answers(300, PERIOD, lambda k: 0.001, lost=set(range(101, 108)), stamped=True):
+        syncs.sent = max(syncs.sent, int((received - syncs.t0) // PERIOD) + 1)
+        if seq == 108:
+            timeline.rebase()                                   # enable: the run's time starts here
+        placed = timeline.place(stamp, received)
+        if seq >= 108:
+            t.append(placed * PERIOD)
+        assert placed == seq
+    assert timeline.unanswered == 0 and timeline.report()["unanswered_before_run"] == 0
+    holes = time_axis(np.array(t), PERIOD, 1.5)
+    assert holes["missing_rows"] == 0 and holes["duplicates"] == 0
+
+
 def test_interval_statistics():
     stats = IntervalStats(0.01)
     for _ in range(98):
