@@ -27,7 +27,7 @@ from bench.drill import (DRILL_SETTINGS, DrillRefused, proved_recently, refusal 
 from bench.errors import InputError, find_repo_root
 from bench.links import make_links, started_services
 from bench.load_emulation import SPEED_SIGNAL, LoadEmulation
-from bench.records import RunRecord, RunRecorder, freeze_long_lived, json_safe, release_freed_memory
+from bench.recorder import RunRecord, RunRecorder, freeze_long_lived, json_safe, release_freed_memory
 from bench.rerun_view import RerunStream
 from bench.scenario import load_scenario
 from bench.summary_plot import BUCKETS as PLOT_BUCKETS, PLOT_SIGNALS, events_of, write_summary_png

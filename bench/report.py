@@ -23,7 +23,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from bench.errors import InputError
-from bench.records import load_run
+from bench.recorder import load_run
 
 OTHER = "other"
 

@@ -12,7 +12,7 @@ import pytest
 
 from bench.errors import InputError
 from bench.orchestrator import LIVE_SIGNALS, run_scenario
-from bench.records import RECORD_KEYS, load_run
+from bench.recorder import RECORD_KEYS, load_run
 from drivers.api import LinkError
 from tests.fakes import SAFE_STOP, FakeRig
 

@@ -1,4 +1,4 @@
-"""bench.report on synthetic run directories written by bench.records.RunRecorder: the table says what the runs say."""
+"""bench.report on synthetic run directories written by bench.recorder.RunRecorder: the table says what the runs say."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 
 from bench.benchconfig import BenchConfig, BenchSection
 from bench.criteria import evaluate, verdict
-from bench.records import RunRecorder
+from bench.recorder import RunRecorder
 from bench.report import criteria_comments, firmware_deviations, load_suites, main, write_report
 from bench.scenario import load_scenario
 from drivers.signals import SIGNAL_NAMES

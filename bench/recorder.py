@@ -237,7 +237,7 @@ class RunRecorder:
         """Into the record now; onto the disk by the flusher within flush_interval_s / 2 (the caller is the command
         thread: an fsync there paused a drive's request stream past a 300 ms comm-loss watchdog on a loaded host)."""
         if key not in RECORD_KEYS:
-            raise ValueError(f"note(): {key!r} is not a field of RunRecord (bench/records.py)")
+            raise ValueError(f"note(): {key!r} is not a field of RunRecord (bench/recorder.py)")
         with self._lock:
             self.record[key] = json_safe(value)
             self._record_dirty = True
