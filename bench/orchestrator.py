@@ -27,7 +27,10 @@ from bench.drill import (DRILL_SETTINGS, DrillRefused, proved_recently, refusal 
 from bench.errors import InputError, find_repo_root
 from bench.links import make_links, started_services
 from bench.load_emulation import SPEED_SIGNAL, LoadEmulation
-from bench.recorder import RunRecord, RunRecorder, freeze_long_lived, json_safe, release_freed_memory
+from bench.atomic_write import json_safe
+from bench.memory import freeze_long_lived, release_freed_memory
+from bench.record_schema import RunRecord
+from bench.recorder import RunRecorder
 from bench.rerun_view import RerunStream
 from bench.scenario import load_scenario
 from bench.summary_plot import BUCKETS as PLOT_BUCKETS, PLOT_SIGNALS, events_of, write_summary_png

@@ -23,7 +23,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from bench.errors import InputError
-from bench.recorder import load_run
+from bench.run_files import load_run
 
 OTHER = "other"
 
