@@ -36,7 +36,7 @@ from bench.scenario import load_scenario
 from bench.summary_plot import BUCKETS as PLOT_BUCKETS, PLOT_SIGNALS, events_of, write_summary_png
 from bench.supervisor import FeedbackCheck, SafeStop, Supervisor, UnitCheck, check_status
 from bench.run_thread import LoopThread
-from bench.telemetry import TelemetryWorker
+from bench.telemetry_worker import TelemetryWorker
 from bench.verdict import judge_run
 from drivers.api import LinkError, LiveSample, LoadMode
 from drivers.reference import ReferenceConfig, onto_rows, values_from_load
