@@ -62,8 +62,8 @@ def test_groups_follow_a_module_by_its_path_and_show_what_no_prefix_matches(tmp_
     _write(tmp_path, "drivers/contract/units.py")
     _write(tmp_path, "drivers/link.py", "from drivers.contract import units\n")
     _write(tmp_path, "bench/run_loop.py", "from drivers.link import x\n")
-    _write(tmp_path, "bench/cli.py", "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from drivers import link\n"
-                                     "def main():\n    from . import run_loop\n")
+    _write(tmp_path, "bench/cli.py", "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
+                                     "    from drivers import link\ndef main():\n    from . import run_loop\n")
     _write(tmp_path, "bench/new_thing.py", "import bench.cli\n")
     nodes, edges = graph.group_graph(tmp_path, GROUPS)
     assert edges == {("clients", "contract"): True, ("run", "clients"): True, ("faces", "clients"): False,
