@@ -3,6 +3,7 @@
     python docs/import_graph.py           # rewrite the diagram between the markers in docs/architecture.md
     python docs/import_graph.py --check   # exit 1 if the diagram there is not what the code gives now
     python docs/import_graph.py --explain # the module imports behind every arrow
+    python docs/import_graph.py --table [ROOT]  # imports between groups counted, as a Markdown table (ROOT: a checkout)
 
 Modules are grouped by path prefix (GROUPS below: the longest matching prefix wins), so a module that moves
 into a grouped folder is placed without editing this file; a module no prefix matches is drawn in an
@@ -180,7 +181,28 @@ def explain(root: Path = REPO, groups=GROUPS) -> list[str]:
     return sorted(out)
 
 
+def count_table(root: Path = REPO, groups=GROUPS) -> str:
+    """Markdown: module imports (importer, imported pairs; type-only included) from each group (rows) to each group
+    (columns)."""
+    modules = module_files(root)
+    counts: dict[tuple[str, str], int] = {}
+    for module, rel in modules.items():
+        for target in imports(module, modules, root):
+            key = (group_of(rel, groups), group_of(modules[target], groups))
+            counts[key] = counts.get(key, 0) + 1
+    order = [n for n, *_ in groups]
+    nodes = order + sorted({n for pair in counts for n in pair} - set(order))
+    nodes = [n for n in nodes if any(n in pair for pair in counts)]
+    lines = ["| from \\ to | " + " | ".join(nodes) + " |", "|---" * (len(nodes) + 1) + "|"]
+    lines += [f"| {a} | " + " | ".join(str(counts.get((a, b), "")) for b in nodes) + " |" for a in nodes]
+    return "\n".join(lines)
+
+
 def main(argv: list[str]) -> int:
+    if "--table" in argv:
+        rest = [a for a in argv if not a.startswith("--")]
+        print(count_table(Path(rest[0]).resolve() if rest else REPO))
+        return 0
     if "--explain" in argv:
         print("\n".join(explain()))
         return 0
