@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from bench.errors import InputError, Problems, find_repo_root
-from bench.services import check_service
+from bench.rig_services import check_service
 from drivers.api import FAULT_RESET_POLICIES, TIMINGS, LinkSettings
 from drivers.canopen.profile import PROFILE_KEYS, check_section, config_keys
 from drivers.comm_loss import EXTERNAL_HINT, STOP_KEYS, check_keys, external_stop_problem

@@ -477,7 +477,7 @@ def show(run_dir, as_json) -> None:
     """The verdict table of a run directory (also of a killed, incomplete run)."""
 
     def body() -> int:
-        from bench.records import load_run
+        from bench.run_files import load_run
 
         record, columns, complete = load_run(Path(run_dir))
         n = len(columns.get("t_s", ())) if columns else 0
@@ -511,7 +511,7 @@ def evaluate_cmd(run_dir, scenario_path, as_json) -> None:
         import numpy as np
 
         from bench.criteria import evaluate, time_axis, verdict
-        from bench.records import load_run
+        from bench.run_files import load_run
         from bench.scenario import load_scenario
 
         record, columns, complete = load_run(Path(run_dir))

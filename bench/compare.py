@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from bench.criteria import is_angle, wrap_angle
-from bench.records import load_run
+from bench.run_files import load_run
 from drivers.signals import SIGNALS
 
 IDENTITY: tuple[tuple[str, tuple[str, ...]], ...] = (

@@ -18,7 +18,7 @@ from xml.sax.saxutils import escape
 import numpy as np
 
 from bench.errors import InputError
-from bench.records import load_run
+from bench.run_files import load_run
 from drivers.signals import SIGNALS
 
 FORMATS = ("mf4", "csv")

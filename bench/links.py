@@ -15,7 +15,7 @@ from typing import Any, Callable, ContextManager, Iterator, Mapping
 
 from bench.benchconfig import BenchConfig, link_settings
 from bench.errors import InputError
-from bench.services import registered_service
+from bench.rig_services import registered_service
 
 DRIVE_TRANSPORTS: dict[str, str] = {
     "canopen": "drivers.canopen.link:CanopenDriveLink",

@@ -27,13 +27,16 @@ from bench.drill import (DRILL_SETTINGS, DrillRefused, proved_recently, refusal 
 from bench.errors import InputError, find_repo_root
 from bench.links import make_links, started_services
 from bench.load_emulation import SPEED_SIGNAL, LoadEmulation
-from bench.records import RunRecord, RunRecorder, freeze_long_lived, json_safe, release_freed_memory
+from bench.atomic_write import json_safe
+from bench.memory import freeze_long_lived, release_freed_memory
+from bench.record_schema import RunRecord
+from bench.recorder import RunRecorder
 from bench.rerun_view import RerunStream
 from bench.scenario import load_scenario
 from bench.summary_plot import BUCKETS as PLOT_BUCKETS, PLOT_SIGNALS, events_of, write_summary_png
 from bench.supervisor import FeedbackCheck, SafeStop, Supervisor, UnitCheck, check_status
 from bench.run_thread import LoopThread
-from bench.telemetry import TelemetryWorker
+from bench.telemetry_worker import TelemetryWorker
 from bench.verdict import judge_run
 from drivers.api import LinkError, LiveSample, LoadMode
 from drivers.reference import ReferenceConfig, onto_rows, values_from_load

@@ -2,10 +2,10 @@
 the runs) with plots in a folder of the same name.
 
 A table of every criterion of every run: test, the limit and the stated basis (the criterion's comments in the
-scenario file), the measured value, the verdict (pass, FAIL, known gap), and a PNG per run. With a suites file
-(config/report/paper-suites.toml: this repository's paper suites; docs/validation.md is made so) the runs of its
-folders are grouped per paper, their criteria read as the paper's claims, and the deviations from the papers
-(docs/firmware*.md and the suite's own choices) follow; any other run is reported as what it is.
+scenario file), the measured value, the verdict (pass, FAIL, known gap), and a PNG per run. With a suites file the
+runs of its folders are grouped per suite, their criteria read as the suite's claims, and the deviations (list items
+of the firmware docs and the suite's own) follow; any other run is reported as what it is. Everything a suite says
+in the report (title, headings, notes) comes from its suites file: this module knows no suite.
 """
 
 from __future__ import annotations
@@ -16,28 +16,45 @@ import math
 import re
 import sys
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
 from bench.errors import InputError
-from bench.records import load_run
+from bench.run_files import load_run
 
 OTHER = "other"
 
 
 @dataclass(frozen=True)
+class Wording:
+    """What a suites file's [text] table may say instead of these neutral defaults."""
+    other_heading: str = "Other scenarios"               # runs outside the suites' folders
+    claim_heading: str = "limit / basis"                 # the criteria column of a suite's run
+    seed_dependent_note: str = "passed with this run's seed, not with every seed"
+    mutants_intro: str = ("Mutants found beside the runs (DIR/mutants/*.json) and the scenarios that rejected them; "
+                          "a surviving mutant fails the suite.")
+    deviations_heading: str = "Deviations"
+    firmware_deviations_heading: str = "In the firmware"
+    suite_deviations_heading: str = "In the suite"
+    firmware_docs_glob: str = "firmware*.md"
+    firmware_list_intro: str = r".*\bchosen:\s*$"        # a line introducing a list of choices (regex, per line)
+
+
+@dataclass(frozen=True)
 class Suites:
-    """A suites file (config/report/paper-suites.toml): scenario folders that are a paper's validation suite. Without
-    one every run is reported as what it is: a scenario with its stated basis, no paper's claim."""
+    """A suites file: scenario folders that are a suite of claims (this repository's papers:
+    config/report/paper-suites.toml). Without one every run is reported as what it is: a scenario with its stated
+    basis, no suite's claim."""
     title: str = "Test report"
     regenerate: str = ""
     folders: tuple[tuple[str, Path, str], ...] = ()      # (key, folder, heading)
     firmware_docs: Path | None = None
     deviations: tuple[str, ...] = ()
     sections: tuple[Path, ...] = ()                      # hand-written markdown appended as it is (e.g. rig form)
+    text: Wording = Wording()
 
     def key_of(self, scenario_path: Path | None) -> str:
         if scenario_path is not None:
@@ -50,7 +67,7 @@ class Suites:
         own = {k: title for k, _, title in self.folders}
         if key in own:
             return own[key]
-        return "Other scenarios (not paper claims)" if self.folders else "Runs"
+        return self.text.other_heading if self.folders else "Runs"
 
     @property
     def keys(self) -> list[str]:
@@ -82,11 +99,25 @@ def load_suites(path: str | Path | None) -> Suites:
     sections = raw.get("sections") or []
     if not isinstance(sections, list) or not all(isinstance(f, str) and (root / f).is_file() for f in sections):
         problems.append(f"{path}: sections: must be a list of markdown files (paths from the repository root)")
+    text = raw.get("text") or {}
+    known = {f.name for f in fields(Wording)}
+    if not isinstance(text, dict):
+        problems.append(f"{path}: text: must be a table")
+        text = {}
+    problems += [f"{path}: text.{key}: unknown key (allowed: {', '.join(sorted(known))})" for key in text
+                 if key not in known]
+    problems += [f"{path}: text.{key}: must be a string" for key, value in text.items()
+                 if key in known and not isinstance(value, str)]
+    if isinstance(text.get("firmware_list_intro"), str):
+        try:
+            re.compile(text["firmware_list_intro"])
+        except re.error as exc:
+            problems.append(f"{path}: text.firmware_list_intro: not a regular expression ({exc})")
     if problems:
         raise InputError(problems)
     return Suites(str(raw.get("title") or "Validation report"), str(raw.get("regenerate") or ""), tuple(folders),
                   (root / docs) if isinstance(docs, str) else None, tuple(deviations),
-                  tuple(root / f for f in sections))
+                  tuple(root / f for f in sections), Wording(**text))
 
 
 KIND_UNITS = {
@@ -104,7 +135,7 @@ class Run:
     record: dict[str, Any]
     columns: dict[str, np.ndarray]
     complete: bool
-    paper: str                  # the suite key (a paper's scenario folder) or OTHER
+    suite: str                  # the suite key (a suite's scenario folder) or OTHER
     name: str
     scenario_path: Path | None
     basis: dict[str, str] = field(default_factory=dict)
@@ -224,18 +255,20 @@ def write_plot(run: Run, path: Path) -> Path | None:
 # -- deviations ----------------------------------------------------------------------------------------------
 
 LIST_ITEM = re.compile(r"^\s*(?:\d+\.|[-*])\s+(.*?)(?=^\s*(?:\d+\.|[-*])\s+|\Z)", re.M | re.S)
-CHOSEN_INTRO = re.compile(r"^(?:where the paper is silent|.*\bchosen:\s*$)", re.I | re.M)
 
 
 def _items(list_text: str) -> list[str]:
     return [" ".join(m.group(1).split()) for m in LIST_ITEM.finditer(list_text)]
 
 
-def firmware_deviations(docs_dir: Path) -> list[tuple[str, list[str]]]:
-    """(doc file, items) from docs/firmware*.md: every list item of a section whose heading says
-    'deviation', and of a list introduced by "Where the paper is silent, chosen:", whole (with the reasons)."""
+def firmware_deviations(docs_dir: Path, glob: str = Wording.firmware_docs_glob,
+                        list_intro: str = Wording.firmware_list_intro) -> list[tuple[str, list[str]]]:
+    """(doc file, items) from the docs matching `glob`: every list item of a section whose heading says
+    'deviation', and of a list introduced by a line matching `list_intro` (e.g. "... chosen:"), whole (with the
+    reasons)."""
+    intro_re = re.compile(f"^(?:{list_intro})", re.I | re.M)
     out = []
-    for doc in sorted(docs_dir.glob("firmware*.md")):
+    for doc in sorted(docs_dir.glob(glob)):
         text = doc.read_text(encoding="utf-8")
         items: list[str] = []
         for section in re.split(r"^#+ ", text, flags=re.M):
@@ -243,7 +276,7 @@ def firmware_deviations(docs_dir: Path) -> list[tuple[str, list[str]]]:
             if "deviation" in heading.lower():
                 items += _items(body)
                 continue
-            for intro in CHOSEN_INTRO.finditer(body):
+            for intro in intro_re.finditer(body):
                 rest = body[intro.end():]
                 block = re.split(r"\n\s*\n", rest.lstrip("\n"), maxsplit=1)[0]   # the list: up to a blank line
                 items += _items(block)
@@ -281,7 +314,7 @@ def default_out(run_dirs: Sequence[Path]) -> Path:
 
 def write_report(run_dirs: Sequence[Path], out_md: Path | None = None, suites: Suites = Suites()) -> Path:
     """Write the report for `run_dirs` to `out_md` (default: beside the runs) and its plots beside it; returns the
-    path. With `suites` (a paper-suites file) runs of its folders are grouped under their paper.
+    path. With `suites` (a suites file) runs of its folders are grouped under their suite.
 
     Raises InputError when a run directory cannot be read.
     """
@@ -296,7 +329,7 @@ def write_report(run_dirs: Sequence[Path], out_md: Path | None = None, suites: S
         latest[r.name] = r  # one section per scenario: the latest of its runs
     runs = list(latest.values())
     superseded = [r for r in all_runs if latest[r.name] is not r]
-    runs.sort(key=lambda r: (suites.keys.index(r.paper), r.name))
+    runs.sort(key=lambda r: (suites.keys.index(r.suite), r.name))
     out_md.parent.mkdir(parents=True, exist_ok=True)
 
     lines = [f"# {suites.title}", ""]
@@ -314,19 +347,19 @@ def write_report(run_dirs: Sequence[Path], out_md: Path | None = None, suites: S
     for r in runs:
         for c in r.record.get("criteria") or []:
             counts[verdict_of(c)] += 1
-    lines += [f"Criteria: {counts['pass']} pass, {counts[SEED_DEPENDENT]} seed-dependent (passed with the suite's "
-              f"seed, not with every seed: docs/campaigns.md), {counts['known gap']} known gap(s), "
+    lines += [f"Criteria: {counts['pass']} pass, {counts[SEED_DEPENDENT]} seed-dependent "
+              f"({suites.text.seed_dependent_note}), {counts['known gap']} known gap(s), "
               f"{counts['**FAIL**']} fail. "
               f"Runs: " + ", ".join(f"{r.name} {r.record.get('verdict')}" for r in runs) + ".", ""]
     if superseded:
         lines += ["Older runs of the same scenarios, not reported: "
                   + ", ".join(f"`{r.run_dir.name}` ({r.record.get('verdict')})" for r in superseded) + ".", ""]
 
-    for paper in suites.keys:
-        group = [r for r in runs if r.paper == paper]
+    for key in suites.keys:
+        group = [r for r in runs if r.suite == key]
         if not group:
             continue
-        lines += [f"## {suites.heading(paper)}", "", "| scenario | verdict | pass | known gap | fail |", "|---|---|---|---|---|"]
+        lines += [f"## {suites.heading(key)}", "", "| scenario | verdict | pass | known gap | fail |", "|---|---|---|---|---|"]
         for r in group:
             verdicts = [verdict_of(c) for c in r.record.get("criteria") or []]
             passed = verdicts.count("pass") + verdicts.count(SEED_DEPENDENT)
@@ -334,7 +367,7 @@ def write_report(run_dirs: Sequence[Path], out_md: Path | None = None, suites: S
                          f"| {verdicts.count('known gap')} | {verdicts.count('**FAIL**')} |")
         lines.append("")
         for r in group:
-            lines += _run_section(r, out_md, plot_dir)
+            lines += _run_section(r, out_md, plot_dir, suites)
         gaps = [(r, c) for r in group for c in r.record.get("criteria") or [] if c.get("known_gap")]
         if gaps:
             lines += ["### Known gaps", ""]
@@ -354,16 +387,18 @@ def write_report(run_dirs: Sequence[Path], out_md: Path | None = None, suites: S
 
 
 def _deviations(suites: Suites, out_md: Path) -> list[str]:
-    lines = ["## Deviations from the papers", "", "### In the simulated drives", ""]
-    found = firmware_deviations(suites.firmware_docs) if suites.firmware_docs else []
+    text = suites.text
+    lines = [f"## {text.deviations_heading}", "", f"### {text.firmware_deviations_heading}", ""]
+    found = (firmware_deviations(suites.firmware_docs, text.firmware_docs_glob, text.firmware_list_intro)
+             if suites.firmware_docs else [])
     if not found:
-        lines.append("- (no `firmware*.md` with a deviations section found)")
+        lines.append(f"- (no `{text.firmware_docs_glob}` with a deviations section found)")
     for doc, items in found:
         lines.append(f"From [{doc}]({_rel(suites.firmware_docs / doc, out_md.parent)}):")
         lines.append("")
         lines += [f"{i}. {md_cell(item)}" for i, item in enumerate(items, 1)]
         lines.append("")
-    lines += ["### In the acceptance suite", ""]
+    lines += [f"### {text.suite_deviations_heading}", ""]
     lines += [f"- {d}" for d in suites.deviations]
     lines.append("")
     return lines
@@ -386,10 +421,7 @@ def mutation_section(dirs: Sequence[Path], suites: Suites = Suites()) -> list[st
         table[f"{loaded['drive']}/{loaded['name']}"] = loaded
     if not table:
         return []
-    lines = ["## Mutation testing", "",
-             "Firmware mutants (`tests/mutants.py`: one firmware function changed, cheats given the plant's state) run "
-             "through their drive's scenarios above by `tests/test_mutants.py`; a mutant must fail a criterion the "
-             "real firmware passes (known gaps do not count) or end aborted. A surviving mutant fails the suite.", "",
+    lines = ["## Mutation testing", "", suites.text.mutants_intro, "",
              "| mutant | what it does | rejected by |", "|---|---|---|"]
     order = suites.keys
     for key in sorted(table, key=lambda k: (order.index(k.split("/")[0]) if k.split("/")[0] in order
@@ -402,7 +434,7 @@ def mutation_section(dirs: Sequence[Path], suites: Suites = Suites()) -> list[st
     return lines
 
 
-def _run_section(r: Run, out_md: Path, plot_dir: Path) -> list[str]:
+def _run_section(r: Run, out_md: Path, plot_dir: Path, suites: Suites = Suites()) -> list[str]:
     rec = r.record
     scenario_rel = rec.get("scenario", {}).get("path", "")
     lines = [f"### {r.name}", ""]
@@ -418,7 +450,7 @@ def _run_section(r: Run, out_md: Path, plot_dir: Path) -> list[str]:
         plot = write_plot(r, plot_dir / f"{_safe_name(r.name)}.png")
     except Exception as exc:  # a plot must not cost the table
         lines += [f"(plot failed: {type(exc).__name__}: {exc})", ""]
-    claim = "paper's claim / basis" if r.paper != OTHER else "limit / basis"
+    claim = suites.text.claim_heading if r.suite != OTHER else "limit / basis"
     lines += [f"| test | {claim} | measured | verdict |", "|---|---|---|---|"]
     for c in rec.get("criteria") or []:
         lines.append(f"| {md_cell(c.get('name', ''))} | {md_cell(claim_text(r, c))} | {md_cell(measured_text(c))} "

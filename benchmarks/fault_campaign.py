@@ -29,7 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from bench.records import load_run  # noqa: E402
+from bench.run_files import load_run  # noqa: E402
 from sim_backend import faults  # noqa: E402
 
 # kind -> (injection name, value drawn from the generator, transports it applies to)

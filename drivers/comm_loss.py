@@ -1,5 +1,5 @@
 """How a drive is told to stop itself when the bench dies, whatever the transport: the bench config's comm-loss
-settings. CANopen applies them with 0x1016/0x6007/0x1029 (drivers.canopen.comm_loss), the serial line with its
+settings. CANopen applies them with 0x1016/0x6007/0x1029 (drivers.canopen.comm_loss_guard), the serial line with its
 WATCHDOG command."""
 
 from __future__ import annotations

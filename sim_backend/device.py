@@ -18,10 +18,10 @@ from drivers.canopen.objects import EMCY_HEARTBEAT, EMCY_OVERCURRENT
 from drivers.cia402 import Command, Mode, State
 from drivers.parameters import ParamKind
 from drivers.signals import SIGNAL_NAMES
-from sim_backend.cia402 import Cia402Device
+from sim_backend.cia402_device import Cia402Device
 from sim_backend.comm_watchdog import Watchdog, WatchdogThread
 from sim_backend.faults import ControlwordWritten, FaultState, LoadWritten, apply_fault
-from sim_backend.model import DriveModel
+from sim_backend.drive_model import DriveModel
 from sim_backend.trace import TraceRecorder
 
 

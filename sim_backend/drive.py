@@ -7,7 +7,7 @@ from typing import Any
 
 from bench.errors import InputError
 from drivers.toml_file import TomlFileError, read_toml_file
-from sim_backend.model import DriveModel
+from sim_backend.drive_model import DriveModel
 
 
 class MotorConfigError(InputError, ValueError):

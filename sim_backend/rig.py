@@ -23,7 +23,7 @@ from typing import Any, Callable, Iterator
 
 from sim_backend.canopen.generic import DriveSpec
 from sim_backend.device import SimulatedDevice
-from sim_backend.model import DriveModel
+from sim_backend.drive_model import DriveModel
 
 LOOPBACK = "127.0.0.1"
 

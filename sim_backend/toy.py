@@ -1,4 +1,4 @@
-"""A trivial first-order drive model that meets sim_backend.model.DriveModel.
+"""A trivial first-order drive model that meets sim_backend.drive_model.DriveModel.
 
 For protocol and bench tests that need a drive but not its physics. Deterministic, no randomness.
 """

@@ -45,7 +45,7 @@ from scipy.signal import lfilter
 
 from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
 from sim_backend.mechanics import LOAD_TORQUE
-from sim_backend.model import DriveModel
+from sim_backend.drive_model import DriveModel
 
 RECORD = "record.json"
 TELEMETRY = "telemetry.parquet"

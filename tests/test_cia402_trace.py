@@ -4,7 +4,7 @@ import pytest
 from drivers.signals import SIGNAL_NAMES
 from drivers.trace_format import decode_rows, mask_for
 from drivers.cia402 import State
-from sim_backend.cia402 import Cia402Device
+from sim_backend.cia402_device import Cia402Device
 from sim_backend.trace import TRIGGER_ON_ENABLE, TraceRecorder
 
 

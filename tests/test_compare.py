@@ -13,7 +13,7 @@ import numpy as np
 from bench.benchconfig import BenchConfig, BenchSection
 from bench.compare import compare_runs
 from bench.criteria import evaluate, verdict
-from bench.records import RunRecorder
+from bench.recorder import RunRecorder
 from bench.scenario import load_scenario
 from drivers.signals import SIGNAL_NAMES
 

@@ -14,7 +14,8 @@ import pytest
 
 from bench.benchconfig import BenchConfig, BenchSection
 from bench.criteria import evaluate, verdict
-from bench.records import RunRecorder, load_run
+from bench.recorder import RunRecorder
+from bench.run_files import load_run
 from bench.scenario import load_scenario
 from drivers.signals import SIGNAL_NAMES
 

@@ -124,7 +124,7 @@ def test_fault_values_are_checked(tmp_path, name, value):
 
 def test_modbus_exception_mid_run_aborts_safely_with_the_exception_in_the_record(tmp_path):
     """The load machine refuses a setpoint beyond its rating (exception 3, illegal data value) at t = 0.6 s."""
-    from bench.records import load_run
+    from bench.run_files import load_run
     from sim_backend import faults
 
     bench = write_bench(tmp_path, "canopen")

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from sim_backend.drive import make_drive
-from sim_backend.inverter import limit_to_linear_range
+from sim_backend.three_phase_inverter import limit_to_linear_range
 from sim_backend.pmsm import firmware as fw
 from sim_backend.pmsm import kernel as kn
 from sim_backend.pmsm import plant as pl

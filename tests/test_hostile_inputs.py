@@ -123,7 +123,7 @@ def test_a_disk_that_fills_up_mid_run_is_one_line_after_the_safe_stop(tmp_path):
     assert "Traceback" not in proc.stderr and len(lines) == 1, proc.stderr
     assert "--out: cannot write the run record" in lines[0] and "safe stop was done" in lines[0]
     run_dir = next((tmp_path / "runs").iterdir())
-    from bench.records import load_run
+    from bench.run_files import load_run
 
     record, columns, complete = load_run(run_dir)
     assert not complete and 0 < len(columns["t_s"])           # what reached the disk is recoverable

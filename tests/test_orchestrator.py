@@ -12,7 +12,8 @@ import pytest
 
 from bench.errors import InputError
 from bench.orchestrator import LIVE_SIGNALS, run_scenario
-from bench.records import RECORD_KEYS, load_run
+from bench.record_schema import RECORD_KEYS
+from bench.run_files import load_run
 from drivers.api import LinkError
 from tests.fakes import SAFE_STOP, FakeRig
 

@@ -9,7 +9,7 @@ import pytest
 
 from drivers.signals import SIGNAL_INDEX as COL
 from sim_backend.drive import load_motor_config, make_drive
-from sim_backend.inverter import (adc_lsb, adc_sample, clarke, inverse_clarke, limit_to_linear_range,
+from sim_backend.three_phase_inverter import (adc_lsb, adc_sample, clarke, inverse_clarke, limit_to_linear_range,
                                   switching_error_voltage)
 from sim_backend.mechanics import LOAD_TORQUE
 

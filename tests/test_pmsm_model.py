@@ -13,7 +13,7 @@ from drivers.signals import SIGNAL_NAMES
 from sim_backend.drive import MotorConfigError, load_motor_config, make_drive
 from drivers.parameters import ParamKind, names_for
 from sim_backend.mechanics import LOAD_BRAKE, LOAD_TORQUE, LOAD_VISCOUS
-from sim_backend.model import DriveModel
+from sim_backend.drive_model import DriveModel
 from sim_backend.pmsm.model import PmsmDrive
 
 CONFIG = "config/motors/pmsm-paper.toml"

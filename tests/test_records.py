@@ -21,7 +21,9 @@ import pytest
 from bench.benchconfig import BenchConfig, BenchSection
 from bench.criteria import CriterionResult
 from bench.errors import InputError
-from bench.records import JOURNAL, RunRecorder, load_run
+from bench.record_schema import JOURNAL
+from bench.recorder import RunRecorder
+from bench.run_files import load_run
 from drivers.signals import SIGNAL_NAMES
 
 SCENARIO = SimpleNamespace(name="demo/run 1", path=Path("/x/demo.toml"), sha256="ab" * 32, duration_s=1.0)
@@ -130,13 +132,13 @@ def test_bad_appends_and_verdicts_are_refused(tmp_path):
 def test_journal_is_flushed_by_drive_time_too(tmp_path):
     """A simulator in lockstep runs many times faster than the wall clock: with a wall interval far away, rows are
     still on disk once they span flush_drive_s of drive time (what a SIGKILL can lose is bounded in drive time)."""
-    from bench.records import _read_journal
+    from bench.run_files import read_journal
 
     rec = RunRecorder(tmp_path, SCENARIO, 1, BENCH, flush_interval_s=3600, flush_drive_s=0.25)
 
     def on_disk() -> int:
         journal = rec.run_dir / "telemetry.arrows"
-        return sum(b.num_rows for b in _read_journal(journal)[1]) if journal.exists() else 0
+        return sum(b.num_rows for b in read_journal(journal)[1]) if journal.exists() else 0
 
     rec.append(block(0))                      # t = 0 .. 0.099 s: the first block is written at once
     first = on_disk()
@@ -184,7 +186,7 @@ CHILD = textwrap.dedent("""
     from types import SimpleNamespace
     import numpy as np
     from bench.benchconfig import BenchConfig, BenchSection
-    from bench.records import RunRecorder
+    from bench.recorder import RunRecorder
     sc = SimpleNamespace(name="killed", path=Path("/x.toml"), sha256="00", duration_s=100.0)
     bench = BenchConfig(path="/b.toml", bench=BenchSection(name="b"), drive={})
     rec = RunRecorder(Path(sys.argv[1]), sc, 5, bench, flush_interval_s=0.1)
@@ -255,7 +257,7 @@ def test_the_heap_is_frozen_once_per_process_not_before_every_run():
     """freeze_long_lived freezes at a process's second run only: freezing before every run would keep each earlier
     run's cyclic garbage for good."""
     import gc
-    code = ("import gc, json, bench.records as r\n"
+    code = ("import gc, json, bench.memory as r\n"
             "counts, keep = [], []\n"
             "for k in range(4):\n"
             "    r.freeze_long_lived()\n"

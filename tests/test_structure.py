@@ -78,7 +78,8 @@ def test_drivers_import_neither_bench_nor_the_simulator():
     assert {m: d for m, d in offending.items() if d} == {}
 
 
-PLANT_SIDE = ("plant", "mechanics", "inverter", "kernel", "model", "device", "drive")
+PLANT_SIDE = ("plant", "mechanics", "inverter", "three_phase_inverter", "kernel", "model", "drive_model", "device",
+              "drive")
 
 
 def test_firmware_never_imports_a_plant_module():

@@ -1,4 +1,4 @@
-"""bench.report on synthetic run directories written by bench.records.RunRecorder: the table says what the runs say."""
+"""bench.report on synthetic run directories written by bench.recorder.RunRecorder: the table says what the runs say."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 
 from bench.benchconfig import BenchConfig, BenchSection
 from bench.criteria import evaluate, verdict
-from bench.records import RunRecorder
+from bench.recorder import RunRecorder
 from bench.report import criteria_comments, firmware_deviations, load_suites, main, write_report
 from bench.scenario import load_scenario
 from drivers.signals import SIGNAL_NAMES
@@ -222,3 +222,40 @@ def test_mutation_table_beside_the_runs_goes_into_the_report(tmp_path, capsys):
     assert main([run], tmp_path / "v.md") == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"{mutants / 'spim-lazy.json'}: mutants: ")
+
+
+def test_the_package_holds_no_suite_text():
+    """What the repository's suites file says (its title, suite headings, wording, deviations) is data in
+    config/report/, not text inside the installable package."""
+    import tomllib
+    raw = tomllib.loads((ROOT / "config/report/paper-suites.toml").read_text())
+    texts = [raw["title"], *raw["deviations"], *(s["title"] for s in raw["suite"]),
+             *(v for k, v in raw["text"].items() if k not in ("firmware_docs_glob",))]
+    assert len(texts) > 15
+    package = {p: p.read_text() for p in (ROOT / "bench").rglob("*.py")}
+    found = {str(p.relative_to(ROOT)): t[:60] for p, src in package.items() for t in texts if t in src}
+    assert found == {}
+    for name in ("Rashed", "Jemli", "IRFOC", "ISFOC", "docs/campaigns.md", "tests/mutants.py"):
+        assert name not in (ROOT / "bench/report.py").read_text(), name
+
+
+def test_a_suites_file_says_the_words(tmp_path, capsys):
+    """The [text] table of a suites file replaces the neutral defaults; an unknown key is one line, exit 2."""
+    (tmp_path / "pyproject.toml").write_text("")
+    (tmp_path / "scenarios" / "pmsm").mkdir(parents=True)
+    run = make_run(tmp_path, "pmsm", "pmsm-good", pos_err=0.01, flux_err=0.5, i_sy=3.03)
+    other = make_run(tmp_path, "mine", "my-test", pos_err=0.01, flux_err=0.5, i_sy=3.03)
+    path = tmp_path / "suites.toml"
+    path.write_text('title = "Acceptance of rig 7"\n[text]\nother_heading = "Not rig 7"\n'
+                    'claim_heading = "customer claim"\n[[suite]]\nfolder = "scenarios/pmsm"\ntitle = "Rig 7 suite"\n')
+    md = write_report([run, other], tmp_path / "v.md", load_suites(path)).read_text()
+    assert md.startswith("# Acceptance of rig 7")
+    assert md.index("## Rig 7 suite") < md.index("## Not rig 7") < md.index("### my-test")
+    assert "| test | customer claim | measured | verdict |" in md and "| test | limit / basis |" in md
+    assert "## Deviations" in md and "paper" not in md.lower()
+    path.write_text('[text]\nother_heading = "x"\nheadline = "y"\n')
+    assert main([run], tmp_path / "v.md", path) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"{path}: text.headline: unknown key (allowed: claim_heading, deviations_heading, "
+                   "firmware_deviations_heading, firmware_docs_glob, firmware_list_intro, mutants_intro, "
+                   "other_heading, seed_dependent_note, suite_deviations_heading)"]

@@ -8,7 +8,7 @@ What the bench gets from a drive:
 - live samples from TPDOs sent on SYNC (drivers.canopen.pdo: our mapping where the drive allows it, else the one read
   from the device; the drive's own PDO parameters restored at the end);
 - heartbeat consumer (0x700+id) and EMCY (0x80+id); the bench's own heartbeat and the drive's reaction to losing it
-  (drivers.canopen.comm_loss) armed before anything moves;
+  (drivers.canopen.comm_loss_guard) armed before anything moves;
 - on a drive carrying drivebench's extension, its drive clock and the trace recorder uploaded by SDO block transfer.
 
 Timing: "lockstep" sends one SYNC per sync() and waits for that SYNC's TPDOs; "realtime" produces SYNC on the wall
@@ -45,7 +45,7 @@ from drivers.api import DriveIdentity, DriveStatus, LinkError, LinkSettings, Liv
 from drivers.canopen import objects as o
 from drivers.canopen import pdo as pdos
 from drivers.canopen.bus import BusErrorCounter, SocketcandRefusal, bus_kwargs, make_bus, open_bus
-from drivers.canopen.comm_loss import CommLossGuard
+from drivers.canopen.comm_loss_guard import CommLossGuard
 from drivers.canopen import drill as drills
 from drivers.comm_loss import CommLossConfig
 from drivers.canopen.profile import DriveProfile, ProfileConfig, ProfileError, resolve

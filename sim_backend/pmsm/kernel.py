@@ -13,14 +13,14 @@ from numba import njit
 
 from drivers import signals
 from drivers.signals import SIGNAL_INDEX
-from sim_backend import inverter, mechanics, numerics
-from sim_backend.inverter import adc_sample, limit_to_linear_range, switching_error_voltage
+from sim_backend import mechanics, numerics, three_phase_inverter
+from sim_backend.three_phase_inverter import adc_sample, limit_to_linear_range, switching_error_voltage
 from sim_backend.pmsm import firmware as fw
 from sim_backend.pmsm import plant as pl
 from sim_backend.pmsm.numba_cache import drop_stale_cache
 
-drop_stale_cache(__file__, [fw.__file__, pl.__file__, inverter.__file__, mechanics.__file__, signals.__file__,
-                            numerics.__file__])
+drop_stale_cache(__file__, [fw.__file__, pl.__file__, three_phase_inverter.__file__, mechanics.__file__,
+                            signals.__file__, numerics.__file__])
 
 # inverter / measurement parameters (inv_params array)
 I_VDC = 0

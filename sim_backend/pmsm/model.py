@@ -1,5 +1,5 @@
 """PmsmDrive: the simulated PMSM drive (plant + inverter + MRAS/IRFOC firmware + reference sensor + load
-machine) meeting sim_backend.model.DriveModel."""
+machine) meeting sim_backend.drive_model.DriveModel."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 
 from drivers.signals import SIGNAL_NAMES
 from drivers.parameters import ParamKind, checked, names_for
-from sim_backend.inverter import adc_lsb, draw_measurement_noise
+from sim_backend.three_phase_inverter import adc_lsb, draw_measurement_noise
 from sim_backend.mechanics import LOAD_BRAKE, LOAD_TORQUE, LOAD_VISCOUS
 from sim_backend.pmsm import firmware as fw
 from sim_backend.pmsm import kernel as kn

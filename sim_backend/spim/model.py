@@ -1,5 +1,5 @@
 """SpimDrive: the simulated single-phase induction motor drive (asymmetric plant + three-leg inverter + ADC +
-sensorless ISFOC firmware + reference sensor + load machine) meeting sim_backend.model.DriveModel."""
+sensorless ISFOC firmware + reference sensor + load machine) meeting sim_backend.drive_model.DriveModel."""
 
 from __future__ import annotations
 

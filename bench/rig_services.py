@@ -1,4 +1,5 @@
-"""Which service starters a bench config may name: [services] start runs code, so only starters installed
+"""A rig config's [services] starters (the code that brings up a simulated rig's servers; not the HTTP service,
+bench/service/): [services] start runs code, so only starters installed
 packages register (entry-point group drivebench.services) are accepted, by name or by their "module:function"."""
 
 from __future__ import annotations
