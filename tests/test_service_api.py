@@ -68,7 +68,7 @@ def test_every_endpoint_but_health_and_login_refuses_a_request_without_a_valid_t
                 assert denied.value.status_code == 401, path
                 continue
             response = _call(api, method, path, headers)
-            if path.startswith("/api/") or path == "/metrics":
+            if path.startswith(("/api/", "/live/")) or path == "/metrics":   # /live/: the viewer and its data
                 assert response.status_code == 401, (method, path, response.status_code)
                 assert response.headers["www-authenticate"] == "Bearer"
             else:   # a page: the browser goes to the login page

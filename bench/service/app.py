@@ -85,7 +85,7 @@ class AuthMiddleware:
             else:
                 await send({"type": "websocket.close", "code": 4401, "reason": "unauthorized"})
             return
-        if scope["path"].startswith("/api/") or scope["path"] in ("/openapi.json", "/metrics"):
+        if scope["path"].startswith(("/api/", "/live/")) or scope["path"] in ("/openapi.json", "/metrics"):
             response = JSONResponse({"detail": message}, status_code=401, headers={"WWW-Authenticate": "Bearer"})
         else:
             from fastapi.responses import RedirectResponse
@@ -379,6 +379,8 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
         finally:
             s.events.unsubscribe(queue)
 
+    from bench.service.live import add_live
     from bench.service.ui import add_ui
+    add_live(app, svc)
     ui_error = add_ui(app, svc)
     return app
