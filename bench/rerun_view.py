@@ -100,7 +100,9 @@ def default_blueprint(recorded: Sequence[str] | None = None):
                                        visual_bounds=rrb.VisualBounds2D(x_range=[-1.3, 1.3], y_range=[-1.3, 1.3])))
     views.append(rrb.TextLogView(name="trips, injections, criteria", origin="/",
                                  contents=["/events/**", "/criteria/**"]))
-    return rrb.Blueprint(rrb.Grid(*views), collapse_panels=True)
+    # following: a viewer that opens a run while it goes shows its newest data (the service's live view)
+    return rrb.Blueprint(rrb.Grid(*views), rrb.TimePanel(timeline="t_s", play_state="following"),
+                         collapse_panels=True)
 
 
 def _env_seconds(name: str, default: float, warn: Callable[[str], None]) -> float:
