@@ -12,6 +12,7 @@ import asyncio
 import errno
 import threading
 from contextlib import asynccontextmanager
+from dataclasses import asdict
 from http.cookies import SimpleCookie
 from typing import Any, Callable
 
@@ -221,6 +222,21 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
     def lease(name: str, body: LeaseRequest, who: Principal = Depends(operator)) -> dict:
         held = reserve(svc().db, name, who, body.ttl_s, body.reason)
         return {"id": held.id, "expires_utc": lease_dict(held)["expires_utc"], "rig": name, "holder": who.name}
+
+    @app.post("/api/rigs/{name}/probe", status_code=201)
+    def probe(name: str, who: Principal = Depends(operator)) -> dict:
+        """`drivebench probe` of the rig now (reads only; under a manual lease named probe): identity, checklist."""
+        from bench.service.probes import probe_rig
+        return asdict(probe_rig(svc().db, name, who))
+
+    @app.get("/api/rigs/{name}/probe")
+    def last_probe(name: str, who: Principal = Depends(viewer)) -> dict:
+        from bench.service.probes import last_probe as newest
+        svc().rig(name)                                     # 404 for an unknown rig
+        found = newest(svc().db, name)
+        if found is None:
+            raise ApiError(404, f"rig {name}: never probed from this service (POST /api/rigs/{name}/probe)")
+        return asdict(found)
 
     @app.get("/api/leases")
     def leases(who: Principal = Depends(viewer)) -> list[dict]:

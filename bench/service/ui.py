@@ -193,15 +193,18 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
 
     @app.get("/rigs/{name}", response_class=HTMLResponse)
     def rig_page(request: Request, name: str):
-        from bench.service.rig_page import current_run, last_finished, rig_scenarios
+        from bench.service.probes import last_probe
+        from bench.service.rig_page import current_run, drive_of_last_run, last_finished, rig_scenarios
 
         s = svc()
         rig = s.rig(name)
         bench = Path(rig["bench"])
         shown = bench.name if not bench.is_relative_to(s.settings.scenario_root.parent) \
             else str(bench.relative_to(s.settings.scenario_root.parent))
-        return page(request, "rig.html", rig=rig, bench_shown=shown, runs=s.list_runs(rig=name, limit=20),
+        runs = s.list_runs(rig=name, limit=20)
+        return page(request, "rig.html", rig=rig, bench_shown=shown, runs=runs,
                     current=current_run(s, name), last=last_finished(s, name),
+                    probe=last_probe(s.db, name), run_drive=drive_of_last_run(runs),
                     scenarios=rig_scenarios(s.settings.scenario_root, rig["bench"]))
 
     @app.post("/ui/rigs/{name}/reserve")
@@ -209,6 +212,15 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
         need_operator(request, "reserving")
         reserve(svc().db, name, who(request), hours * 3600.0, reason)
         return RedirectResponse(f"/rigs/{name}", status_code=303)
+
+    @app.post("/ui/rigs/{name}/probe")
+    def ui_probe(request: Request, name: str):
+        from bench.service.probes import probe_rig
+
+        need_operator(request, "probing")
+        probe_rig(svc().db, name, who(request))
+        svc().runner.wake()
+        return RedirectResponse(f"/rigs/{name}#drive", status_code=303)
 
     @app.post("/ui/leases/{lease_id}/release")
     def ui_release(request: Request, lease_id: Id):
