@@ -140,9 +140,11 @@ def test_run_page_embeds_the_rerun_viewer_on_that_runs_recording_in_chromium(ser
             recordings: list[tuple[str, int]] = []
             page.on("response", lambda r: recordings.append((r.url, r.status)) if "/live/runs/" in r.url else None)
 
-            # the running run: its page opens the viewer at once, on its recording, under the name the page shows
+            # the running run: its page's "live view" opens the viewer on its recording, under the name the page shows
             page.goto(f"{url}/runs/{live_id}")
             assert page.locator("#recording-name").inner_text() == f"run-{live_id} · service-live"
+            assert page.locator("#live-viewer").get_attribute("src") is None     # closed: nothing loaded yet
+            page.click("#open-live")
             viewer = page.frame_locator("#live-viewer")
             viewer.locator("canvas#the_canvas_id.visible").wait_for(state="visible")
             wait_until(lambda: recordings, 60, 0.2, "the viewer to fetch the recording")

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import AsyncIterator, Callable
 
 import anyio
-from fastapi.responses import Response, StreamingResponse
+from fastapi.responses import FileResponse, Response, StreamingResponse
 
 from bench.service.db import FINAL_STATES
 from bench.service.errors import ApiError
@@ -188,11 +188,11 @@ def add_live(app, svc) -> None:
         if name not in VIEWER_FILES:
             raise ApiError(404, f"live viewer: no file {name}")
         folder = await anyio.to_thread.run_sync(viewer_dir, svc().settings.data_dir)
-        data = await anyio.to_thread.run_sync((folder / name).read_bytes)
+        cache = {"Cache-Control": "private, max-age=86400"}
         if name == "index.html":
-            data = viewer_page(data)
-        return Response(data, media_type=VIEWER_FILES[name],
-                        headers={"Cache-Control": "private, max-age=86400"})
+            page = viewer_page(await anyio.to_thread.run_sync((folder / name).read_bytes))
+            return Response(page, media_type=VIEWER_FILES[name], headers=cache)
+        return FileResponse(folder / name, media_type=VIEWER_FILES[name], headers=cache)  # 43 MB: from disk
 
     @app.get("/live/runs/{run_id}/recording.rrd")
     async def recording(run_id: Id):

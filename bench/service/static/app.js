@@ -40,15 +40,17 @@
 })();
 
 // The embedded Rerun viewer (templates/_viewer.html): loaded when its section is open, on this run's recording URL
-// (absolute: the viewer fetches it itself). The open/closed choice is kept per run for the page's reloads.
+// (absolute: the viewer fetches it itself). The open/closed choice is kept per run for the page's reloads (a run's
+// page reloads when the run starts or ends).
 (function () {
   const section = document.getElementById("live-view");
   const frame = document.getElementById("live-viewer");
   if (!section || !frame) return;
   const key = "drivebench-live-view-" + section.dataset.run;
   const kept = sessionStorage.getItem(key);
-  if (kept !== null) section.open = kept === "open";
-  else if (section.open) sessionStorage.setItem(key, "open");   // opened for a running run: stays open when it ends
+  if (location.hash === "#live-view") section.open = true;
+  else if (kept !== null) section.open = kept === "open";      // opened while the run went: stays open when it ends
+  window.addEventListener("hashchange", function () { if (location.hash === "#live-view") section.open = true; });
   function load() {
     if (!section.open || frame.getAttribute("src")) return;
     const recording = location.origin + frame.dataset.recording;
