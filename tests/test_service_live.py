@@ -174,3 +174,40 @@ def test_run_page_embeds_the_rerun_viewer_on_that_runs_recording_in_chromium(ser
     if client.request("GET", f"/api/runs/{live_id}")["state"] == "running":
         client.request("POST", f"/api/runs/{live_id}/abort")
     client.wait([live_id], 120, poll_s=0.2)
+
+
+def test_follow_sends_what_is_appended_until_the_writer_has_ended(tmp_path):
+    """The stream behind the live view: bytes appended after it started arrive, it waits for the file to appear, and
+    it ends (with everything written) only once the run has ended."""
+    import asyncio
+    import threading
+
+    from bench.service.live import follow
+
+    path = tmp_path / "run.rrd"
+    state = {"exists": False, "ended": False}
+
+    def writer():
+        time.sleep(0.3)
+        path.write_bytes(b"RRF2" + b"a" * 1000)
+        state["exists"] = True
+        for k in range(5):
+            time.sleep(0.2)
+            with open(path, "ab") as f:
+                f.write(bytes([k]) * 500)
+        time.sleep(0.2)
+        with open(path, "ab") as f:
+            f.write(b"footer")
+        state["ended"] = True
+
+    async def read() -> bytes:
+        got = b""
+        async for chunk in follow(lambda: path if state["exists"] else None, lambda: state["ended"], poll_s=0.05):
+            got += chunk
+        return got
+
+    thread = threading.Thread(target=writer)
+    thread.start()
+    got = asyncio.run(read())
+    thread.join()
+    assert got == path.read_bytes() and got.endswith(b"footer") and len(got) == 4 + 1000 + 5 * 500 + 6
