@@ -187,7 +187,10 @@ def add_live(app, svc) -> None:
     async def viewer_file(name: str):
         if name not in VIEWER_FILES:
             raise ApiError(404, f"live viewer: no file {name}")
-        folder = await anyio.to_thread.run_sync(viewer_dir, svc().settings.data_dir)
+        try:
+            folder = await anyio.to_thread.run_sync(viewer_dir, svc().settings.data_dir)
+        except (RuntimeError, OSError) as exc:
+            raise ApiError(503, f"live viewer: not available: {exc}") from None
         cache = {"Cache-Control": "private, max-age=86400"}
         if name == "index.html":
             page = viewer_page(await anyio.to_thread.run_sync((folder / name).read_bytes))
