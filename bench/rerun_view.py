@@ -100,7 +100,23 @@ def default_blueprint(recorded: Sequence[str] | None = None):
                                        visual_bounds=rrb.VisualBounds2D(x_range=[-1.3, 1.3], y_range=[-1.3, 1.3])))
     views.append(rrb.TextLogView(name="trips, injections, criteria", origin="/",
                                  contents=["/events/**", "/criteria/**"]))
-    return rrb.Blueprint(rrb.Grid(*views), collapse_panels=True)
+    # following: a viewer that opens a run while it goes shows its newest data (the service's live view)
+    return rrb.Blueprint(rrb.Grid(*views), rrb.TimePanel(timeline="t_s", play_state="following"),
+                         collapse_panels=True)
+
+
+def _env_seconds(name: str, default: float, warn: Callable[[str], None]) -> float:
+    text = os.environ.get(name)
+    if not text:
+        return default
+    try:
+        value = float(text)
+        if math.isfinite(value) and 0.0 <= value <= 3600.0:
+            return value
+    except ValueError:
+        pass
+    warn(f"rerun: {name}={text!r} is not seconds in [0, 3600]; using {default:g} s")
+    return default
 
 
 def _warn(message: str) -> None:
@@ -146,8 +162,9 @@ class RerunStream:
         import rerun as rr
 
         self._rr = rr
-        # a run started by `drivebench serve` is the recording named after its run id
+        # a run started by `drivebench serve` is recording `run-ID`, named as its pages name it (`run-ID · scenario`)
         recording_id = os.environ.get("DRIVEBENCH_RECORDING_ID") or recording_name
+        recording_name = os.environ.get("DRIVEBENCH_RECORDING_NAME") or recording_name
         self._rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
         sinks: list = []
         if rrd_path is not None:
@@ -177,7 +194,8 @@ class RerunStream:
             self._rec = None
             return
         if self.sinks == ["file"] and min_wall_interval_s is None:
-            self.min_wall_interval_s = FILE_ONLY_INTERVAL_S
+            # the service's live view follows run.rrd: `serve --live` asks for a shorter interval
+            self.min_wall_interval_s = _env_seconds("DRIVEBENCH_RERUN_INTERVAL_S", FILE_ONLY_INTERVAL_S, warn)
         self._rec.set_sinks(*sinks, default_blueprint=default_blueprint(recorded))
         self._rec.send_recording_name(recording_name)
         self._style()
@@ -369,3 +387,20 @@ def rrd_entity_paths(path: Path) -> set[str]:
         if entity.startswith("/"):
             paths.add(entity)
     return paths
+
+
+def rrd_recording(path: Path) -> tuple[str, str | None]:
+    """(recording id, recording name) of the recording in a saved .rrd (for checks and tests)."""
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(path)
+    ids = [entry.recording_id for entry in reader.recordings()]
+    if len(ids) != 1:
+        raise ValueError(f"{path}: {len(ids)} recordings, expected one")
+    name = None
+    for chunk in reader.store().stream():
+        if chunk.entity_path == "/__properties":
+            names = chunk.to_record_batch().to_pydict().get("RecordingInfo:name")
+            if names:
+                name = names[-1][0]
+    return ids[0], name

@@ -68,7 +68,7 @@ def test_every_endpoint_but_health_and_login_refuses_a_request_without_a_valid_t
                 assert denied.value.status_code == 401, path
                 continue
             response = _call(api, method, path, headers)
-            if path.startswith("/api/") or path == "/metrics":
+            if path.startswith(("/api/", "/live/")) or path == "/metrics":   # /live/: the viewer and its data
                 assert response.status_code == 401, (method, path, response.status_code)
                 assert response.headers["www-authenticate"] == "Bearer"
             else:   # a page: the browser goes to the login page
@@ -80,7 +80,8 @@ def test_every_endpoint_but_health_and_login_refuses_a_request_without_a_valid_t
 MUTATING = [(m, p) for m, p in (("POST", "/api/runs"), ("POST", "/api/runs/{run_id}/abort"),
                                  ("POST", "/api/rigs/{name}/lease"), ("POST", "/api/leases/{lease_id}/extend"),
                                  ("DELETE", "/api/leases/{lease_id}"), ("PATCH", "/api/rigs/{name}"),
-                                 ("POST", "/api/tokens"), ("DELETE", "/api/tokens/{token_id}"))]
+                                 ("POST", "/api/tokens"), ("DELETE", "/api/tokens/{token_id}"),
+                                 ("POST", "/api/rigs/{name}/probe"))]
 
 
 def test_a_viewer_gets_403_on_every_mutating_endpoint(api):
@@ -90,7 +91,7 @@ def test_a_viewer_gets_403_on_every_mutating_endpoint(api):
     for method, path in MUTATING:
         response = _call(api, method, path, H(api.tokens.viewer))
         assert response.status_code == 403, (method, path, response.status_code, response.text)
-    for path in ("/ui/runs/1/abort", "/ui/rigs/sim-a/reserve", "/ui/leases/1/release"):
+    for path in ("/ui/runs/1/abort", "/ui/rigs/sim-a/reserve", "/ui/leases/1/release", "/ui/rigs/sim-a/probe"):
         response = api.post(path, data={"hours": "1", "reason": "x"}, headers=H(api.tokens.viewer))
         assert response.status_code == 403, path
 

@@ -12,6 +12,7 @@ import asyncio
 import errno
 import threading
 from contextlib import asynccontextmanager
+from dataclasses import asdict
 from http.cookies import SimpleCookie
 from typing import Any, Callable
 
@@ -85,7 +86,7 @@ class AuthMiddleware:
             else:
                 await send({"type": "websocket.close", "code": 4401, "reason": "unauthorized"})
             return
-        if scope["path"].startswith("/api/") or scope["path"] in ("/openapi.json", "/metrics"):
+        if scope["path"].startswith(("/api/", "/live/")) or scope["path"] in ("/openapi.json", "/metrics"):
             response = JSONResponse({"detail": message}, status_code=401, headers={"WWW-Authenticate": "Bearer"})
         else:
             from fastapi.responses import RedirectResponse
@@ -221,6 +222,21 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
     def lease(name: str, body: LeaseRequest, who: Principal = Depends(operator)) -> dict:
         held = reserve(svc().db, name, who, body.ttl_s, body.reason)
         return {"id": held.id, "expires_utc": lease_dict(held)["expires_utc"], "rig": name, "holder": who.name}
+
+    @app.post("/api/rigs/{name}/probe", status_code=201)
+    def probe(name: str, who: Principal = Depends(operator)) -> dict:
+        """`drivebench probe` of the rig now (reads only; under a manual lease named probe): identity, checklist."""
+        from bench.service.probes import probe_rig
+        return asdict(probe_rig(svc().db, name, who))
+
+    @app.get("/api/rigs/{name}/probe")
+    def last_probe(name: str, who: Principal = Depends(viewer)) -> dict:
+        from bench.service.probes import last_probe as newest
+        svc().rig(name)                                     # 404 for an unknown rig
+        found = newest(svc().db, name)
+        if found is None:
+            raise ApiError(404, f"rig {name}: never probed from this service (POST /api/rigs/{name}/probe)")
+        return asdict(found)
 
     @app.get("/api/leases")
     def leases(who: Principal = Depends(viewer)) -> list[dict]:
@@ -379,6 +395,8 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
         finally:
             s.events.unsubscribe(queue)
 
+    from bench.service.live import add_live
     from bench.service.ui import add_ui
+    add_live(app, svc)
     ui_error = add_ui(app, svc)
     return app

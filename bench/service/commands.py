@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -70,9 +71,10 @@ def _open_db(db_url: str | None, data_dir: str):
               help="Seconds a run's lease lives unless the service extends it.")
 @click.option("--max-parallel", type=int, help="Run processes at once on this host [default: CPU count].")
 @click.option("--live/--no-live", default=False, show_default=True,
-              help="Serve Rerun's gRPC server and web viewer (from the rerun-sdk wheel); runs stream to it.")
-@click.option("--live-grpc-port", type=int, default=9876, show_default=True)
-@click.option("--live-web-port", type=int, default=9090, show_default=True)
+              help="Runs write their run.rrd every 0.5 s, so the run page's embedded Rerun viewer follows them "
+                   "closely (without: every 5 s). The viewer is served on this address behind the token either way.")
+@click.option("--live-grpc-port", type=int, hidden=True, help="Ignored: no Rerun port is opened any more.")
+@click.option("--live-web-port", type=int, hidden=True, help="Ignored: no Rerun port is opened any more.")
 @click.option("--ssl-keyfile", type=click.Path(exists=True, dir_okay=False, readable=True),
               help="TLS key (uvicorn); with --ssl-certfile.")
 @click.option("--ssl-certfile", type=click.Path(exists=True, dir_okay=False, readable=True),
@@ -95,9 +97,13 @@ def serve(db_url, data_dir, host, port, rigs_path, scenario_root, lease_ttl_s, m
     settings = ServiceSettings(data_dir=Path(data_dir), db_url=db_url, rigs_path=Path(rigs_path) if rigs_path else None,
                                scenario_root=Path(scenario_root) if scenario_root else None, lease_ttl_s=lease_ttl_s,
                                max_parallel=max_parallel, host_id=host_id)
+    if live_grpc_port is not None or live_web_port is not None:
+        click.echo("drivebench serve: --live-grpc-port/--live-web-port are ignored: the live view is served on "
+                   "--host/--port behind the token (docs/service.md, Live view)", err=True)
     if live:
-        from bench.service.live import start_live
-        settings.live_grpc_url, settings.live_viewer_url = start_live(live_grpc_port, live_web_port)
+        from bench.service.live import LIVE_INTERVAL_S
+        settings.live = True
+        os.environ["DRIVEBENCH_RERUN_INTERVAL_S"] = str(LIVE_INTERVAL_S)    # inherited by the run processes
     try:
         service = Service(settings)
         service.register()        # this instance's liveness lease: refused while one with its --host-id lives

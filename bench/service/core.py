@@ -57,8 +57,7 @@ class ServiceSettings:
     max_parallel: int | None = None
     host_id: str | None = None
     run_queue: bool = True              # False: API only (tests of the API without run processes)
-    live_grpc_url: str | None = None    # the Rerun gRPC server runs connect to
-    live_viewer_url: str | None = None  # the Rerun web viewer, opened on that server
+    live: bool = False                  # `serve --live`: runs write their run.rrd at the live view's cadence
     rigs: list[RigConfig] = field(default_factory=list)
 
     def resolved(self) -> "ServiceSettings":
@@ -85,8 +84,7 @@ class Service:
         self.tokens = TokenCache(self.db)
         self.events = EventHub()
         self.sync_rigs()
-        runner_settings = RunnerSettings(data_dir=self.settings.data_dir, lease_ttl_s=self.settings.lease_ttl_s,
-                                         rerun_url=self.settings.live_grpc_url)
+        runner_settings = RunnerSettings(data_dir=self.settings.data_dir, lease_ttl_s=self.settings.lease_ttl_s)
         if self.settings.max_parallel:
             runner_settings.max_parallel = self.settings.max_parallel
         if self.settings.host_id:

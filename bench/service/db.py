@@ -142,6 +142,20 @@ class Lease(Base):
         return self.released_ts is None and self.expires_ts > (now() if at is None else at)
 
 
+class RigProbe(Base):
+    """One `drivebench probe` of a rig started from the service: what the drive said about itself (identity, units,
+    PDOs) and the checklist built from it, or why the probe failed. The rig page shows the newest."""
+    __tablename__ = "rig_probes"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    rig: Mapped[str] = mapped_column(ForeignKey("rigs.name"), index=True)
+    by: Mapped[str] = mapped_column(String(200))
+    started_ts: Mapped[float] = mapped_column(Float)
+    ended_ts: Mapped[float] = mapped_column(Float)
+    exit_code: Mapped[int | None] = mapped_column(Integer)      # the probe process's; None: it did not start or end
+    report: Mapped[dict | None] = mapped_column(JSON)           # `probe --json`: {"bench", "drive", "checklist"}
+    error: Mapped[str | None] = mapped_column(Text)             # the probe's own one-line reasons when it failed
+
+
 class Instance(Base):
     """One start of `drivebench serve` (an incarnation): its own liveness lease, renewed by the runner loop.
     At most one live instance per name (--host-id): the unique index refuses a second one even under a race."""

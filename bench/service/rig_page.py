@@ -43,6 +43,17 @@ def last_finished(service, rig: str) -> dict | None:
     return None
 
 
+def drive_of_last_run(runs) -> dict | None:
+    """The drive identity the newest run that reached the drive recorded (runs: newest first)."""
+    from bench.service.probes import IDENTITY_FIELDS
+
+    for run in runs:
+        if run.drive:
+            shown = [(label, str(run.drive[key])) for key, label in IDENTITY_FIELDS if run.drive.get(key) not in (None, "")]
+            return {"run_id": run.id, "identity": shown}
+    return None
+
+
 def rig_scenarios(scenario_root: Path, bench: str) -> list[str]:
     """Scenario paths under the root (as the submit form takes them) that validate on this bench."""
     files = sorted(scenario_root.rglob("*.toml"))[:MAX_SCENARIOS]

@@ -36,6 +36,7 @@ from bench.errors import find_repo_root
 from bench.service import instances
 from bench.service.db import CriterionValue, Database, Instance, Lease, Rig, Run, RunCandidate, iso, now
 from bench.service.leases import active_leases, held_rigs
+from bench.service.live import recording_name
 from bench.service.events import EventHub
 
 TICK_S = 0.2
@@ -475,6 +476,7 @@ class Runner:
         if self.settings.rerun_url:
             command += ["--rerun", "connect", "--rerun-url", self.settings.rerun_url]
         env = {**os.environ, "DRIVEBENCH_PROGRESS": "jsonl", "DRIVEBENCH_RECORDING_ID": f"run-{run.id}",
+               "DRIVEBENCH_RECORDING_NAME": recording_name(run.id, run.scenario_name or run.scenario),
                "DRIVEBENCH_PARENT_PID": str(os.getpid()), "PYTHONUNBUFFERED": "1"}
         env.pop("DRIVEBENCH_TOKEN", None)
         if rig.simulated and self.settings.nice and NICE is not None:

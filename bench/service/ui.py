@@ -26,6 +26,7 @@ from bench.service.db import FINAL_STATES, STATES, iso
 from bench.service.errors import ApiError
 from bench.service.leases import release, reserve
 from bench.service.limits import MAX_RENDERS, RENDER_WAIT_S
+from bench.service.live import recording_name
 from bench.service.params import Id, QueryId
 from bench.service.queue import Submission, submit
 
@@ -53,8 +54,8 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
         return request.scope["state"]["principal"]
 
     def page(request: Request, name: str, **context) -> HTMLResponse:
-        return templates.TemplateResponse(request, name, {"me": who(request), "live": svc().settings.live_viewer_url,
-                                                          "waiting": svc().why_waiting, **context})
+        return templates.TemplateResponse(request, name, {"me": who(request), "waiting": svc().why_waiting,
+                                                          **context})
 
     def error(request: Request, exc: ApiError) -> HTMLResponse:
         lines = exc.detail if isinstance(exc.detail, list) else [exc.detail]
@@ -102,7 +103,8 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
                 files.append(name)
             except ApiError:
                 pass
-        return page(request, "run.html", run=run, r=s.run_dict(run), files=files)
+        return page(request, "run.html", run=run, r=s.run_dict(run), files=files, full=False,
+                    recording=recording_name(run.id, run.scenario_name or run.scenario))
 
     @app.get("/compare", response_class=HTMLResponse)
     def compare_page(request: Request, a: QueryId, b: QueryId):
@@ -129,12 +131,9 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
 
     @app.get("/runs/{run_id}/live", response_class=HTMLResponse)
     def live_page(request: Request, run_id: Id):
-        s = svc()
-        run = s.get_run(run_id)
-        viewer = None
-        if s.settings.live_viewer_url and s.settings.live_grpc_url:
-            viewer = f"{s.settings.live_viewer_url}/?url={urllib.parse.quote(s.settings.live_grpc_url, safe='')}"
-        return page(request, "live.html", run=run, viewer=viewer)
+        run = svc().get_run(run_id)
+        return page(request, "live.html", run=run, full=True,
+                    recording=recording_name(run.id, run.scenario_name or run.scenario))
 
     @app.post("/ui/runs")
     def ui_submit(request: Request, scenario: str = Form(...), target: str = Form(...), seed: str = Form("")):
@@ -194,15 +193,18 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
 
     @app.get("/rigs/{name}", response_class=HTMLResponse)
     def rig_page(request: Request, name: str):
-        from bench.service.rig_page import current_run, last_finished, rig_scenarios
+        from bench.service.probes import last_probe
+        from bench.service.rig_page import current_run, drive_of_last_run, last_finished, rig_scenarios
 
         s = svc()
         rig = s.rig(name)
         bench = Path(rig["bench"])
         shown = bench.name if not bench.is_relative_to(s.settings.scenario_root.parent) \
             else str(bench.relative_to(s.settings.scenario_root.parent))
-        return page(request, "rig.html", rig=rig, bench_shown=shown, runs=s.list_runs(rig=name, limit=20),
+        runs = s.list_runs(rig=name, limit=20)
+        return page(request, "rig.html", rig=rig, bench_shown=shown, runs=runs,
                     current=current_run(s, name), last=last_finished(s, name),
+                    probe=last_probe(s.db, name), run_drive=drive_of_last_run(runs),
                     scenarios=rig_scenarios(s.settings.scenario_root, rig["bench"]))
 
     @app.post("/ui/rigs/{name}/reserve")
@@ -210,6 +212,15 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
         need_operator(request, "reserving")
         reserve(svc().db, name, who(request), hours * 3600.0, reason)
         return RedirectResponse(f"/rigs/{name}", status_code=303)
+
+    @app.post("/ui/rigs/{name}/probe")
+    def ui_probe(request: Request, name: str):
+        from bench.service.probes import probe_rig
+
+        need_operator(request, "probing")
+        probe_rig(svc().db, name, who(request))
+        svc().runner.wake()
+        return RedirectResponse(f"/rigs/{name}#drive", status_code=303)
 
     @app.post("/ui/leases/{lease_id}/release")
     def ui_release(request: Request, lease_id: Id):

@@ -38,3 +38,27 @@
   }
   connect();
 })();
+
+// The embedded Rerun viewer (templates/_viewer.html): loaded when its section is open, on this run's recording URL
+// (absolute: the viewer fetches it itself). The open/closed choice is kept per run for the page's reloads (a run's
+// page reloads when the run starts or ends).
+(function () {
+  const section = document.getElementById("live-view");
+  const frame = document.getElementById("live-viewer");
+  if (!section || !frame) return;
+  const key = "drivebench-live-view-" + section.dataset.run;
+  const kept = sessionStorage.getItem(key);
+  if (location.hash === "#live-view") section.open = true;
+  else if (kept !== null) section.open = kept === "open";      // opened while the run went: stays open when it ends
+  window.addEventListener("hashchange", function () { if (location.hash === "#live-view") section.open = true; });
+  function load() {
+    if (!section.open || frame.getAttribute("src")) return;
+    const recording = location.origin + frame.dataset.recording;
+    frame.src = "/live/viewer/index.html?url=" + encodeURIComponent(recording) + "&hide_welcome_screen&persist=0";
+  }
+  section.addEventListener("toggle", function () {
+    sessionStorage.setItem(key, section.open ? "open" : "closed");
+    load();
+  });
+  load();
+})();

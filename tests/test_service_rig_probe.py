@@ -1,0 +1,99 @@
+"""The rig page's drive identity and last probe as a checklist: an operator probes a rig from the page (the service
+runs `drivebench probe --json` under a lease of the rig and keeps the result in its database), the page shows the
+identity and the checklist, in real Chromium (screenshot under /tmp); a held real rig is not probed under its
+holder; a viewer cannot probe."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("fastapi", reason="the [service] extra is not installed")
+
+from tests.service_fixtures import REPO, free_port, make_settings, make_tokens, serve_process, stop_process  # noqa: E402
+
+CHROMIUM = next((p for p in (os.environ.get("DRIVEBENCH_CHROMIUM"), shutil.which("chromium"),
+                             shutil.which("chromium-browser"), shutil.which("google-chrome")) if p), None)
+SCREENSHOTS = Path(os.environ.get("DRIVEBENCH_SCREENSHOTS", "/tmp"))
+
+
+@pytest.fixture
+def served(tmp_path):
+    from bench.service.client import Client
+    from bench.service.core import Service
+
+    service = Service(make_settings(tmp_path))
+    tokens = make_tokens(service.db)
+    service.db.dispose()
+    port = free_port()
+    server = serve_process(tmp_path, port)
+    try:
+        url = f"http://127.0.0.1:{port}"
+        yield url, tokens, Client(url, tokens.operator)
+    finally:
+        stop_process(server)
+
+
+def test_a_held_real_rig_is_not_probed_and_a_viewer_cannot_probe(served):
+    from bench.service.client import Client, ClientError
+
+    url, tokens, operator = served
+    with pytest.raises(ClientError) as viewer:
+        Client(url, tokens.viewer).request("POST", "/api/rigs/sim-a/probe")
+    assert viewer.value.status == 403
+    Client(url, tokens.operator2).request("POST", "/api/rigs/real-a/lease", {"ttl_s": 600, "reason": "wiring"})
+    with pytest.raises(ClientError) as held:
+        operator.request("POST", "/api/rigs/real-a/probe")
+    assert held.value.status == 409 and "wiring" in str(held.value), held.value.lines
+    with pytest.raises(ClientError) as never:
+        operator.request("GET", "/api/rigs/real-a/probe")
+    assert never.value.status == 404                       # the refused probe left no result behind
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="no Chromium installed (Debian: apt-get install chromium)")
+def test_rig_page_shows_the_drive_identity_and_the_last_probe_as_a_checklist_in_chromium(served):
+    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
+    from bench.service.auth import COOKIE
+
+    url, tokens, operator = served
+    with sync_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, headless=True,
+                                    args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"])
+        try:
+            context = browser.new_context(viewport={"width": 1300, "height": 1000})
+            context.set_default_timeout(120_000)
+            context.add_cookies([{"name": COOKIE, "value": tokens.operator, "url": url}])
+            page = context.new_page()
+            page.goto(f"{url}/rigs/sim-a")
+            assert "Not probed from this service yet" in page.locator("#probe-when").inner_text()
+            assert page.locator("#probe-checklist").count() == 0
+            page.click("#probe-now")
+            page.wait_for_url(f"{url}/rigs/sim-a#drive")
+            rows = page.locator("#probe-checklist tr")
+            assert rows.count() >= 5
+            identity = page.locator("#drive-identity").inner_text()
+            assert "drivebench simulated PMSM drive" in identity and "0x00DB0001" in identity
+            assert "by olga" in page.locator("#probe-when").inner_text()
+            page.locator("#drive").scroll_into_view_if_needed()
+            page.screenshot(path=str(SCREENSHOTS / "drivebench-rig-probe.png"), full_page=True)
+            shown = [(rows.nth(i).locator("td").nth(1).inner_text(), rows.nth(i).locator("td").nth(0).inner_text())
+                     for i in range(1, rows.count())]
+        finally:
+            browser.close()
+
+    # what the page shows is what `drivebench probe --json` says about this rig's drive, item by item
+    cli = subprocess.run([sys.executable, "-m", "bench", "probe", "--bench", str(REPO / "config/benches/sim-pmsm.toml"),
+                          "--json"], cwd=REPO, capture_output=True, timeout=120, check=True)
+    expected = json.loads(cli.stdout)["checklist"]
+    marks = {"ok": "✓ ok", "fix": "✗ fix", "unknown": "? unknown"}
+    assert shown == [(c["item"], marks[c["status"]]) for c in expected]
+    kept = operator.request("GET", "/api/rigs/sim-a/probe")      # kept in the database
+    assert kept["ok"] and kept["by"] == "olga" and kept["checklist"] == expected
+    assert ["device name", "drivebench simulated PMSM drive"] in kept["identity"]
+    assert not [l for l in operator.request("GET", "/api/rigs/sim-a")["leases"] if l["reason"] == "probe"]
