@@ -20,7 +20,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from bench.benchconfig import BenchConfig, load_bench_config
+from bench.benchconfig import BenchConfig
 from bench.criteria import TimeAxis, signals_of, time_axis
 from bench.drill import (DRILL_SETTINGS, DrillRefused, proved_recently, refusal as drill_refusal, remember, run_drills,
                          unverified as drill_unverified)
@@ -29,7 +29,9 @@ from bench.links import make_links, started_services
 from bench.load_emulation import SPEED_SIGNAL, LoadEmulation
 from bench.records import RunRecord, RunRecorder, freeze_long_lived, json_safe, release_freed_memory
 from bench.rerun_view import RerunStream
-from bench.scenario import load_scenario
+from bench.prepared import (DEFAULT_SEED, MAX_SEED, TRACE_SIGNALS, PreparedRun, prepare_run,  # noqa: F401
+                           trace_signals_for)
+from bench.scenario import Scenario
 from bench.summary_plot import BUCKETS as PLOT_BUCKETS, PLOT_SIGNALS, events_of, write_summary_png
 from bench.supervisor import FeedbackCheck, SafeStop, Supervisor, UnitCheck, check_status
 from bench.run_thread import LoopThread
@@ -45,20 +47,11 @@ LIVE_SIGNALS: tuple[str, ...] = (
     "speed_ref_mech_rad_s", "speed_est_mech_rad_s", "speed_true_mech_rad_s", "pos_err_elec_rad",
     "i_sx_a", "i_sy_a", "vdc_v", "torque_load_nm",
 )
-# Trace recorder (the verdict's data): what the record promises — speeds, position error, fluxes, currents,
-# voltages, load torque — plus the frame angle for the flux-vector view. A bench config may name its own set
-# ([drive] trace_signals); the criteria's signals are always added. Each signal costs bus time: the trace is
-# uploaded by SDO block transfer at 7 bytes per frame.
-TRACE_SIGNALS: tuple[str, ...] = (
-    "speed_ref_mech_rad_s", "speed_est_mech_rad_s", "speed_true_mech_rad_s", "pos_est_elec_rad",
-    "pos_err_elec_rad", "flux_est_wb", "flux_true_wb", "i_sx_a", "i_sy_a", "u_sx_v", "u_sy_v", "torque_load_nm",
-)
 MAX_DEFERRED_APPENDS = 8   # lockstep: trace blocks waiting for the journal writer before the command thread waits
 FETCH_PERIOD_S = 0.25      # upload the trace recorder every 0.25 s of drive time (a killed bench loses at most that)
 RERUN_MAX_RATE_HZ = 2000.0 # run.rrd / viewer: a 10 kHz trace is thinned to 2 kHz (3.6 -> 0.8 MB/s); parquet has all
 STATUS_PERIOD_S = 0.02     # poll the drive's status (fault, EMCY, heartbeat) every 20 ms of drive time
 PROGRESS_PERIOD_S = 0.1
-MAX_SEED = 2**63 - 1
 STUCK_GRACE_S = 2.0        # after a trip, how long the run loop may take to notice before it is abandoned
 SUPERVISE_POLL_S = 0.05    # the main thread's wait on the run loop (signals are handled between waits)
 STALL_TIMEOUT_S = 5.0      # wall seconds without any live sample -> the link is dead
@@ -67,7 +60,6 @@ FEEDBACK_LOST_PERIODS = 5  # real time: a measured live signal missing this many
 FEEDBACK_LOST_MIN_S = 0.5  # ... and no live sample at all for this long (or 5 periods, the longer): a loaded host
                            # stalls the bench's own threads for 40-80 ms, more under heavy load
 
-DEFAULT_SEED = 0           # a scenario without a seed runs with this one (recorded), so reruns are identical
 ProgressFn = Callable[[float, float], None]
 
 
@@ -97,19 +89,10 @@ def live_columns(samples: Sequence[LiveSample], names: Sequence[str]) -> dict[st
     return cols
 
 
-def trace_signals_for(cfg: BenchConfig, scenario) -> tuple[str, ...]:
-    """The configured trace set (or the default) plus every signal a criterion reads, in catalogue order."""
-    wanted = set(cfg.drive.get("trace_signals") or TRACE_SIGNALS)
-    wanted |= {c.signal for c in scenario.criteria if c.signal in SIGNAL_NAMES}
-    wanted |= {v for c in scenario.criteria for v in c.params.values() if isinstance(v, str) and v in SIGNAL_NAMES}
-    wanted -= ReferenceConfig(cfg.reference_source).not_from_drive()    # rig truth only from the reference sensor
-    return tuple(name for name in SIGNAL_NAMES if name in wanted)
-
-
-def prepare(scenario_path: str | Path, bench_path: str | Path | None = None):
-    """Load and validate the scenario against its bench config; InputError lists every problem."""
-    scenario = load_scenario(scenario_path, bench=bench_path)
-    return scenario, load_bench_config(scenario.bench)
+def prepare(scenario_path: str | Path, bench_path: str | Path | None = None) -> tuple[Scenario, BenchConfig]:
+    """(scenario, bench config), validated: the older face of prepare_run, kept for its callers."""
+    prepared = prepare_run(scenario_path, bench_path)
+    return prepared.scenario, prepared.bench
 
 
 class _StopSignals:
@@ -146,7 +129,7 @@ class _StopSignals:
 
 
 def run_scenario(
-    scenario_path: str | Path,
+    scenario: PreparedRun | str | Path,
     bench_path: str | Path | None = None,
     out_root: str | Path = "runs",
     seed: int | None = None,
@@ -158,25 +141,28 @@ def run_scenario(
     warn: Callable[[str], None] | None = None,
     on_trip: Callable[[dict], None] | None = None,
 ) -> RunResult:
-    """Run one scenario. Raises InputError (bad files, refused injections) and LinkError (cannot connect)
-    before a run directory exists; after that every outcome is a record and a RunResult.
+    """Run one prepared scenario (prepare_run), or a scenario file prepared here against `bench_path`. Raises
+    InputError (bad files, refused injections) and LinkError (cannot connect) before a run directory exists; after
+    that every outcome is a record and a RunResult. `seed` overrides the prepared one.
 
     `links` replaces the links and services the bench config names (unit tests with in-memory fakes).
     """
-    scenario, cfg = prepare(scenario_path, bench_path)
-    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED):
-        raise InputError([f"--seed: must be an integer from 0 to {MAX_SEED}, got {seed!r}"])
-    if seed is None:
-        seed = scenario.seed if scenario.seed is not None else DEFAULT_SEED
+    if isinstance(scenario, PreparedRun):
+        if bench_path is not None:
+            raise ValueError("a prepared run has its bench config: give bench_path to prepare_run")
+        prepared = scenario.with_seed(seed)
+    else:
+        prepared = prepare_run(scenario, bench_path, seed=seed)
     check_out_root(Path(out_root))      # before anything is connected: a bad --out must not leave a rig touched
     freeze_long_lived()
+    cfg = prepared.bench
     with _StopSignals() as signals:
         if links is not None:
-            return _run_connected(scenario, cfg, seed, *links, Path(out_root), rerun_mode, rerun_url, progress, warn,
+            return _run_connected(prepared, cfg, *links, Path(out_root), rerun_mode, rerun_url, progress, warn,
                                   signals, on_trip)
-        with started_services(cfg, seed) as live_cfg:
+        with started_services(cfg, prepared.seed) as live_cfg:
             drive, load = make_links(live_cfg, find_repo_root(cfg.path))
-            return _run_connected(scenario, live_cfg, seed, drive, load, Path(out_root), rerun_mode, rerun_url,
+            return _run_connected(prepared, live_cfg, drive, load, Path(out_root), rerun_mode, rerun_url,
                                   progress, warn, signals, on_trip)
 
 
@@ -218,21 +204,25 @@ def _close_quietly(*links) -> list[str]:
     return errors
 
 
-def _run_connected(scenario, cfg, seed, drive, load, out_root, rerun_mode, rerun_url, progress, warn,
-                   signals: _StopSignals | None = None, on_trip: Callable[[dict], None] | None = None) -> RunResult:
+def _run_connected(prepared: PreparedRun, cfg: BenchConfig, drive, load, out_root, rerun_mode, rerun_url, progress,
+                   warn, signals: _StopSignals | None = None,
+                   on_trip: Callable[[dict], None] | None = None) -> RunResult:
+    """`cfg`: the prepared bench config with the endpoints a [services] starter handed out."""
     identity, load_name = _open(drive, load)  # LinkError here: nothing started, nothing to stop
     recorder = None
     safe_stop = SafeStop(drive, load)
     try:
-        recorder = RunRecorder(out_root, scenario, seed, cfg)
+        recorder = RunRecorder(out_root, prepared.scenario, prepared.seed, cfg)
     except OSError as exc:
         _close_quietly(drive, load)
         raise InputError([f"{out_root}: --out: cannot create the run directory: {exc.strerror or exc}"]) from None
     except BaseException:
         _close_quietly(drive, load)
         raise
-    run = _Run(scenario, cfg, seed, drive, load, identity, load_name, recorder, safe_stop, rerun_mode, rerun_url,
-               progress, warn, on_trip)
+    if prepared.overrides:
+        recorder.note("overrides", {"injections_at_0_s": [list(o) for o in prepared.overrides]})
+    run = _Run(prepared.scenario, cfg, prepared.seed, drive, load, identity, load_name, recorder, safe_stop,
+               rerun_mode, rerun_url, progress, warn, on_trip, prepared.trace_signals)
     run.signals = signals
     return run.execute()
 
@@ -254,6 +244,7 @@ class _Run:
     progress: Callable[[str], None] | None
     warn: Callable[[str], None] | None
     on_trip: Callable[[dict], None] | None = None   # told of each trip as it happens (the service's live view)
+    trace_signals: tuple[str, ...] = ()             # the prepared run's trace recorder set
 
     def __post_init__(self) -> None:
         self._t_recorded_last = -math.inf    # drive time of the last recorded row (the data is on disk only)
@@ -266,7 +257,6 @@ class _Run:
         # real time: no live sample for this long is lost feedback (a host hiccup is not)
         self._feedback_lost_s = max(FEEDBACK_LOST_MIN_S, FEEDBACK_LOST_PERIODS * self.sync_period_s)
         self.data_source = "trace" if self.identity.has_trace_recorder else "pdo"
-        self.trace_signals = trace_signals_for(self.cfg, self.scenario)
         self.reference = ReferenceConfig(self.cfg.reference_source)
         self.reference_signals = self.reference.signals(self.load is not None)
         self.not_from_drive = self.reference.not_from_drive()
