@@ -19,8 +19,8 @@ A campaign file (TOML):
     min_pass_rate = 0.95                                         # wilson: the interval's lower bound must reach it
     confidence = 0.95
 
-A point with axes runs a derived scenario (the original plus `[[injection]]` at 0 s), written into the campaign's
-directory; the scenario's own validation (offered parameters, plant_injections) applies to it.
+A point with axes runs its scenario, prepared once, with each axis as a typed override: an injection at 0 s, checked
+as the scenario's own `[[injection]]` tables are (offered parameters, plant_injections, value ranges).
 """
 
 from __future__ import annotations
@@ -29,13 +29,15 @@ import hashlib
 import itertools
 import json
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from bench.errors import InputError, Problems, find_repo_root
 from drivers.toml_file import TomlFileError, read_toml_file
+
+if TYPE_CHECKING:
+    from bench.prepared import PreparedRun
 
 SCHEMA_VERSION = 1
 RULES = ("wilson", "every_run")
@@ -60,12 +62,13 @@ class Acceptance:
 
 @dataclass(frozen=True)
 class Point:
-    scenario: Path            # the scenario file a run uses (derived when the point sets axes)
+    scenario: Path            # the scenario file a run uses (its axes are overrides in `prepared`)
     source: Path              # the campaign's scenario it comes from
     seed: int
     axes: tuple[tuple[str, float], ...]
     point_id: str
     rig: str | None = None    # a real rig's bench name (a bench without [services]): one point at a time on it
+    prepared: PreparedRun | None = None   # what the point runs: the scenario prepared once, axes and seed applied
 
 
 @dataclass(frozen=True)
@@ -226,46 +229,22 @@ def axis_points(campaign: Campaign) -> list[tuple[tuple[str, float], ...]]:
     return [tuple((a.parameter, float(v)) for a, v in zip(campaign.axes, row)) for row in scaled]
 
 
-def points(campaign: Campaign, out_dir: Path) -> list[Point]:
-    """Every run of the campaign, in a fixed order; derived scenarios written into out_dir/scenarios."""
+def points(campaign: Campaign, out_dir: Path | None = None) -> list[Point]:
+    """Every run of the campaign, in a fixed order. Each scenario is read and checked once (prepare_run); a point is
+    that prepared run with its axes as typed overrides (injections at 0 s, checked like the file's own) and its
+    seed. `out_dir` is not used (points once wrote derived scenario files there); kept for callers."""
+    from bench.prepared import prepare_run
+
     out = []
     for scenario in campaign.scenarios:
+        base = prepare_run(scenario)
         text = scenario.read_text()
-        rig = rig_of(scenario)
         for axes in axis_points(campaign):
-            run_file = scenario if not axes else derived_scenario(scenario, text, axes, out_dir)
+            with_axes = base.with_injections(axes)
             for seed in campaign.seeds:
                 digest = hashlib.sha256(text.encode())
                 digest.update(json.dumps([list(a) for a in axes]).encode())
                 digest.update(str(seed).encode())
-                out.append(Point(run_file, scenario, seed, axes, digest.hexdigest()[:16], rig))
+                out.append(Point(scenario, scenario, seed, axes, digest.hexdigest()[:16], base.rig,
+                                 with_axes.with_seed(seed)))
     return out
-
-
-def rig_of(scenario: Path) -> str | None:
-    """The rig a scenario's points hold while they run: its bench's name when the bench starts no simulator of its
-    own (no [services]: a real drive, or a served simulator, which takes one bench at a time too); None for a
-    simulated bench, whose points may run side by side."""
-    from bench.benchconfig import load_bench_config
-    from bench.scenario import load_scenario
-
-    cfg = load_bench_config(load_scenario(scenario).bench)
-    return None if cfg.services_start else cfg.bench.name
-
-
-def derived_scenario(scenario: Path, text: str, axes: tuple[tuple[str, float], ...], out_dir: Path) -> Path:
-    """A copy of the scenario (its text) under out_dir/scenarios with each axis added as an injection at 0 s: what a
-    campaign point with parameter axes runs."""
-    root = find_repo_root(scenario)
-    tag = hashlib.sha256(json.dumps([list(a) for a in axes]).encode()).hexdigest()[:10]
-    target = out_dir / "scenarios" / f"{scenario.stem}-{tag}.toml"
-    target.parent.mkdir(parents=True, exist_ok=True)
-    lines = text.splitlines()
-    # the bench path of the original is relative to the repository root: make it absolute for the copy
-    bench = tomllib.loads(text).get("bench")
-    if isinstance(bench, str) and not Path(bench).is_absolute():
-        lines = [f'bench = "{(root / bench).as_posix()}"' if line.strip().startswith("bench =") else line
-                 for line in lines]
-    extra = "".join(f'\n[[injection]]\nat_s = 0.0\nname = "{name}"\nvalue = {value!r}\n' for name, value in axes)
-    target.write_text("\n".join(lines) + "\n" + extra)
-    return target

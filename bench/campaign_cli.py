@@ -60,19 +60,16 @@ def campaign(campaign_file: Path, workers: int, engine: str, address: str | None
 
 
 def _dry_run(camp, out: Path) -> int:
-    """One line per point; the derived scenarios go to a scratch directory, not into the results."""
-    import tempfile
-
+    """One line per point and which a resume would skip; nothing written."""
     from bench.campaign import points
     from bench.campaign_run import done_ids
 
     finished = done_ids(out) if out.is_dir() else {}
-    with tempfile.TemporaryDirectory() as scratch:
-        todo = points(camp, Path(scratch))
-        for p in todo:
-            axes = ", ".join(f"{k}={v:g}" for k, v in p.axes) or "-"
-            state = "done (a resume skips it)" if p.point_id in finished else "to run"
-            click.echo(f"{p.point_id}  {p.source.name}  seed {p.seed}  {axes}  {state}")
+    todo = points(camp)
+    for p in todo:
+        axes = ", ".join(f"{k}={v:g}" for k, v in p.axes) or "-"
+        state = "done (a resume skips it)" if p.point_id in finished else "to run"
+        click.echo(f"{p.point_id}  {p.source.name}  seed {p.seed}  {axes}  {state}")
     skipped = sum(p.point_id in finished for p in todo)
     click.echo(f"{camp.name}: {len(todo)} points, {len(todo) - skipped} to run, {skipped} done in {out}; "
                "nothing run (--dry-run)")

@@ -33,7 +33,7 @@ def run_point(point: dict[str, Any], out_root: str) -> dict[str, Any]:
                            "axes": json.dumps(point["axes"]), "rig": point.get("rig"), "worker_pid": os.getpid(),
                            "host": socket.gethostname(), "node": _node_id(), "started_unix": time.time()}
     try:
-        result = run_scenario(point["scenario"], out_root=out_root, seed=point["seed"], rerun_mode="off")
+        result = run_scenario(point["prepared"], out_root=out_root, rerun_mode="off")
     except (InputError, LinkError) as exc:
         return {**row, "verdict": "error", "error": str(exc), "wall_s": time.perf_counter() - started,
                 "ended_unix": time.time(), "run_dir": None, "criteria": []}
@@ -104,7 +104,7 @@ def run_campaign(campaign: Campaign, out_dir: Path, workers: int = 2, engine: st
 
 def _as_dict(point: Point) -> dict[str, Any]:
     return {"point_id": point.point_id, "scenario": str(point.scenario), "source": str(point.source),
-            "seed": point.seed, "axes": [list(a) for a in point.axes], "rig": point.rig}
+            "seed": point.seed, "axes": [list(a) for a in point.axes], "rig": point.rig, "prepared": point.prepared}
 
 
 def _run_local(todo: list[Point], runs_dir: str, workers: int, record: Callable[[dict], None]) -> None:
@@ -233,6 +233,7 @@ def write_results(campaign: Campaign, out_dir: Path, rows: list[dict]) -> dict[s
     import pyarrow as pa
     import pyarrow.parquet as pq
 
+    out_dir.mkdir(parents=True, exist_ok=True)
     names = sorted({c["name"] for r in rows for c in r.get("criteria") or []})
     flat = []
     for r in rows:

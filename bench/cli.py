@@ -202,13 +202,15 @@ def run(scenarios, bench_path, rerun_mode, rerun_url, out_root, seed, as_json) -
 
 
 def run_many(scenarios, bench_path, out_root, seed, rerun_mode, rerun_url, as_json) -> int:
-    from bench.orchestrator import prepare, run_scenario
+    from bench.orchestrator import run_scenario
+    from bench.prepared import prepare_run
     from bench.service.child import trip_reporter
 
     problems: list[str] = []
-    for path in scenarios:  # validate everything before touching any hardware
+    prepared = []
+    for path in scenarios:  # validate everything before touching any hardware; each file is read once, here
         try:
-            prepare(path, bench_path)
+            prepared.append((path, prepare_run(path, bench_path, seed=seed)))
         except (InputError, FileNotFoundError, tomllib.TOMLDecodeError, OSError) as exc:
             problems.extend(_problem_lines(exc))
     if problems:
@@ -218,12 +220,12 @@ def run_many(scenarios, bench_path, out_root, seed, rerun_mode, rerun_url, as_js
 
     out = _out_console(as_json)
     verdicts: list[str] = []
-    for path in scenarios:
+    for path, run in prepared:
         try:
-            with _progress(path) as progress:
-                result = run_scenario(path, bench_path, out_root=out_root, seed=seed, rerun_mode=rerun_mode,
-                                      rerun_url=rerun_url, progress=progress,
-                                      warn=lambda line: click.echo(line, err=True), on_trip=trip_reporter())
+            with _progress(run) as progress:
+                result = run_scenario(run, out_root=out_root, rerun_mode=rerun_mode, rerun_url=rerun_url,
+                                      progress=progress, warn=lambda line: click.echo(line, err=True),
+                                      on_trip=trip_reporter())
         except (InputError, FileNotFoundError, tomllib.TOMLDecodeError, LinkError, OSError) as exc:
             _fail(exc)
             verdicts.append("error")
@@ -247,20 +249,20 @@ def run_many(scenarios, bench_path, out_root, seed, rerun_mode, rerun_url, as_js
 
 
 class _progress:
-    """A rich progress bar with ETA on stderr for scenarios of PROGRESS_MIN_DURATION_S or more."""
+    """A rich progress bar with ETA on stderr for scenarios of PROGRESS_MIN_DURATION_S or more: the prepared run's
+    scenario, the one that runs (validated against --bench like it)."""
 
-    def __init__(self, scenario_path: str):
-        self.path = scenario_path
+    def __init__(self, prepared):
+        self.prepared = prepared
         self.bar = None
         self.task = None
 
     def __enter__(self):
-        from bench.scenario import load_scenario
         from bench.service.child import progress_reporter
 
         if (service_progress := progress_reporter()) is not None:   # a run started by `drivebench serve`
             return service_progress
-        duration = load_scenario(self.path).duration_s
+        duration = self.prepared.scenario.duration_s
         if duration < PROGRESS_MIN_DURATION_S or not err_console.is_terminal:
             return None
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -269,7 +271,7 @@ class _progress:
                             TextColumn("{task.completed:.1f}/{task.total:.1f} s drive time"),
                             TimeElapsedColumn(), TimeRemainingColumn(), console=err_console, transient=True)
         self.bar.start()
-        self.task = self.bar.add_task(Path(self.path).stem, total=duration)
+        self.task = self.bar.add_task(Path(self.prepared.scenario.path).stem, total=duration)
 
         def update(t_s: float, total: float) -> None:
             self.bar.update(self.task, completed=t_s)
@@ -282,11 +284,8 @@ class _progress:
         return False
 
 
-def _file_kind(path: Path) -> str:
+def _file_kind(raw: dict) -> str:
     """"bench", "campaign" or "scenario": what a TOML file given to `validate` is, by its top-level keys."""
-    from bench.benchconfig import read_toml
-
-    raw = read_toml(path)
     if isinstance(raw.get("bench"), dict) and "drive" in raw:
         return "bench"
     if "scenarios" in raw and "duration_s" not in raw:
@@ -297,7 +296,7 @@ def _file_kind(path: Path) -> str:
 def _validate_campaign(path: Path) -> int:
     """The campaign file and each of its scenarios on its own bench; the number of problem lines printed."""
     from bench.campaign import axis_points, load_campaign
-    from bench.orchestrator import prepare
+    from bench.prepared import prepare_run
 
     camp = load_campaign(path)
     runs = len(camp.scenarios) * len(camp.seeds) * len(axis_points(camp))
@@ -306,7 +305,7 @@ def _validate_campaign(path: Path) -> int:
     bad = 0
     for scenario in camp.scenarios:
         try:
-            prepare(scenario, None)
+            prepare_run(scenario)
         except (InputError, FileNotFoundError, tomllib.TOMLDecodeError, OSError) as exc:
             for line in _problem_lines(exc):
                 click.echo(line, err=True)
@@ -320,16 +319,18 @@ def _validate_campaign(path: Path) -> int:
 def validate(files, bench_path) -> None:
     """Check scenario, campaign and bench config FILEs; one line per problem, exit 2 if any. For a scenario, also the
     criteria its bench cannot judge (signals it does not measure); for a campaign, each of its scenarios."""
-    from bench.benchconfig import load_bench_config, measurable_signals
+    from bench.benchconfig import load_bench_config
     from bench.criteria import signals_of
     from bench.load_emulation import emulates_on
-    from bench.orchestrator import prepare
+    from bench.prepared import prepare_run
+    from bench.scenario import read_scenario_source
 
     bad = False
     for name in files:
         path = Path(name)
         try:
-            kind = _file_kind(path)
+            source = read_scenario_source(path)
+            kind = _file_kind(source[0])
             if kind == "campaign":
                 bad = _validate_campaign(path) > 0 or bad
             elif kind == "bench":
@@ -338,7 +339,8 @@ def validate(files, bench_path) -> None:
                 click.echo(f"{path}: ok (bench config {cfg.bench.name!r}, drive over {cfg.drive['transport']}, "
                            f"{load})")
             else:
-                scenario, cfg = prepare(path, bench_path)
+                prepared = prepare_run(path, bench_path, source=source)
+                scenario, cfg = prepared.scenario, prepared.bench
                 click.echo(f"{path}: ok (scenario {scenario.name!r}, {scenario.duration_s:g} s, "
                            f"{len(scenario.criteria)} criteria, bench {cfg.bench.name!r})")
                 for i, seg in enumerate(scenario.load_segments):
@@ -347,7 +349,7 @@ def validate(files, bench_path) -> None:
                                    f"its load machine has no {seg.mode.name.lower()} mode; a torque setpoint from the "
                                    f"measured shaft speed every SYNC ({cfg.drive['sync_period_s']:g} s; "
                                    f"docs/scenarios.md, emulated loads)")
-                measurable = measurable_signals(cfg)
+                measurable = prepared.measurable
                 for i, criterion in enumerate(scenario.criteria):
                     missing = [s for s in signals_of(criterion) if s not in measurable]
                     if missing:

@@ -44,6 +44,7 @@ class RunRecord(TypedDict, total=False):
     unit_check: dict[str, Any]
     drive_clock_start_s: float
     injections_applied: list[dict[str, Any]]
+    overrides: dict[str, Any]       # a campaign point's axes: injections at 0 s on top of the file (bench/prepared.py)
     drive_settings: dict[str, Any]  # what the link configured and read from the drive (units, comm-loss reaction)
     load_settings: dict[str, Any]
     comm_loss: dict[str, Any]       # the bench-death drill before motion (bench.drill): verified, drive, load

@@ -10,7 +10,7 @@ from __future__ import annotations
 import bisect
 import hashlib
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from bench.benchconfig import (BenchConfig, drive_description, load_bench_config, read_toml_with_bytes,
@@ -21,6 +21,7 @@ from bench.load_emulation import EMULABLE, emulable
 from drivers import parameters
 from drivers.api import LoadMode
 from drivers.load_map import read_load_map
+from drivers.toml_file import TomlFileError, parse_toml_bytes
 from drivers.parameters import Capability, Parameter
 
 SCHEMA_VERSION = 1
@@ -140,8 +141,27 @@ def default_max_duration_s(duration_s: float) -> float:
 
 def load_scenario(path: str | Path, bench: str | Path | None = None) -> Scenario:
     """Read and validate a scenario file. `bench` overrides the file's bench config (e.g. `--bench`)."""
+    return parse_scenario(path, bench)[0]
+
+
+def read_scenario_source(path: str | Path, text: str | bytes | None = None) -> tuple[dict, bytes]:
+    """(parsed table, bytes) of a scenario: the file at `path`, or `text` given for it (an upload, named by path)."""
+    if text is None:
+        return read_toml_with_bytes(Path(path))
+    data = text.encode() if isinstance(text, str) else bytes(text)
+    try:
+        return parse_toml_bytes(data), data
+    except TomlFileError as exc:
+        raise InputError([f"{path}: (file): {exc}"]) from None
+
+
+def parse_scenario(path: str | Path, bench: str | Path | None = None,
+                   source: tuple[dict, bytes] | None = None) -> tuple[Scenario, BenchConfig]:
+    """The validated scenario and the bench config it was validated against, each file read once. `source`: the
+    scenario's (table, bytes) when already read (read_scenario_source); `path` then names it and anchors its
+    relative bench path."""
     path = Path(path)
-    raw, data = read_toml_with_bytes(path)
+    raw, data = source if source is not None else read_toml_with_bytes(path)
     sha256 = hashlib.sha256(data).hexdigest()
     p = Problems(path)
     p.unknown_keys(raw, _TOP_KEYS, "")
@@ -176,7 +196,21 @@ def load_scenario(path: str | Path, bench: str | Path | None = None) -> Scenario
     return Scenario(path=path.resolve(), sha256=sha256, schema_version=version, name=name,
                     description=description, bench=bench_path, duration_s=duration, seed=seed,
                     speed_segments=speed, load_segments=load, injections=injections, limits=limits,
-                    criteria=criteria, drive_kind=kind)
+                    criteria=criteria, drive_kind=kind), bench_cfg
+
+
+def with_injections(scenario: Scenario, bench_cfg: BenchConfig, added: tuple[tuple[str, float], ...],
+                    where: str = "override") -> Scenario:
+    """The scenario with each (parameter, value) injected at 0 s, checked as an `[[injection]]` table of the file
+    would be (offered by the drive, honoured by the bench, value in range): a campaign point's axes. The result is
+    what the file with those tables appended would give (injections ordered by time, the added ones last at 0 s)."""
+    p = Problems(scenario.path)
+    drive_desc = drive_description(bench_cfg)
+    offered = drive_desc.offered_parameters() if drive_desc else None
+    items = [(f"{where}[{i}]", {"at_s": 0.0, "name": name, "value": value}) for i, (name, value) in enumerate(added)]
+    extra = _injections(p, items, scenario.duration_s, scenario.drive_kind, offered, bench_cfg, scenario.bench)
+    p.raise_if_any()
+    return replace(scenario, injections=tuple(sorted((*scenario.injections, *extra), key=lambda inj: inj.at_s)))
 
 
 # --- sections ------------------------------------------------------------------------------------------

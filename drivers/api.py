@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
-from typing import Callable, Protocol, Sequence
+from typing import Any, Callable, Protocol, Sequence
 
 import numpy as np
 
@@ -78,7 +78,41 @@ class DriveStatus:
     warning: bool = False       # CiA 402 statusword bit 7: the drive warns (temperature, limits...) and runs on
 
 
+class UnitsProfile(Protocol):
+    """What the bench checks of a drive's units before motion (drivers.canopen.profile.DriveProfile gives it)."""
+    kind: str                       # "cia402" (the drive's own units) | "drivebench"
+    unread: tuple[str, ...]         # velocity factors the drive did not report: stated in the config or CiA default
+    units_confirmed: str | None     # the bench config's word on how the stated ones were checked
+
+
 class DriveLink(Protocol):
+    """A drive link subclasses DriveLink. The members with a body are features a drive may lack: the body is what
+    the bench gets from a drive without the feature (a link overrides what its drive has)."""
+
+    report: dict[str, Any]                   # what the link read from the drive and set in it, for the record
+    profile: UnitsProfile | None = None      # a CiA 402 drive's resolved profile; None: a drivebench protocol drive
+    control_period_s: float | None = None    # the drive's control period (trace rows: decimation x this), once open
+    time_base: str = "receive time"          # how live samples are placed: "drive clock" | "sync count" |
+                                             # "sync answered" | "receive time"
+
+    def measured_signals(self) -> frozenset[str] | None:
+        """The signals the drive's live data carry, which must keep coming (feedback lost); None: every signal, and
+        nothing to check."""
+        return None
+
+    def sync_report(self) -> dict[str, Any] | None:
+        """SYNC interval statistics at the bench and how samples were placed in time; None: nothing to report."""
+        return None
+
+    def now_s(self) -> float | None:
+        """The drive time of the last SYNC sent, on the drive's clock; None: the link does not know it."""
+        return None
+
+    def set_reference_speed(self, speed: Callable[[], float | None]) -> None:
+        """A reference sensor's shaft speed, for a drive that checks its units against it at first motion; a drive
+        without the check ignores it."""
+        return None
+
     def open(self) -> DriveIdentity: ...
     def configure(self, live_signals: Sequence[str], trace_signals: Sequence[str], trace_decimation: int) -> None: ...
     def enable_velocity_mode(self) -> None: ...
@@ -123,6 +157,12 @@ class LoadFeedback:
 
 
 class LoadLink(Protocol):
+    """A load link subclasses LoadLink; members with a body as in DriveLink."""
+
+    report: dict[str, Any]                   # what the link read from the machine and set in it, for the record
+    map: Any = None                          # its register map (drivers.load_map.LoadMap), for the record; None: none
+    modes: tuple[LoadMode, ...] = ()         # the modes the machine has; empty: every LoadMode
+
     def open(self) -> str: ...
     def set_load(self, mode: LoadMode, value: float) -> None: ...
     def enable(self, on: bool) -> None: ...

@@ -19,7 +19,7 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 from pymodbus.pdu import ExceptionResponse
 
-from drivers.api import LinkError, LoadFeedback, LoadMode, attempt_all
+from drivers.api import LinkError, LoadFeedback, LoadLink, LoadMode, attempt_all
 from drivers.comm_loss import EXTERNAL_HINT
 from drivers.load_map import LoadMap, LoadMapError, Reg, read_load_map
 
@@ -28,7 +28,7 @@ EXCEPTION_TEXT = {1: "illegal function", 2: "illegal data address", 3: "illegal 
 FEEDBACK = ("speed", "torque", "status")
 
 
-class ModbusLoadLink:
+class ModbusLoadLink(LoadLink):
     def __init__(self, section: dict, base_dir: Path):
         self.transport = section.get("transport", "modbus-tcp")
         if self.transport not in ("modbus-tcp", "modbus-rtu"):

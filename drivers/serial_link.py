@@ -18,7 +18,7 @@ import numpy as np
 import serial
 
 from drivers import cia402
-from drivers.api import DriveIdentity, DriveStatus, LinkError, LinkSettings, LiveSample, attempt_all
+from drivers.api import DriveIdentity, DriveLink, DriveStatus, LinkError, LinkSettings, LiveSample, attempt_all
 from drivers.comm_loss import EXTERNAL_HINT, CommLossConfig
 from drivers.serial_frames import (
     PROTOCOL_MAJOR, PROTOCOL_MINOR, RESPONSE_FLAG, SAMPLE_HEADER, Cmd, ErrorCode, Frame, FrameDecoder,
@@ -31,7 +31,7 @@ TRIGGER_IMMEDIATE = 0
 MAX_CATCH_UP_SYNCS = 100          # real time: more SYNCs than this behind and the link re-anchors its clock
 
 
-class SerialDriveLink:
+class SerialDriveLink(DriveLink):
     def __init__(self, section: dict, base_dir: Path, settings: LinkSettings):
         url = section.get("url") or section.get("port")      # bench configs call it `port`
         if not isinstance(url, str) or not url:

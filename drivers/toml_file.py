@@ -40,6 +40,11 @@ def read_toml_file(path: str | Path, max_bytes: int = MAX_TOML_BYTES) -> tuple[d
             data = f.read(max_bytes + 1)
     except OSError as exc:
         raise TomlFileError(f"cannot read: {exc.strerror or exc}") from None
+    return parse_toml_bytes(data, max_bytes), data
+
+
+def parse_toml_bytes(data: bytes, max_bytes: int = MAX_TOML_BYTES) -> dict[str, Any]:
+    """The parsed table of a TOML document already in memory (an uploaded scenario), checked like a file's."""
     if len(data) > max_bytes:
         raise TomlFileError(f"larger than {max_bytes} bytes: not a config file")
     try:
@@ -56,7 +61,7 @@ def read_toml_file(path: str | Path, max_bytes: int = MAX_TOML_BYTES) -> tuple[d
         raise TomlFileError(f"not valid TOML: nested deeper than this reader allows ({MAX_DEPTH} levels)") from None
     if _depth(table) > MAX_DEPTH:
         raise TomlFileError(f"nested deeper than {MAX_DEPTH} levels: not a config file")
-    return table, data
+    return table
 
 
 def known_entries(table: dict, known: Sequence[str], prefix: str, kind: str, problems: list[tuple[str, str]]):

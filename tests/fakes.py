@@ -11,7 +11,8 @@ from typing import Sequence
 
 import numpy as np
 
-from drivers.api import DriveIdentity, DriveStatus, LinkError, LiveSample, LoadFeedback, LoadMode
+from drivers.api import (DriveIdentity, DriveLink, DriveStatus, LinkError, LiveSample, LoadFeedback, LoadLink,
+                         LoadMode)
 from drivers.signals import SIGNAL_INDEX, TIME_COLUMN
 from sim_backend.toy import ToyDrive
 
@@ -48,9 +49,10 @@ class FakeRig:
         return [name for name, _ in self.calls]
 
 
-class FakeDriveLink:
+class FakeDriveLink(DriveLink):
     def __init__(self, rig: FakeRig):
         self.rig = rig
+        self.report: dict = {}
         self.live: tuple[str, ...] = ()
         self.trace: tuple[str, ...] = ()
         self.decimation = 1
@@ -165,9 +167,10 @@ class FakeDriveLink:
         self._log("drive.close")
 
 
-class FakeLoadLink:
+class FakeLoadLink(LoadLink):
     def __init__(self, rig: FakeRig):
         self.rig = rig
+        self.report: dict = {}
         self.mode = LoadMode.TORQUE
         self.value = 0.0
         self.enabled = False

@@ -19,6 +19,7 @@ from bench.campaign_run import pass_rate_grid, run_campaign, write_results
 from bench.cli import cli
 from bench.errors import InputError
 from bench.orchestrator import run_scenario
+from bench.scenario import Injection, load_scenario
 
 REPO = Path(__file__).resolve().parents[1]
 RS_STEP = "scenarios/examples/pmsm-rs-step.toml"
@@ -65,8 +66,16 @@ def test_axes_grid_and_latin_hypercube_points(tmp_path):
                                          '[[axis]]\nparameter = "plant_rs"\nvalues = [0.9, 1.1]\n'))
     pts = points(grid, tmp_path / "out")
     assert len(pts) == 4 and {p.axes for p in pts} == {(("plant_rs", 0.9),), (("plant_rs", 1.1),)}
-    derived = pts[0].scenario.read_text()
-    assert derived.rstrip().endswith('name = "plant_rs"\nvalue = 0.9') and 'at_s = 0.0' in derived
+    # the axis is a typed override of the prepared scenario (no edited copy of the file): the same injections, in
+    # the same order, as the file with `[[injection]] at_s = 0.0` appended gives
+    assert pts[0].prepared.overrides == (("plant_rs", 0.9),) and pts[0].scenario == REPO / RS_STEP
+    assert not (tmp_path / "out").exists()
+    text = (REPO / RS_STEP).read_text().replace('bench = "', f'bench = "{REPO.as_posix()}/')
+    appended = tmp_path / "appended.toml"
+    appended.write_text(text + '\n[[injection]]\nat_s = 0.0\nname = "plant_rs"\nvalue = 0.9\n')
+    assert pts[0].prepared.scenario.injections == load_scenario(appended).injections
+    assert pts[0].prepared.scenario.injections[0] == Injection(0.0, "plant_rs", 0.9)
+    assert [p.prepared.seed for p in pts] == [1, 2, 1, 2]
     lhs = load_campaign(write(tmp_path, f'schema_version = 1\nscenarios = ["{RS_STEP}"]\nseeds = [1]\n'
                                         '[[axis]]\nparameter = "plant_rs"\nlow = 0.8\nhigh = 1.2\n'
                                         '[[axis]]\nparameter = "plant_ls"\nlow = 0.9\nhigh = 1.1\n'

@@ -10,8 +10,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from bench.campaign import derived_scenario
 from bench.orchestrator import run_scenario
+from bench.prepared import prepare_run
 
 ROOT = Path(__file__).resolve().parents[1]
 SPIM_15RPM = ROOT / "scenarios/spim/fig08-low-speed-15rpm.toml"
@@ -20,8 +20,8 @@ PMSM_IGBT = (("inverter_dead_time_s", 2e-6), ("inverter_device_drop_v", 1.5))
 
 
 def run_with(scenario: Path, axes, tmp_path: Path):
-    derived = derived_scenario(scenario, scenario.read_text(), tuple(axes), tmp_path)
-    result = run_scenario(derived, out_root=tmp_path / "runs", seed=1, rerun_mode="off")
+    prepared = prepare_run(scenario, seed=1, injections=tuple(axes))      # what a campaign point with these axes runs
+    result = run_scenario(prepared, out_root=tmp_path / "runs", rerun_mode="off")
     columns = pq.read_table(result.run_dir / "telemetry.parquet").to_pydict()
     return result, {k: np.asarray(v) for k, v in columns.items()}
 

@@ -41,7 +41,7 @@ from canopen.emcy import EmcyError
 from canopen.sdo import SdoAbortedError
 
 from drivers import cia402
-from drivers.api import DriveIdentity, DriveStatus, LinkError, LinkSettings, LiveSample
+from drivers.api import DriveIdentity, DriveLink, DriveStatus, LinkError, LinkSettings, LiveSample
 from drivers.canopen import objects as o
 from drivers.canopen import pdo as pdos
 from drivers.canopen.bus import BusErrorCounter, SocketcandRefusal, bus_kwargs, make_bus, open_bus
@@ -65,7 +65,7 @@ SYNC_COUNTER_MAX = 240
 VELOCITY_MODES = {"auto": None, "pv": cia402.Mode.PROFILE_VELOCITY, "csv": cia402.Mode.CYCLIC_SYNC_VELOCITY}
 
 
-class CanopenDriveLink:
+class CanopenDriveLink(DriveLink):
     def __init__(self, section: dict, base_dir: Path, settings: LinkSettings):
         self.section = dict(section)
         eds = Path(section["eds"])
