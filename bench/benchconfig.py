@@ -16,14 +16,17 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
 
-from bench.errors import InputError, Problems, find_repo_root
+from drivers.contract.errors import InputError
+from drivers.contract.checks import find_repo_root, Problems
 from bench.services import check_service
-from drivers.api import FAULT_RESET_POLICIES, TIMINGS, LinkSettings
-from drivers.canopen.profile import PROFILE_KEYS, check_section, config_keys
-from drivers.comm_loss import EXTERNAL_HINT, STOP_KEYS, check_keys, external_stop_problem
-from drivers.toml_file import TomlFileError, read_toml_file
-from drivers.eds import DeviceDescription, EdsError, read_eds
-from drivers.load_map import LoadMapError, read_load_map
+from drivers.contract.cia402 import FAULT_RESET_POLICIES
+from drivers.api import LinkSettings, TIMINGS
+from drivers.canopen.profile import check_section, config_keys, PROFILE_KEYS
+from drivers.contract.comm_loss import EXTERNAL_HINT, STOP_KEYS, check_keys, external_stop_problem
+from drivers.contract.errors import ContentError
+from drivers.contract.toml_file import read_toml_file
+from drivers.eds import DeviceDescription, read_eds
+from drivers.contract.load_map import read_load_map
 from drivers.reference import check_section as check_reference
 
 _BENCH_KEYS = {"name", "description", "timing", "plant_injections", "wire_faults", "fault_reset", "drill_valid_s", "served_by"}
@@ -177,7 +180,7 @@ def measurable_signals(cfg: BenchConfig) -> frozenset[str]:
     the drive's (from its EDS, profile and [drive] signals) and the reference sensor's."""
     from drivers.canopen.profile import static_measurable
     from drivers.reference import ReferenceConfig
-    from drivers.signals import SIGNAL_NAMES
+    from drivers.contract.signals import SIGNAL_NAMES
 
     drive = cfg.drive
     description = drive_description(cfg)
@@ -208,7 +211,7 @@ def read_toml(path: Path) -> dict[str, Any]:
 def read_toml_with_bytes(path: Path) -> tuple[dict[str, Any], bytes]:
     try:
         return read_toml_file(path)
-    except TomlFileError as exc:
+    except ContentError as exc:
         raise InputError([f"{path}: (file): {exc}"]) from None
 
 
@@ -269,7 +272,7 @@ def _drive(problems: Problems, drive: dict | None, root: Path) -> dict[str, Any]
         if out["eds"]:
             try:
                 description = _read_eds_cached(out["eds"], *_stamp(out["eds"]))
-            except (EdsError, OSError) as exc:
+            except (ContentError, OSError) as exc:
                 problems.add("drive.eds", f"{eds}: {exc}")
                 out["eds"] = None
             else:
@@ -291,8 +294,8 @@ def _drive(problems: Problems, drive: dict | None, root: Path) -> dict[str, Any]
 
 
 def _signal_list(problems: Problems, table: dict, key: str, where: str) -> tuple[str, ...] | None:
-    """An optional list of signal names from drivers.signals; None when absent."""
-    from drivers.signals import SIGNAL_NAMES
+    """An optional list of signal names from drivers.contract.signals; None when absent."""
+    from drivers.contract.signals import SIGNAL_NAMES
 
     if key not in table:
         return None
@@ -320,7 +323,7 @@ def _load(problems: Problems, load: dict | None, root: Path) -> dict[str, Any]:
     if map_path:
         try:
             read_load_map(map_path)
-        except LoadMapError as exc:
+        except ContentError as exc:
             for field_, reason in exc.problems:
                 problems.add("load.map", f"{map_name}: {field_}: {reason}")
             map_path = None

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Callable, ContextManager, Iterator, Mapping
 
 from bench.benchconfig import BenchConfig, link_settings
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 from bench.services import registered_service
 
 DRIVE_TRANSPORTS: dict[str, str] = {

@@ -24,7 +24,8 @@ from bench.benchconfig import BenchConfig, load_bench_config
 from bench.criteria import TimeAxis, signals_of, time_axis
 from bench.drill import (DRILL_SETTINGS, DrillRefused, proved_recently, refusal as drill_refusal, remember, run_drills,
                          unverified as drill_unverified)
-from bench.errors import InputError, find_repo_root
+from drivers.contract.errors import InputError
+from drivers.contract.checks import find_repo_root
 from bench.links import make_links, started_services
 from bench.load_emulation import SPEED_SIGNAL, LoadEmulation
 from bench.records import RunRecord, RunRecorder, freeze_long_lived, json_safe, release_freed_memory
@@ -35,9 +36,11 @@ from bench.supervisor import FeedbackCheck, SafeStop, Supervisor, UnitCheck, che
 from bench.run_thread import LoopThread
 from bench.telemetry import TelemetryWorker
 from bench.verdict import judge_run
-from drivers.api import LinkError, LiveSample, LoadMode
+from drivers.contract.errors import LinkError
+from drivers.api import LiveSample
+from drivers.contract.load_map import LoadMode
 from drivers.reference import ReferenceConfig, onto_rows, values_from_load
-from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
+from drivers.contract.signals import SIGNAL_NAMES, TIME_COLUMN
 
 # Live (PDO) signals, judged by the supervisor every SYNC. Eight REAL32 fit a 1 Mbit/s CAN bus at one SYNC
 # per ms within the links' 80 % budget; everything else comes from the trace recorder.

@@ -34,8 +34,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from bench.criteria import CriterionResult
-from bench.errors import InputError, find_repo_root
-from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
+from drivers.contract.errors import InputError
+from drivers.contract.checks import find_repo_root
+from drivers.contract.signals import SIGNAL_NAMES, TIME_COLUMN
 
 if TYPE_CHECKING:
     from bench.benchconfig import BenchConfig

@@ -16,12 +16,13 @@ from pathlib import Path
 from bench.benchconfig import (BenchConfig, drive_description, load_bench_config, read_toml_with_bytes,
                                resolve_path)
 from bench.criteria import CriterionSpec, parse_criteria
-from bench.errors import InputError, Problems, find_repo_root
+from drivers.contract.errors import InputError
+from drivers.contract.checks import find_repo_root, Problems
 from bench.load_emulation import EMULABLE, emulable
-from drivers import parameters
-from drivers.api import LoadMode
-from drivers.load_map import read_load_map
-from drivers.parameters import Capability, Parameter
+from drivers.contract import parameters
+from drivers.contract.load_map import LoadMode
+from drivers.contract.load_map import read_load_map
+from drivers.contract.parameters import Capability, Parameter
 
 SCHEMA_VERSION = 1
 GRAVITY_M_S2 = 9.80665

@@ -6,15 +6,17 @@ LoadLink. The bench talks only to these protocols, so a real rig and the simulat
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass, field
 from typing import Callable, Protocol, Sequence
 
 import numpy as np
 
+from drivers.contract.cia402 import FAULT_RESET_POLICIES
+from drivers.contract.errors import LinkError
+from drivers.contract.load_map import LoadMode
+
 
 TIMINGS = ("lockstep", "realtime")
-FAULT_RESET_POLICIES = ("never", "once")
 
 
 @dataclass(frozen=True)
@@ -32,10 +34,6 @@ class LinkSettings:
             raise ValueError(f"timing: {self.timing!r} is not one of {', '.join(TIMINGS)}")
         if self.fault_reset not in FAULT_RESET_POLICIES:
             raise ValueError(f"fault_reset: {self.fault_reset!r} is not one of {', '.join(FAULT_RESET_POLICIES)}")
-
-
-class LinkError(RuntimeError):
-    """A protocol-level failure: timeout, abort, CRC error, lost heartbeat. The message says which."""
 
 
 def attempt_all(*actions: Callable[[], object]) -> None:
@@ -100,18 +98,6 @@ class DriveLink(Protocol):
     def quick_stop(self) -> None: ...
     def disable(self) -> None: ...
     def close(self) -> None: ...
-
-
-class LoadMode(enum.IntEnum):
-    """Load machine modes (Modbus register map in config/od/load-machine-registers.toml).
-
-    Sign convention everywhere: the load torque T_L opposes positive rotation,
-    J*dw/dt = T_e - T_L - B*w.
-    """
-
-    TORQUE = 0      # active: T_L = value, keeps its sign whatever the speed (hanging mass on a drum)
-    VISCOUS = 1     # T_L = value * w, value in N*m/(rad/s) (DC generator into a resistor)
-    BRAKE = 2       # passive: T_L = value * sign(w), zero at standstill (powder brake, friction)
 
 
 @dataclass(frozen=True)

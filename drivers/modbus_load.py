@@ -1,5 +1,5 @@
 """LoadLink to a load machine (dynamometer) over Modbus TCP or Modbus RTU, with pymodbus's sync clients, driven by
-the machine's register map file (drivers.load_map; config/load-machines/).
+the machine's register map file (drivers.contract.load_map; config/load-machines/).
 
 The [load] section: transport "modbus-tcp" (host, port) or "modbus-rtu" (port = device path, pty path or pyserial
 URL; baudrate), map (the machine's register map file), unit_id, timeout_s, retries.
@@ -19,9 +19,12 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 from pymodbus.pdu import ExceptionResponse
 
-from drivers.api import LinkError, LoadFeedback, LoadMode, attempt_all
-from drivers.comm_loss import EXTERNAL_HINT
-from drivers.load_map import LoadMap, LoadMapError, Reg, read_load_map
+from drivers.contract.errors import LinkError
+from drivers.api import attempt_all, LoadFeedback
+from drivers.contract.load_map import LoadMode
+from drivers.contract.comm_loss import EXTERNAL_HINT
+from drivers.contract.load_map import LoadMap, read_load_map, Reg
+from drivers.contract.errors import ContentError
 
 EXCEPTION_TEXT = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
                   4: "server device failure", 6: "server busy", 11: "gateway target failed to respond"}
@@ -46,7 +49,7 @@ class ModbusLoadLink:
         map_path = map_path if map_path.is_absolute() else Path(base_dir) / map_path
         try:
             self.map: LoadMap = read_load_map(map_path)
-        except LoadMapError as exc:
+        except ContentError as exc:
             raise ValueError(f"{map_path}: {exc}") from None
         if self.transport == "modbus-tcp":
             self.host = str(section.get("host", "127.0.0.1"))

@@ -13,7 +13,7 @@ Without [reference]: a drive carrying drivebench's extension reports the simulat
 any other drive has none. A signal the bench cannot measure (true flux on a real rig) is "not measured", and a
 criterion on it is reported as not judged — never a pass.
 
-With source "load" or "none" the drive is not a source of rig truth at all: the signals drivers.signals marks as
+With source "load" or "none" the drive is not a source of rig truth at all: the signals drivers.contract.signals marks as
 `reference` (true speed, position error, true flux, load torque) are never taken from the drive, whatever it offers;
 the load machine gives speed_true_mech_rad_s and torque_load_nm, the rest is not measured. Its readings come at the
 SYNC rate; on a drive with a trace recorder they are interpolated onto the trace's rows (onto_rows).
@@ -27,7 +27,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from drivers.api import LoadFeedback
-from drivers.signals import SIGNALS
+from drivers.contract.signals import SIGNALS
 
 SOURCES = ("load", "drive", "none")
 LOAD_SIGNALS = ("speed_true_mech_rad_s", "torque_load_nm")
@@ -50,7 +50,7 @@ class ReferenceConfig:
         return frozenset(RIG_TRUTH) if self.source in ("load", "none") else frozenset()
 
     def instruments(self, has_load: bool, load_map: Any = None, drive: str = "the drive") -> dict[str, str]:
-        """Which instrument each rig-truth signal comes from, for the record (`load_map`: drivers.load_map.LoadMap)."""
+        """Which instrument each rig-truth signal comes from, for the record (`load_map`: drivers.contract.load_map.LoadMap)."""
         out: dict[str, str] = {}
         for name in RIG_TRUTH:
             if name in self.signals(has_load):

@@ -17,15 +17,16 @@ from typing import Sequence
 import numpy as np
 import serial
 
-from drivers import cia402
-from drivers.api import DriveIdentity, DriveStatus, LinkError, LinkSettings, LiveSample, attempt_all
-from drivers.comm_loss import EXTERNAL_HINT, CommLossConfig
-from drivers.serial_frames import (
+from drivers.contract import cia402
+from drivers.api import attempt_all, DriveIdentity, DriveStatus, LinkSettings, LiveSample
+from drivers.contract.errors import LinkError
+from drivers.contract.comm_loss import EXTERNAL_HINT, CommLossConfig
+from drivers.contract.serial_frames import (
     PROTOCOL_MAJOR, PROTOCOL_MINOR, RESPONSE_FLAG, SAMPLE_HEADER, Cmd, ErrorCode, Frame, FrameDecoder,
     encode_frame, fault_text, unpack_str8,
 )
-from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
-from drivers.trace_format import decode_rows, mask_for, selected_names
+from drivers.contract.signals import SIGNAL_NAMES, TIME_COLUMN
+from drivers.contract.trace_format import decode_rows, mask_for, selected_names
 
 TRIGGER_IMMEDIATE = 0
 MAX_CATCH_UP_SYNCS = 100          # real time: more SYNCs than this behind and the link re-anchors its clock

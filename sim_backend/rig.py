@@ -124,7 +124,7 @@ def _found_running(device: SimulatedDevice, drive: DriveSpec | None) -> None:
     speed = drive.found_running_mech_rad_s if drive is not None else None
     if not speed:
         return
-    from drivers.signals import SIGNAL_NAMES
+    from drivers.contract.signals import SIGNAL_NAMES
 
     with device.lock:
         for word in (0x06, 0x07, 0x0F):
@@ -194,7 +194,7 @@ def _modbus(stack: contextlib.ExitStack, rig: Rig) -> None:
     spec = rig.spec
     regs = None
     if spec.load_map is not None:
-        from drivers.load_map import read_load_map
+        from drivers.contract.load_map import read_load_map
         regs = read_load_map(spec.load_map)
     if spec.modbus == "rtu-pty":
         server = start_modbus_rtu_pty(rig.device, regs=regs)

@@ -17,18 +17,12 @@ import threading
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from bench.errors import InputError
-from drivers.toml_file import TomlFileError, read_toml_file
+from drivers.contract.checks import find_repo_root, resolve_path
+from drivers.contract.errors import ContentError, InputError
+from drivers.contract.toml_file import read_toml_file
 
 if TYPE_CHECKING:
     from sim_backend.rig import RigSpec
-
-
-class ServeError(InputError):
-    """Bad config: one line naming file, field and reason (the bench's input-error family)."""
-
-    def __init__(self, message: str):
-        super().__init__([message])
 
 
 class EndpointDied(RuntimeError):
@@ -41,9 +35,9 @@ def _endpoint(path: Path, serve: dict, key: str) -> tuple[str, int] | None:
         return None
     host, sep, port = str(value).rpartition(":")
     if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
-        raise ServeError(f"{path}: simulator.serve.{key}: expected 'host:port', got {value!r}")
+        raise InputError(f"{path}: simulator.serve.{key}: expected 'host:port', got {value!r}")
     if not _loopback(host):
-        raise ServeError(f"{path}: simulator.serve.{key}: {host} is not a loopback address: the simulator serves "
+        raise InputError(f"{path}: simulator.serve.{key}: {host} is not a loopback address: the simulator serves "
                          f"127.0.0.1 only (no authentication: anyone who reaches the port drives the rig)")
     return host, int(port)
 
@@ -62,8 +56,6 @@ def _loopback(host: str) -> bool:
 def _resolve(path: Path, value: str) -> Path:
     """The bench's own path rule (absolute, else from the repository root, else next to the config); a file that
     is not found comes back as named next to the config, for the error message."""
-    from bench.benchconfig import resolve_path
-    from bench.errors import find_repo_root
 
     found = resolve_path(str(value), find_repo_root(path), also=path.parent)
     return found if found is not None else path.parent / value
@@ -73,14 +65,14 @@ def load_serve_config(config_path: str | Path) -> dict:
     path = Path(config_path)
     try:
         cfg, _ = read_toml_file(path)
-    except TomlFileError as exc:
-        raise ServeError(f"{path}: (file): {exc}") from None
+    except ContentError as exc:
+        raise InputError(f"{path}: (file): {exc}") from None
     sim = cfg.get("simulator")
     if not isinstance(sim, dict) or not sim.get("motor"):
-        raise ServeError(f"{path}: simulator.motor: missing (sim serve needs a motor model)")
+        raise InputError(f"{path}: simulator.motor: missing (sim serve needs a motor model)")
     serve = sim.get("serve")
     if not isinstance(serve, dict):
-        raise ServeError(f"{path}: simulator.serve: missing table of endpoints")
+        raise InputError(f"{path}: simulator.serve: missing table of endpoints")
     drive = cfg.get("drive", {})
     toy = sim["motor"] == "toy"        # sim_backend.toy.ToyDrive: protocol tests without physics
     out = {
@@ -98,13 +90,13 @@ def load_serve_config(config_path: str | Path) -> dict:
         "instruments": _instrument_spec(path, sim),
     }
     if not isinstance(out["one_bench"], bool):
-        raise ServeError(f"{path}: simulator.serve.one_bench: must be true or false, got {out['one_bench']!r}")
+        raise InputError(f"{path}: simulator.serve.one_bench: must be true or false, got {out['one_bench']!r}")
     if not toy and not out["motor"].exists():
-        raise ServeError(f"{path}: simulator.motor: file not found: {sim['motor']!r}")
+        raise InputError(f"{path}: simulator.motor: file not found: {sim['motor']!r}")
     if out["load_map"] is not None and not out["load_map"].exists():
-        raise ServeError(f"{path}: load.map: file not found: {cfg['load']['map']!r}")
+        raise InputError(f"{path}: load.map: file not found: {cfg['load']['map']!r}")
     if not out["eds"].exists():
-        raise ServeError(f"{path}: drive.eds: file not found: {drive.get('eds')!r}")
+        raise InputError(f"{path}: drive.eds: file not found: {drive.get('eds')!r}")
     return out
 
 
@@ -113,7 +105,7 @@ def _drive_spec(path: Path, simulator: dict):
     try:
         return drive_spec(simulator)
     except (RuntimeError, TypeError) as exc:
-        raise ServeError(f"{path}: simulator.drive: {exc}") from None
+        raise InputError(f"{path}: simulator.drive: {exc}") from None
 
 
 def _instrument_spec(path: Path, simulator: dict):
@@ -124,7 +116,7 @@ def _instrument_spec(path: Path, simulator: dict):
     try:
         return InstrumentSpec.from_table(simulator["instruments"], f"{path}: simulator.instruments")
     except RuntimeError as exc:
-        raise ServeError(str(exc)) from None
+        raise InputError(str(exc)) from None
 
 
 def rig_spec(cfg: dict) -> "RigSpec":
@@ -155,7 +147,7 @@ def serve(cfg: dict, stop: threading.Event, out=sys.stdout) -> None:
 def main(config_path: str | Path) -> int:
     try:
         cfg = load_serve_config(config_path)
-    except ServeError as exc:
+    except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     stop = threading.Event()

@@ -11,8 +11,10 @@ from typing import Sequence
 
 import numpy as np
 
-from drivers.api import DriveIdentity, DriveStatus, LinkError, LiveSample, LoadFeedback, LoadMode
-from drivers.signals import SIGNAL_INDEX, TIME_COLUMN
+from drivers.api import DriveIdentity, DriveStatus, LiveSample, LoadFeedback
+from drivers.contract.errors import LinkError
+from drivers.contract.load_map import LoadMode
+from drivers.contract.signals import SIGNAL_INDEX, TIME_COLUMN
 from sim_backend.toy import ToyDrive
 
 

@@ -16,7 +16,7 @@ from bench.benchconfig import BenchConfig, BenchSection
 from bench.criteria import evaluate, verdict
 from bench.records import RunRecorder, load_run
 from bench.scenario import load_scenario
-from drivers.signals import SIGNAL_NAMES
+from drivers.contract.signals import SIGNAL_NAMES
 
 REPO = Path(__file__).resolve().parents[1]
 

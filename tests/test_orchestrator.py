@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 from bench.orchestrator import LIVE_SIGNALS, run_scenario
 from bench.records import RECORD_KEYS, load_run
-from drivers.api import LinkError
+from drivers.contract.errors import LinkError
 from tests.fakes import SAFE_STOP, FakeRig
 
 BENCH = """

@@ -3,7 +3,7 @@
 What the bench gets from a drive:
 - identity (0x1018), device name (0x1008), software version (0x100A) and its drive profile (drivers.canopen.profile):
   which objects give which signals in which units, read from the drive's factor group at connect time;
-- the 402 state machine (drivers.cia402) stepped by SDO — confirmed, and usable whatever state the drive's PDOs are
+- the 402 state machine (drivers.contract.cia402) stepped by SDO — confirmed, and usable whatever state the drive's PDOs are
   in; the target velocity streamed by an RPDO when one carries it (else by SDO), in the drive's velocity unit;
 - live samples from TPDOs sent on SYNC (drivers.canopen.pdo: our mapping where the drive allows it, else the one read
   from the device; the drive's own PDO parameters restored at the end);
@@ -40,19 +40,21 @@ from canopen import objectdictionary
 from canopen.emcy import EmcyError
 from canopen.sdo import SdoAbortedError
 
-from drivers import cia402
-from drivers.api import DriveIdentity, DriveStatus, LinkError, LinkSettings, LiveSample
-from drivers.canopen import objects as o
+from drivers.contract import cia402
+from drivers.api import DriveIdentity, DriveStatus, LinkSettings, LiveSample
+from drivers.contract.errors import LinkError
+from drivers.contract import objects as o
 from drivers.canopen import pdo as pdos
 from drivers.canopen.bus import BusErrorCounter, SocketcandRefusal, bus_kwargs, make_bus, open_bus
 from drivers.canopen.comm_loss import CommLossGuard
 from drivers.canopen import drill as drills
-from drivers.comm_loss import CommLossConfig
-from drivers.canopen.profile import DriveProfile, ProfileConfig, ProfileError, resolve
+from drivers.contract.comm_loss import CommLossConfig
+from drivers.canopen.profile import DriveProfile, ProfileConfig, resolve
+from drivers.contract.errors import ContentError
 from drivers.canopen.sdo import SdoAccess, block_upload
 from drivers.canopen.sync import NativeSync, ReceiveClock, SyncProducer, SyncTimeline, has_native_cyclic
-from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
-from drivers.trace_format import decode_rows, mask_for
+from drivers.contract.signals import SIGNAL_NAMES, TIME_COLUMN
+from drivers.contract.trace_format import decode_rows, mask_for
 
 log = logging.getLogger(__name__)
 
@@ -161,7 +163,7 @@ class CanopenDriveLink:
         name, version = (self._optional_text(index) for index in (o.DEVICE_NAME, o.SOFTWARE_VERSION))
         try:
             self.profile = resolve(self.profile_config, vendor, product, sdo.read_standard, sdo.has)
-        except ProfileError as exc:
+        except ContentError as exc:
             raise LinkError(f"{self.where}: drive profile: {exc}") from None
         has_trace = False
         if self.profile.extension:
@@ -625,7 +627,7 @@ class CanopenDriveLink:
     def sync_producer(self) -> SyncProducer | NativeSync | None:
         return self._sync
 
-    # -- 402 state machine (drivers.cia402; controlword by SDO: confirmed, whatever the PDOs do) -----
+    # -- 402 state machine (drivers.contract.cia402; controlword by SDO: confirmed, whatever the PDOs do) -----
     def _send_rpdo(self) -> None:
         rpdo = self.plan.rpdo if self.plan is not None else None
         if rpdo is None:
