@@ -352,9 +352,8 @@ def probe(bench_path, scan, drill, as_json) -> None:
                     report["nodes"] = scan_bus(section)
                 items = True
             else:
-                from drivers.api import LinkSettings
-                from drivers.serial_link import SerialDriveLink
-                link = SerialDriveLink(dict(section), find_repo_root(bench_path), LinkSettings())
+                from bench.links import make_links
+                link, _ = make_links(live, find_repo_root(bench_path))
                 try:
                     identity = link.open()
                     report = {"bench": cfg.bench.name, "drive": {

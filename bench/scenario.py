@@ -13,11 +13,10 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from bench.benchconfig import (BenchConfig, drive_description, load_bench_config, read_toml_with_bytes,
-                               resolve_path)
+from bench.benchconfig import BenchConfig, drive_description, load_bench_config
 from bench.criteria import CriterionSpec, parse_criteria
+from drivers.contract.checks import Problems, find_repo_root, read_toml_with_bytes, resolve_path
 from drivers.contract.errors import InputError
-from drivers.contract.checks import find_repo_root, Problems
 from bench.load_emulation import EMULABLE, emulable
 from drivers.contract import parameters
 from drivers.contract.load_map import LoadMode

@@ -27,6 +27,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from drivers.api import LoadFeedback
+from drivers.contract.sections import Section, key
 from drivers.contract.signals import SIGNALS
 
 SOURCES = ("load", "drive", "none")
@@ -35,8 +36,11 @@ RIG_TRUTH = tuple(s.name for s in SIGNALS if s.reference)    # what only a rig's
 
 
 @dataclass(frozen=True)
-class ReferenceConfig:
-    source: str | None = None                  # None: not stated (the drive decides)
+class ReferenceConfig(Section):
+    """[reference]: where the bench's true signals come from."""
+
+    SECTION = "reference"
+    source: str | None = key(None, kind="string", required=True, choices=SOURCES)   # None: not stated (the drive decides)
 
     def signals(self, has_load: bool) -> tuple[str, ...]:
         """What the bench itself adds to every sample (the drive's own signals come from its profile)."""
@@ -93,17 +97,3 @@ def onto_rows(t_rows: np.ndarray, readings: Sequence[tuple[float, dict[str, floa
         col[t < tr[0] - 1e-9] = np.nan
         out[name] = col
     return out
-
-
-def check_section(table: Any, has_load: bool) -> tuple[ReferenceConfig | None, list[tuple[str, str]]]:
-    if table is None:
-        return ReferenceConfig(), []
-    if not isinstance(table, dict):
-        return None, [("reference", "must be a table: [reference] source = \"load\" | \"drive\" | \"none\"")]
-    problems = [(f"reference.{key}", "unknown key (allowed: source)") for key in table if key != "source"]
-    source = table.get("source")
-    if source not in SOURCES:
-        problems.append(("reference.source", f"must be one of {', '.join(repr(s) for s in SOURCES)}, got {source!r}"))
-    elif source == "load" and not has_load:
-        problems.append(("reference.source", "'load' needs a load machine ([load]) and this bench has none"))
-    return (None if problems else ReferenceConfig(source)), problems

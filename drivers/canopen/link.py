@@ -31,7 +31,7 @@ import struct
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import can
 import canopen
@@ -45,6 +45,7 @@ from drivers.api import DriveIdentity, DriveStatus, LinkSettings, LiveSample
 from drivers.contract.errors import LinkError
 from drivers.contract import objects as o
 from drivers.canopen import pdo as pdos
+from drivers.canopen.config import CanopenDriveConfig
 from drivers.canopen.bus import BusErrorCounter, SocketcandRefusal, bus_kwargs, make_bus, open_bus
 from drivers.canopen.comm_loss import CommLossGuard
 from drivers.canopen import drill as drills
@@ -68,22 +69,22 @@ VELOCITY_MODES = {"auto": None, "pv": cia402.Mode.PROFILE_VELOCITY, "csv": cia40
 
 
 class CanopenDriveLink:
-    def __init__(self, section: dict, base_dir: Path, settings: LinkSettings):
-        self.section = dict(section)
-        eds = Path(section["eds"])
+    def __init__(self, config: CanopenDriveConfig | Mapping[str, Any], base_dir: Path, settings: LinkSettings):
+        cfg = self.section = CanopenDriveConfig.from_mapping(config)
+        eds = Path(cfg.eds)
         self.eds_path = eds if eds.is_absolute() else Path(base_dir) / eds
-        self.node_id = int(section["node_id"])
-        self.sync_period_s = float(section.get("sync_period_s", 0.001))
-        self.heartbeat_timeout_s = float(section.get("heartbeat_timeout_s", 0.5))
-        self.sdo_timeout_s = float(section.get("sdo_timeout_s", 0.5))
-        self.pdo_policy = section.get("pdo", "auto")
-        self.standstill_mech_rad_s = float(section.get("standstill_mech_rad_s", cia402.STANDSTILL_MECH_RAD_S))
-        self.stop_timeout_s = float(section.get("stop_timeout_s", cia402.STOP_TIMEOUT_S))
-        self.boot_timeout_s = float(section.get("boot_timeout_s", 0.0))
-        self.velocity_mode_choice = str(section.get("velocity_mode", "auto"))
+        self.node_id = int(cfg.node_id)
+        self.sync_period_s = float(cfg.sync_period_s)
+        self.heartbeat_timeout_s = float(cfg.heartbeat_timeout_s)
+        self.sdo_timeout_s = float(cfg.sdo_timeout_s)
+        self.pdo_policy = cfg.pdo
+        self.standstill_mech_rad_s = float(cfg.standstill_mech_rad_s)
+        self.stop_timeout_s = float(cfg.stop_timeout_s)
+        self.boot_timeout_s = float(cfg.boot_timeout_s)
+        self.velocity_mode_choice = str(cfg.velocity_mode)
         self.mode = cia402.Mode.PROFILE_VELOCITY      # what enable_velocity_mode() selected
-        self.profile_config = ProfileConfig.from_section(section)
-        self.comm_loss_config = CommLossConfig.from_section(section)
+        self.profile_config = ProfileConfig.from_section(cfg)
+        self.comm_loss_config = CommLossConfig.from_section(cfg)
         self.timing = settings.timing
         self.fault_reset_policy = settings.fault_reset
         # Waits the drive's SDO timeout does not cover: a lockstep SYNC's TPDOs and the frames inside a running
