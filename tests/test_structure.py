@@ -191,3 +191,15 @@ port = 502
     link, _ = make_links(cfg, REPO)
     assert link.timing == "realtime"
     assert link.fault_reset_policy == "never"
+
+
+def _layer(module: str) -> str:
+    return "contract" if _in_contract(module) else module.split(".")[0]
+
+
+def test_layers_import_only_downwards():
+    """contract <- drivers' clients <- bench; contract <- sim_backend (counting type-only imports)."""
+    allowed = {("drivers", "contract"), ("bench", "contract"), ("bench", "drivers"), ("sim_backend", "contract")}
+    edges = {(_layer(m), _layer(d)) for m, deps in GRAPH_WITH_TYPES.items() for d in deps if _layer(m) != _layer(d)}
+    assert edges <= allowed, sorted(edges - allowed)
+    assert {("bench", "contract"), ("sim_backend", "contract"), ("drivers", "contract")} <= edges
