@@ -48,7 +48,8 @@ class BenchSection(Section):
     plant_injections: bool = key(False, kind="boolean")     # the rig may change the plant (a simulator)
     wire_faults: bool = key(False, kind="boolean")          # the rig may corrupt its own wire (a simulator)
     fault_reset: str = key("once", kind="string", choices=FAULT_RESET_POLICIES)
-    drill_valid_s: float = key(0.0, kind="number", min=0.0, max=86400.0)   # a passed drill holds this long (0: every run)
+    # a passed bench-death drill holds this long in one bench process (0: every run)
+    drill_valid_s: float = key(0.0, kind="number", min=0.0, max=86400.0)
     served_by: str | None = key(None, kind="string")        # a simulator served out of process says how
 
 

@@ -40,7 +40,7 @@ class ReferenceConfig(Section):
     """[reference]: where the bench's true signals come from."""
 
     SECTION = "reference"
-    source: str | None = key(None, kind="string", required=True, choices=SOURCES)   # None: not stated (the drive decides)
+    source: str | None = key(None, kind="string", required=True, choices=SOURCES)   # None: not stated (the drive's)
 
     def signals(self, has_load: bool) -> tuple[str, ...]:
         """What the bench itself adds to every sample (the drive's own signals come from its profile)."""

@@ -212,8 +212,8 @@ def _modbus(stack: contextlib.ExitStack, rig: Rig) -> None:
     stack.callback(stop)
 
 
-def rig_spec(sim: SimulatorConfig, *, seed: int, where: str, transport: str | None = None, eds: str | Path | None = None,
-             node_id: int = 1, load_transport: str | None = None, load_map: str | Path | None = None,
+def rig_spec(sim: SimulatorConfig, *, seed: int, where: str, transport: str | None = None,
+             eds: str | Path | None = None, node_id: int = 1, load_transport: str | None = None, load_map: str | Path | None = None,
              wire_faults: bool = False, serve: SimulatorServeConfig | None = None) -> RigSpec:
     """The one place a rig is described from a bench config's [simulator] (with the [drive], [load] and [bench] keys
     the rig needs): in process (the [services] starter, front ends by the bench's transports) or served

@@ -116,7 +116,8 @@ class Section:
 
 def _kind_text(f: Field) -> str:
     return {"number": "a number", "integer": "an integer", "string": "a string", "boolean": "true or false",
-            "path": "a file path", "table": "a table", "strings": "a list of strings"}.get(f.metadata["kind"], "a value")
+            "path": "a file path", "table": "a table",
+            "strings": "a list of strings"}.get(f.metadata["kind"], "a value")
 
 
 def _type_name(value: Any) -> str:
