@@ -1,72 +1,87 @@
 """Bench config files (config/benches/*.toml): which drive and load machine, over which transport.
 
-The bench reads [bench], [services], [drive] and [load]; [simulator] belongs to sim_backend and is only
-checked for being a table (its `motor` path is resolved like every other path). Relative paths are resolved
-against the repo root (the directory holding pyproject.toml) and rewritten as absolute strings.
+Each section is one typed, frozen object defined once with its defaults: [bench] BenchSection and [services]
+ServicesSection here (the bench's own), [drive] and [load] the config class of their transport
+(drivers.transports: CanopenDriveConfig, SerialDriveConfig, ModbusTcpConfig, ModbusRtuConfig, registered beside their
+link classes), [reference] drivers.reference.ReferenceConfig, [simulator] drivers.contract.simulator.SimulatorConfig
+(read here too, so `validate` refuses what the simulator would). Relative paths are resolved against the repo root
+(the directory holding pyproject.toml) and kept as absolute strings.
 
-load_bench_config() checks the whole file (every problem one `file: field: reason` line) and builds a BenchConfig
-once: [bench] and [services] as typed sections; [drive] and [load] as the checked settings their link classes take
-(the transport's module owns those keys), defaults filled in. A [services] starter receives `as_dict()`.
+load_bench_config() checks the whole file (every problem one `file: field: reason` line, an unknown key refused with
+the allowed ones) and builds a BenchConfig once. A [services] starter receives `as_dict()`, the sections as plain
+tables.
 """
 
 from __future__ import annotations
 
 import functools
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
 
-from bench.errors import InputError, Problems, find_repo_root
 from bench.rig_services import check_service
-from drivers.api import FAULT_RESET_POLICIES, TIMINGS, LinkSettings
-from drivers.canopen.profile import PROFILE_KEYS, check_section, config_keys
-from drivers.comm_loss import EXTERNAL_HINT, STOP_KEYS, check_keys, external_stop_problem
-from drivers.toml_file import TomlFileError, read_toml_file
-from drivers.eds import DeviceDescription, EdsError, read_eds
-from drivers.load_map import LoadMapError, read_load_map
-from drivers.reference import check_section as check_reference
+from drivers.api import LinkSettings, TIMINGS
+from drivers.canopen.profile import check_section, config_keys
+from drivers.contract.checks import Problems, find_repo_root, read_toml
+from drivers.contract.cia402 import FAULT_RESET_POLICIES
+from drivers.contract.comm_loss import EXTERNAL_HINT, check_keys, external_stop_problem
+from drivers.contract.errors import ContentError
+from drivers.contract.load_map import read_load_map
+from drivers.contract.sections import Section, key
+from drivers.contract.simulator import SimulatorConfig
+from drivers.eds import DeviceDescription, read_eds
+from drivers.reference import ReferenceConfig
+from drivers.sections import DriveSection, LoadSection
+from drivers.transports import DRIVE_TRANSPORTS, LOAD_TRANSPORTS
 
-_BENCH_KEYS = {"name", "description", "timing", "plant_injections", "wire_faults", "fault_reset", "drill_valid_s", "served_by"}
-_SERVICES_KEYS = {"start"}
-_LOAD_COMM_LOSS = ("watchdog", "external")
-_DRIVE_COMMON = {"transport", "sync_period_s", "heartbeat_timeout_s", "trace_decimation", "trace_signals", "eds"}
-_DRIVE_KEYS = {
-    "canopen": _DRIVE_COMMON | {"interface", "channel", "bitrate", "node_id", "sdo_timeout_s"} | set(PROFILE_KEYS),
-    "serial": _DRIVE_COMMON | {"port", "baudrate", "timeout_s"} | set(STOP_KEYS),
-}
-_LOAD_COMMON = {"transport", "map", "unit_id", "timeout_s", "comm_loss", "external_stop", "drill_margin_ms"}
-_LOAD_KEYS = {
-    "modbus-tcp": _LOAD_COMMON | {"host", "port"},
-    "modbus-rtu": _LOAD_COMMON | {"port", "baudrate"},
-}
-_TOP_KEYS = {"bench", "services", "drive", "load", "reference", "simulator"}
+_TOP_KEYS = ("bench", "services", "drive", "load", "reference", "simulator")
 
 
 @dataclass(frozen=True)
-class BenchSection:
+class BenchSection(Section):
     """[bench]: what the bench itself decides, whatever the transport."""
-    name: str
-    description: str = ""
-    timing: str = "lockstep"            # drivers.api.TIMINGS
-    plant_injections: bool = False      # the rig may change the plant (a simulator)
-    wire_faults: bool = False           # the rig may corrupt its own wire (a simulator)
-    fault_reset: str = "once"           # drivers.api.FAULT_RESET_POLICIES
-    drill_valid_s: float = 0.0          # a passed bench-death drill holds this long in one bench process (0: every run)
+
+    SECTION = "bench"
+    name: str = key(None, kind="string", required=True)
+    description: str = key("", kind="string")
+    timing: str = key("lockstep", kind="string", choices=TIMINGS)   # default on a file: see load_bench_config
+    plant_injections: bool = key(False, kind="boolean")     # the rig may change the plant (a simulator)
+    wire_faults: bool = key(False, kind="boolean")          # the rig may corrupt its own wire (a simulator)
+    fault_reset: str = key("once", kind="string", choices=FAULT_RESET_POLICIES)
+    # a passed bench-death drill holds this long in one bench process (0: every run)
+    drill_valid_s: float = key(0.0, kind="number", min=0.0, max=86400.0)
+    served_by: str | None = key(None, kind="string")        # a simulator served out of process says how
+
+
+@dataclass(frozen=True)
+class ServicesSection(Section):
+    """[services]: what starts a simulated rig with the run (a registered starter); a real rig has none."""
+
+    SECTION = "services"
+    start: str | None = key(None, kind="string", check=check_service)
 
 
 @dataclass(frozen=True)
 class BenchConfig:
     path: str                                   # the config file, absolute
     bench: BenchSection
-    drive: Mapping[str, Any]                    # [drive]: the drive link's settings
-    load: Mapping[str, Any] = field(default_factory=dict)     # [load]: empty on a free shaft
-    services_start: str | None = None           # [services] start: a simulated rig's starter; None on a real rig
-    reference_source: str | None = None         # [reference] source
-    simulator: Mapping[str, Any] | None = None  # [simulator], for sim_backend
+    drive: Mapping[str, Any]                    # [drive]: a DriveSection of its transport
+    load: Mapping[str, Any] = field(default_factory=dict)     # [load]: a LoadSection; empty on a free shaft
+    services: ServicesSection = field(default_factory=ServicesSection)
+    reference: ReferenceConfig = field(default_factory=ReferenceConfig)
+    simulator: SimulatorConfig | None = None
+
+    @property
+    def services_start(self) -> str | None:
+        return self.services.start
+
+    @property
+    def reference_source(self) -> str | None:
+        return self.reference.source
 
     def as_dict(self) -> dict[str, Any]:
         """The plain layout a [services] starter receives (its contract: sections as tables, "_path")."""
-        out: dict[str, Any] = {"_path": self.path, "bench": asdict(self.bench),
+        out: dict[str, Any] = {"_path": self.path, "bench": dict(self.bench.items()),
                                "services": {"start": self.services_start}, "drive": dict(self.drive),
                                "load": dict(self.load), "reference": {"source": self.reference_source}}
         if self.simulator is not None:
@@ -78,8 +93,16 @@ class BenchConfig:
         unknown = set(overrides) - {"drive", "load"}
         if unknown:
             raise ValueError(f"a [services] starter may override drive and load only, not {sorted(unknown)}")
-        return replace(self, drive={**self.drive, **(overrides.get("drive") or {})},
-                       load={**self.load, **(overrides.get("load") or {})})
+        return replace(self, drive=_overridden(self.drive, overrides.get("drive")),
+                       load=_overridden(self.load, overrides.get("load")))
+
+
+def _overridden(section: Mapping[str, Any], values: Mapping[str, Any] | None) -> Mapping[str, Any]:
+    if not values:
+        return section
+    if isinstance(section, Section):
+        return replace(section, **values)
+    return {**section, **values}
 
 
 # What `drivebench probe` finds out itself (a lab's first step, with only interface, channel and node id known): a
@@ -97,30 +120,17 @@ def load_bench_config(path: str | Path, for_probe: bool = False) -> BenchConfig:
     root = find_repo_root(path)
     problems.unknown_keys(raw, _TOP_KEYS, "")
 
-    bench = problems.table(raw, "bench", "") or {}
-    problems.unknown_keys(bench, _BENCH_KEYS, "bench")
-    section = BenchSection(
-        name=problems.string(bench, "name", "bench"),
-        description=problems.string(bench, "description", "bench", required=False, default=""),
-        # a config without [services] drives a rig (or a served simulator, which says so): real time by default
-        timing=problems.string(bench, "timing", "bench", required=False, choices=TIMINGS,
-                               default="lockstep" if "services" in raw or bench.get("served_by") else "realtime"),
-        plant_injections=problems.boolean(bench, "plant_injections", "bench", required=False, default=False),
-        wire_faults=problems.boolean(bench, "wire_faults", "bench", required=False, default=False),
-        fault_reset=problems.string(bench, "fault_reset", "bench", required=False, default="once",
-                                    choices=FAULT_RESET_POLICIES),
-        drill_valid_s=_drill_valid(problems, bench),
-    )
+    table = problems.table(raw, "bench", "") or {}
+    # a config without [services] drives a rig (or a served simulator, which says so): real time by default
+    simulated = "services" in raw or bool(table.get("served_by"))
+    section = BenchSection.read(table, problems)
+    if section is not None and "timing" not in table:
+        section = replace(section, timing="lockstep" if simulated else "realtime")
 
-    services = problems.table(raw, "services", "", required=False) or {}
-    problems.unknown_keys(services, _SERVICES_KEYS, "services")
-    start = problems.string(services, "start", "services", required=False)
-    if start is not None:
-        reason = check_service(start)
-        if reason:
-            problems.add("services.start", reason)
-    served_by = problems.string(bench, "served_by", "bench", required=False)
-    if section.timing == "lockstep" and start is None and not (served_by or "").strip():
+    services = ServicesSection.read(problems.table(raw, "services", "", required=False) or {}, problems)
+    start = services.start if services else None
+    if section is not None and section.timing == "lockstep" and start is None and \
+            not (section.served_by or "").strip():
         # the simulator advances only on the bench's SYNC: on a drive with its own clock the verdict would depend
         # on how fast the host happens to be
         problems.add("bench.timing", '"lockstep" is for simulators only (they advance on the bench\'s SYNC) and this '
@@ -129,36 +139,25 @@ def load_bench_config(path: str | Path, for_probe: bool = False) -> BenchConfig:
 
     drive = _drive(problems, problems.table(raw, "drive", ""), root)
     load = _load(problems, problems.table(raw, "load", "", required=False), root)
-    reference, reference_problems = check_reference(raw.get("reference"), bool(load))
-    for field_, reason in reference_problems:
-        problems.add(field_, reason)
+    reference = _reference(problems, raw.get("reference"), bool(load))
 
-    simulator = problems.table(raw, "simulator", "", required=False)
-    if simulator is not None:
-        simulator = dict(simulator)
-        if "motor" in simulator:
-            motor = problems.string(simulator, "motor", "simulator")
-            simulator["motor"] = _existing_path(problems, "simulator.motor", motor, root) if motor else None
+    simulator = None
+    sim_table = problems.table(raw, "simulator", "", required=False)
+    if sim_table is not None:
+        simulator = SimulatorConfig.read(sim_table, problems, root=root)
     if for_probe:
         problems.lines = [line for line in problems.lines if not _probe_tells(line, problems.file)]
     problems.raise_if_any()
-    return BenchConfig(path=str(path.resolve()), bench=section, drive=drive, load=load, services_start=start,
-                       reference_source=reference.source if reference else None,
+    return BenchConfig(path=str(path.resolve()), bench=section, drive=drive, load=load,
+                       services=services or ServicesSection(), reference=reference or ReferenceConfig(),
                        simulator=simulator)
 
 
 def _probe_tells(line: str, file: str) -> bool:
-    for key in PROBE_TELLS:
-        if line.startswith(f"{file}: {key}:"):
-            return key != "load.map" or "no communication watchdog" in line
+    for told in PROBE_TELLS:
+        if line.startswith(f"{file}: {told}:"):
+            return told != "load.map" or "no communication watchdog" in line
     return False
-
-
-def _drill_valid(problems: Problems, bench: dict) -> float:
-    value = problems.number(bench, "drill_valid_s", "bench", required=False, default=0.0, min_value=0.0)
-    if value is not None and not value <= 86400:
-        problems.add("bench.drill_valid_s", f"must be at most 86400 s (a day), got {value!r}")
-    return float(value or 0.0)
 
 
 def link_settings(cfg: BenchConfig) -> LinkSettings:
@@ -177,7 +176,7 @@ def measurable_signals(cfg: BenchConfig) -> frozenset[str]:
     the drive's (from its EDS, profile and [drive] signals) and the reference sensor's."""
     from drivers.canopen.profile import static_measurable
     from drivers.reference import ReferenceConfig
-    from drivers.signals import SIGNAL_NAMES
+    from drivers.contract.signals import SIGNAL_NAMES
 
     drive = cfg.drive
     description = drive_description(cfg)
@@ -201,152 +200,82 @@ def _read_eds_cached(path: str, size: int, mtime_ns: int) -> DeviceDescription:
     return read_eds(path)
 
 
-def read_toml(path: Path) -> dict[str, Any]:
-    return read_toml_with_bytes(path)[0]
-
-
-def read_toml_with_bytes(path: Path) -> tuple[dict[str, Any], bytes]:
-    try:
-        return read_toml_file(path)
-    except TomlFileError as exc:
-        raise InputError([f"{path}: (file): {exc}"]) from None
-
-
-def resolve_path(value: str, root: Path, also: Path | None = None) -> Path | None:
-    """An existing file for `value`: absolute, else under the repo root, else under `also`."""
-    if not value.strip():
+def _reference(problems: Problems, table: Any, has_load: bool) -> ReferenceConfig | None:
+    if table is None:
+        return ReferenceConfig()
+    if not isinstance(table, dict):
+        problems.add("reference", "must be a table: [reference] source = \"load\" | \"drive\" | \"none\"")
         return None
-    try:
-        p = Path(value).expanduser()
-        if p.is_absolute():
-            return p if p.is_file() else None
-        for base in (root, also):
-            if base is not None and (base / p).is_file():
-                return (base / p).resolve()
-    except (OSError, ValueError, RuntimeError):   # a name too long for the file system, no such user (~x)
+    reference = ReferenceConfig.read(table, problems)
+    if reference is not None and reference.source == "load" and not has_load:
+        problems.add("reference.source", "'load' needs a load machine ([load]) and this bench has none")
         return None
-    return None
+    return reference
 
 
-def _existing_path(problems: Problems, field: str, value: str, root: Path) -> str | None:
-    found = resolve_path(value, root)
-    if found is None:
-        problems.add(field, f"file not found: {value!r} (relative paths are taken from the repo root {root})")
-        return None
-    return str(found)
+def _transport(problems: Problems, table: dict, where: str, registry: dict) -> Any:
+    name = problems.string(table, "transport", where, choices=tuple(registry))
+    return registry[name].config if name is not None else None
 
 
-def _drive(problems: Problems, drive: dict | None, root: Path) -> dict[str, Any]:
+def _drive(problems: Problems, drive: dict | None, root: Path) -> DriveSection | dict:
     if drive is None:
         return {}
-    w = "drive"
-    transport = problems.string(drive, "transport", w, choices=tuple(_DRIVE_KEYS))
-    if transport is not None:
-        problems.unknown_keys(drive, _DRIVE_KEYS[transport], w)
-    out: dict[str, Any] = {
-        "transport": transport,
-        "sync_period_s": problems.number(drive, "sync_period_s", w, required=False, default=0.001, positive=True),
-        "heartbeat_timeout_s": problems.number(drive, "heartbeat_timeout_s", w, required=False, default=0.5,
-                                               positive=True),
-        "trace_decimation": problems.integer(drive, "trace_decimation", w, required=False, default=1, min_value=1),
-        "trace_signals": _signal_list(problems, drive, "trace_signals", w),
-    }
-    if transport == "canopen":
-        out["interface"] = problems.string(drive, "interface", w)
-        channel = drive.get("channel")
-        if isinstance(channel, int) and not isinstance(channel, bool):
-            out["channel"] = channel                  # python-can interfaces number their channels (pcan, kvaser)
-        else:
-            out["channel"] = problems.string(drive, "channel", w)
-        out["bitrate"] = problems.integer(drive, "bitrate", w, required=False, default=1_000_000, min_value=1)
-        out["node_id"] = problems.integer(drive, "node_id", w, min_value=1, max_value=127)
-        out["sdo_timeout_s"] = problems.number(drive, "sdo_timeout_s", w, required=False, default=0.5, positive=True)
-    if transport in _DRIVE_KEYS:
-        # CANopen: the object dictionary the link loads. Serial: optional, the drive's description (which
-        # parameters it offers), since the serial protocol has no file of its own.
-        eds = problems.string(drive, "eds", w, required=transport == "canopen")
-        out["eds"] = _existing_path(problems, "drive.eds", eds, root) if eds else None
-        if out["eds"]:
+    cls = _transport(problems, drive, "drive", DRIVE_TRANSPORTS)
+    if cls is None:
+        return {}
+    section = cls.read(drive, problems, root=root)
+    keys: dict[str, Any] = {}
+    if drive["transport"] == "canopen":
+        keys, key_problems = config_keys(drive)
+        eds = section.eds if section is not None else None
+        if eds:
             try:
-                description = _read_eds_cached(out["eds"], *_stamp(out["eds"]))
-            except (EdsError, OSError) as exc:
-                problems.add("drive.eds", f"{eds}: {exc}")
-                out["eds"] = None
+                description = _read_eds_cached(eds, *_stamp(eds))
+            except (ContentError, OSError) as exc:
+                problems.add("drive.eds", f"{drive.get('eds')}: {exc}")
             else:
-                if transport == "canopen":
-                    keys, key_problems = config_keys(drive)
-                    out.update(keys)
-                    for field_, reason in key_problems + check_section(
-                            drive, description.has, description.drivebench_kind is not None):
-                        problems.add(field_, reason)
-    if transport == "serial":
+                key_problems += check_section(drive, description.has, description.drivebench_kind is not None)
+    else:
         keys, key_problems = check_keys(drive)
-        out.update(keys)
-        for field_, reason in key_problems:
-            problems.add(field_, reason)
-        out["port"] = problems.string(drive, "port", w)
-        out["baudrate"] = problems.integer(drive, "baudrate", w, required=False, default=115200, min_value=1)
-        out["timeout_s"] = problems.number(drive, "timeout_s", w, required=False, default=0.5, positive=True)
-    return out
+        if section is not None and section.eds:
+            try:
+                _read_eds_cached(section.eds, *_stamp(section.eds))
+            except (ContentError, OSError) as exc:
+                problems.add("drive.eds", f"{drive.get('eds')}: {exc}")
+    for field_, reason in key_problems:
+        problems.add(field_, reason)
+    if section is None:
+        return {}
+    if keys.get("gear_ratio"):
+        keys["gear_ratio"] = tuple(keys["gear_ratio"])
+    if section.trace_signals is not None:
+        keys["trace_signals"] = tuple(section.trace_signals)
+    return replace(section, **keys)
 
 
-def _signal_list(problems: Problems, table: dict, key: str, where: str) -> tuple[str, ...] | None:
-    """An optional list of signal names from drivers.signals; None when absent."""
-    from drivers.signals import SIGNAL_NAMES
-
-    if key not in table:
-        return None
-    value = table[key]
-    if not isinstance(value, list) or not value or not all(isinstance(v, str) for v in value):
-        problems.add(f"{where}.{key}", "must be a non-empty list of signal names")
-        return None
-    unknown = [v for v in value if v not in SIGNAL_NAMES]
-    if unknown:
-        problems.add(f"{where}.{key}", f"unknown signal(s) {', '.join(unknown)}; known: {', '.join(SIGNAL_NAMES)}")
-        return None
-    return tuple(value)
-
-
-def _load(problems: Problems, load: dict | None, root: Path) -> dict[str, Any]:
+def _load(problems: Problems, load: dict | None, root: Path) -> LoadSection | dict:
     """[load] is optional: a rig without a load machine (free shaft) has none."""
     if load is None:
         return {}
-    w = "load"
-    transport = problems.string(load, "transport", w, choices=tuple(_LOAD_KEYS))
-    if transport is not None:
-        problems.unknown_keys(load, _LOAD_KEYS[transport], w)
-    map_name = problems.string(load, "map", w)
-    map_path = _existing_path(problems, "load.map", map_name, root) if map_name else None
-    if map_path:
+    cls = _transport(problems, load, "load", LOAD_TRANSPORTS)
+    if cls is None:
+        return {}
+    section = cls.read(load, problems, root=root)
+    map_name = load.get("map")
+    load_map = None
+    if section is not None:
         try:
-            read_load_map(map_path)
-        except LoadMapError as exc:
+            load_map = read_load_map(section.map)
+        except ContentError as exc:
             for field_, reason in exc.problems:
                 problems.add("load.map", f"{map_name}: {field_}: {reason}")
-            map_path = None
-    out: dict[str, Any] = {
-        "transport": transport,
-        "map": map_path,
-        "unit_id": problems.integer(load, "unit_id", w, required=False, default=1, min_value=0, max_value=247),
-        "timeout_s": problems.number(load, "timeout_s", w, required=False, default=0.5, positive=True),
-        "comm_loss": problems.string(load, "comm_loss", w, required=False, default="watchdog",
-                                     choices=_LOAD_COMM_LOSS),
-    }
+            section = None
     problem = external_stop_problem(load, "load")
     if problem is not None:
         problems.add(*problem)
-    elif out["comm_loss"] == "external":
-        out["external_stop"] = load["external_stop"]
-    if "drill_margin_ms" in load:
-        out["drill_margin_ms"] = problems.integer(load, "drill_margin_ms", w, min_value=10, max_value=10000)
-    if map_path and out["comm_loss"] == "watchdog" and not read_load_map(map_path).watchdog_timeout_ms:
+    if load_map is not None and section.comm_loss == "watchdog" and not load_map.watchdog_timeout_ms:
         problems.add("load.map", f"{map_name}: no communication watchdog register: the machine keeps its torque when "
                                  f"the bench dies; add it to the map, or where the rig stops the machine by other "
                                  f"means write [load] {EXTERNAL_HINT}")
-    if transport == "modbus-tcp":
-        out["host"] = problems.string(load, "host", w)
-        out["port"] = problems.integer(load, "port", w, min_value=0, max_value=65535)
-    elif transport == "modbus-rtu":
-        out["port"] = problems.string(load, "port", w)
-        out["baudrate"] = problems.integer(load, "baudrate", w, required=False, default=19200, min_value=1)
-    return out
+    return section if section is not None else {}

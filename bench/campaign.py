@@ -7,7 +7,7 @@ A campaign file (TOML):
     name = "paper-seeds"
     scenarios = ["scenarios/pmsm/fig08-20rads-rs-step.toml"]   # from the repository root, or next to this file
     seeds = { from = 1, count = 20 }                             # or a list: seeds = [1, 2, 3]
-    [[axis]]                                                     # optional: a parameter of drivers/parameters.py,
+    [[axis]]                                                     # optional: a parameter of drivers/contract/parameters.py,
     parameter = "plant_rs"                                       # injected at t = 0 s of every point
     values = [0.8, 1.0, 1.2]                                     # a grid ...
     # low = 0.8, high = 1.2                                      # ... or a range, sampled by [sampling]
@@ -33,8 +33,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from bench.errors import InputError, Problems, find_repo_root
-from drivers.toml_file import TomlFileError, read_toml_file
+from drivers.contract.errors import InputError
+from drivers.contract.checks import find_repo_root, Problems
+from drivers.contract.errors import ContentError
+from drivers.contract.toml_file import read_toml_file
 
 if TYPE_CHECKING:
     from bench.prepared import PreparedRun
@@ -100,7 +102,7 @@ def load_campaign(path: str | Path) -> Campaign:
     path = Path(path)
     try:
         raw, _ = read_toml_file(path)
-    except TomlFileError as exc:
+    except ContentError as exc:
         raise InputError([f"{path}: (file): {exc}"]) from None
     p = Problems(path)
     p.unknown_keys(raw, _TOP_KEYS, "")
@@ -175,7 +177,7 @@ def _seeds(p: Problems, raw: dict) -> list[int]:
 
 
 def _axes(p: Problems, raw: dict) -> list[Axis]:
-    from drivers import parameters
+    from drivers.contract import parameters
 
     tables = raw.get("axis", [])
     if not isinstance(tables, list) or not all(isinstance(t, dict) for t in tables):
@@ -187,7 +189,7 @@ def _axes(p: Problems, raw: dict) -> list[Axis]:
         p.unknown_keys(table, {"parameter", "values", "low", "high"}, where)
         name = p.string(table, "parameter", where)
         if name is not None and parameters.lookup(name) is None:
-            p.add(f"{where}.parameter", f"unknown parameter {name!r} (drivers/parameters.py lists them)")
+            p.add(f"{where}.parameter", f"unknown parameter {name!r} (drivers/contract/parameters.py lists them)")
             name = None
         values = table.get("values")
         if values is not None:

@@ -24,9 +24,9 @@ RESULTS_PARQUET = "results.parquet"
 
 def run_point(point: dict[str, Any], out_root: str) -> dict[str, Any]:
     """One point through the bench path of `drivebench run` (in a worker process). A row for results.parquet."""
-    from bench.errors import InputError
+    from drivers.contract.errors import InputError
     from bench.orchestrator import run_scenario
-    from drivers.api import LinkError
+    from drivers.contract.errors import LinkError
 
     started = time.perf_counter()
     row: dict[str, Any] = {"point_id": point["point_id"], "scenario": point["source"], "seed": point["seed"],
@@ -163,7 +163,7 @@ def _check_ray_address(address: str) -> None:
     """ray.init() waits minutes for a cluster that is not there: a dead or wrong --address is one line at once."""
     import socket
 
-    from bench.errors import InputError
+    from drivers.contract.errors import InputError
 
     host, sep, port = address.removeprefix("ray://").rpartition(":")
     if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
@@ -178,7 +178,7 @@ def _run_ray(todo: list[Point], runs_dir: str, address: str | None, record: Call
     try:
         import ray
     except ImportError:
-        from bench.errors import InputError
+        from drivers.contract.errors import InputError
         raise InputError(["--engine ray: ray is not installed (pip install -e \".[ray]\")"]) from None
     if address not in (None, "auto", "local"):
         _check_ray_address(address)

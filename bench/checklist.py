@@ -9,8 +9,8 @@ from typing import Any
 
 from canopen.emcy import EmcyError
 
-from drivers.comm_loss import EXTERNAL_HINT
-from drivers.load_map import read_load_map
+from drivers.contract.comm_loss import EXTERNAL_HINT
+from drivers.contract.load_map import read_load_map
 
 PV, CSV = "profile_velocity", "cyclic_sync_velocity"
 SYNC_TYPES = range(1, 241)

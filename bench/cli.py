@@ -13,18 +13,18 @@ import os
 import re
 import sys
 import tomllib
-import traceback
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Iterable
 
 import click
 from rich.console import Console
 from rich.table import Table
 
-from bench.errors import InputError, find_repo_root
-from drivers.api import LinkError
+from drivers.contract.checks import find_repo_root
+from drivers.contract.errors import InputError, LinkError
+from drivers.contract.exits import EXIT_ERROR, EXIT_FAIL, EXIT_PASS
+from drivers.contract.exits import fail as _fail, guarded as _guarded, problem_lines as _problem_lines
 
-EXIT_PASS, EXIT_FAIL, EXIT_ERROR = 0, 1, 2
 PROGRESS_MIN_DURATION_S = 3.0   # show a progress bar for scenarios at least this long (drive time)
 URL_RE = re.compile(r"^(rerun(\+https?)?|https?)://")
 
@@ -41,43 +41,6 @@ err_console = make_console(stderr=True)
 def _out_console(as_json: bool) -> Console:
     # with --json, stdout carries JSON documents only; tables go to stderr
     return err_console if as_json else make_console()
-
-
-def _bad_input_types() -> tuple[type[BaseException], ...]:
-    return (InputError, FileNotFoundError, tomllib.TOMLDecodeError, LinkError)
-
-
-def _problem_lines(exc: BaseException) -> list[str]:
-    if isinstance(exc, InputError):
-        return exc.problems or [str(exc)]
-    if isinstance(exc, FileNotFoundError):
-        return [f"{exc.filename}: (file): not found"]
-    if isinstance(exc, tomllib.TOMLDecodeError):
-        return [f"not valid TOML: {exc}"]
-    if isinstance(exc, LinkError):
-        return [f"cannot connect: {exc}"]
-    if isinstance(exc, _bad_input_types()):
-        return [str(exc)]
-    return [f"{type(exc).__name__}: {exc}"]
-
-
-def _fail(exc: BaseException) -> int:
-    """One line per problem on stderr; a bug (not bad input) also gets a hint how to see its traceback."""
-    for line in _problem_lines(exc):
-        click.echo(line, err=True)
-    if not isinstance(exc, _bad_input_types()):
-        if os.environ.get("DRIVEBENCH_DEBUG"):
-            traceback.print_exc()
-        else:
-            click.echo("(set DRIVEBENCH_DEBUG=1 to see the traceback)", err=True)
-    return EXIT_ERROR
-
-
-def _guarded(fn: Callable[[], int]) -> int:
-    try:
-        return fn()
-    except Exception as exc:
-        return _fail(exc)
 
 
 def _fmt(value: Any) -> str:
@@ -391,9 +354,8 @@ def probe(bench_path, scan, drill, as_json) -> None:
                     report["nodes"] = scan_bus(section)
                 items = True
             else:
-                from drivers.api import LinkSettings
-                from drivers.serial_link import SerialDriveLink
-                link = SerialDriveLink(dict(section), find_repo_root(bench_path), LinkSettings())
+                from bench.links import make_links
+                link, _ = make_links(live, find_repo_root(bench_path))
                 try:
                     identity = link.open()
                     report = {"bench": cfg.bench.name, "drive": {
@@ -548,21 +510,6 @@ def evaluate_cmd(run_dir, scenario_path, as_json) -> None:
         return verdict_exit_code([new_verdict])
 
     sys.exit(_guarded(body))
-
-
-def _json_default(value: Any) -> Any:
-    try:
-        import numpy as np
-
-        if isinstance(value, np.ndarray):
-            return value.tolist()
-        if isinstance(value, np.generic):
-            return value.item()
-    except ImportError:
-        pass
-    if isinstance(value, complex):
-        return [value.real, value.imag]
-    return str(value)
 
 
 @cli.command()

@@ -12,7 +12,7 @@ import numpy as np
 
 from bench.criteria import is_angle, wrap_angle
 from bench.run_files import load_run
-from drivers.signals import SIGNALS
+from drivers.contract.signals import SIGNALS
 
 IDENTITY: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("scenario", ("scenario", "name")), ("scenario sha256", ("scenario", "sha256")), ("seed", ("seed",)),

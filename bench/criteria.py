@@ -19,8 +19,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from bench.errors import Problems
-from drivers.signals import SIGNAL_NAMES
+from drivers.contract.checks import Problems
+from drivers.contract.signals import SIGNAL_NAMES
 
 
 @dataclass(frozen=True)
@@ -572,9 +572,9 @@ def evaluate(specs, t_s: np.ndarray, columns: dict[str, np.ndarray], *, measured
 
 
 def unit_of(spec: CriterionSpec) -> str:
-    """The unit of a criterion's value and limit: its kind's ("%", "s", "rad"), or its signal's (drivers.signals),
+    """The unit of a criterion's value and limit: its kind's ("%", "s", "rad"), or its signal's (drivers.contract.signals),
     or "%" for a kind that judges in percent when asked (`percent = true`)."""
-    from drivers.signals import SIGNALS
+    from drivers.contract.signals import SIGNALS
 
     kind = KINDS.get(spec.kind)
     if kind is None:

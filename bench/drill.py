@@ -15,8 +15,8 @@ import time
 from datetime import datetime, timezone
 from typing import Any
 
-from drivers.api import LinkError
-from drivers.comm_loss import EXTERNAL_HINT
+from drivers.contract.errors import LinkError
+from drivers.contract.comm_loss import EXTERNAL_HINT
 
 UNVERIFIED = "unverified comm-loss reaction"
 LOAD_JOIN_MARGIN_S = 10.0     # the load drill's own wait is its watchdog time plus margin; this bounds the rest

@@ -3,7 +3,7 @@
 - mf4: ASAM MDF 4.10 through asammdf (what asammdf, CANape, INCA and DIAdem read): one channel group, the drive
   clock `t_s` as the master channel, one channel per signal the run measured (a signal that is NaN throughout, not
   measured on that bench, is left out and named in the file comment), units and descriptions from
-  drivers/signals.py, the run's identity in the header comment and record.json attached (embedded), so the file
+  drivers/contract/signals.py, the run's identity in the header comment and record.json attached (embedded), so the file
   carries its verdict.
 - csv: `t_s` and one column per measured signal (names carry their units), through pyarrow's CSV writer; empty
   cells where a sample is missing.
@@ -17,9 +17,9 @@ from xml.sax.saxutils import escape
 
 import numpy as np
 
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 from bench.run_files import load_run
-from drivers.signals import SIGNALS
+from drivers.contract.signals import SIGNALS
 
 FORMATS = ("mf4", "csv")
 

@@ -1,7 +1,8 @@
 """From a bench config to link objects: transport name -> class, and the optional [services] starter.
 
-Drive links are constructed as `Class(section, base_dir, settings)` with the config's [drive] table and the bench's
-own LinkSettings ([bench] timing and fault_reset); load links as `Class(section, base_dir)` with [load].
+The transports and their config classes are registered in drivers.transports. Drive links are constructed as
+`Class(config, base_dir, settings)` with the typed [drive] section and the bench's own LinkSettings ([bench] timing
+and fault_reset); load links as `Class(config, base_dir)` with the typed [load] section.
 A service is `module:function`, called as `function(bench_cfg.as_dict(), seed)`; it is a context manager that
 yields endpoint overrides {"drive": {...}, "load": {...}} merged into the config before connecting.
 """
@@ -11,21 +12,12 @@ from __future__ import annotations
 import contextlib
 import importlib
 from pathlib import Path
-from typing import Any, Callable, ContextManager, Iterator, Mapping
+from typing import Any, ContextManager, Iterator, Mapping
 
 from bench.benchconfig import BenchConfig, link_settings
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 from bench.rig_services import registered_service
-
-DRIVE_TRANSPORTS: dict[str, str] = {
-    "canopen": "drivers.canopen.link:CanopenDriveLink",
-    "serial": "drivers.serial_link:SerialDriveLink",
-}
-LOAD_TRANSPORTS: dict[str, str] = {
-    "modbus-tcp": "drivers.modbus_load:ModbusLoadLink",
-    "modbus-rtu": "drivers.modbus_load:ModbusLoadLink",
-}
-
+from drivers.transports import DRIVE_TRANSPORTS, LOAD_TRANSPORTS, Transport
 
 def import_object(spec: str, what: str) -> Any:
     """`package.module:name` -> the object; InputError naming `what` if it cannot be imported."""
@@ -40,23 +32,23 @@ def import_object(spec: str, what: str) -> Any:
         raise InputError([f"{what}: module {module_name!r} has no {attr!r}"]) from None
 
 
-def _link_class(section: Mapping[str, Any], table: dict[str, str], where: str, cfg_path: str) -> Callable:
+def _transport(section: Mapping[str, Any], registry: dict[str, Transport], where: str, cfg_path: str) -> Transport:
     transport = section.get("transport")
-    spec = table.get(transport)
-    if spec is None:
+    if transport not in registry:
         raise InputError([f"{cfg_path}: {where}.transport: unknown transport {transport!r} "
-                          f"(known: {', '.join(table)})"])
-    return import_object(spec, f"{cfg_path}: {where}.transport {transport!r}")
+                          f"(known: {', '.join(registry)})"])
+    return registry[transport]
 
 
 def make_links(cfg: BenchConfig, base_dir: Path) -> tuple[Any, Any]:
-    """(drive link, load link or None for a rig without a load machine), constructed but not opened."""
-    drive_cls = _link_class(cfg.drive, DRIVE_TRANSPORTS, "drive", cfg.path)
-    drive = drive_cls(dict(cfg.drive), base_dir, link_settings(cfg))
+    """(drive link, load link or None for a rig without a load machine), constructed but not opened: the one way
+    `run`, `probe`, the drill, the service's runs and campaign points get their links."""
+    transport = _transport(cfg.drive, DRIVE_TRANSPORTS, "drive", cfg.path)
+    drive = transport.link_class()(transport.config.from_mapping(cfg.drive), base_dir, link_settings(cfg))
     if not cfg.load:
         return drive, None
-    load_cls = _link_class(cfg.load, LOAD_TRANSPORTS, "load", cfg.path)
-    return drive, load_cls(dict(cfg.load), base_dir)
+    transport = _transport(cfg.load, LOAD_TRANSPORTS, "load", cfg.path)
+    return drive, transport.link_class()(transport.config.from_mapping(cfg.load), base_dir)
 
 
 @contextlib.contextmanager

@@ -1,7 +1,7 @@
 """Loads a torque-controlled dynamometer lacks, emulated by the bench from the measured shaft speed.
 
 A lab's dynamometer in torque mode has no brake or viscous mode (its register map lists the modes it has,
-drivers.load_map). Where the bench measures the shaft's speed itself (`[reference] source = "load"`: the
+drivers.contract.load_map). Where the bench measures the shaft's speed itself (`[reference] source = "load"`: the
 dynamometer's encoder, read with every SYNC), it emulates them: at every SYNC it reads the speed, computes the load
 torque the missing mode would give and sends it as a torque setpoint, held until the next SYNC. A crane is an active
 torque (m g r) and needs no emulation. Where the machine has the mode natively (drivebench's simulated dynamometer),
@@ -25,8 +25,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Iterable
 
-from drivers.api import LoadMode
-from drivers.load_map import read_load_map
+from drivers.contract.load_map import LoadMode
+from drivers.contract.load_map import read_load_map
 
 BRAKE_BAND_MECH_RAD_S = 0.5      # |w| below this: the emulated brake's torque is linear in w (see the docstring)
 EMULABLE = (LoadMode.VISCOUS, LoadMode.BRAKE)

@@ -18,7 +18,8 @@ from typing import Any, Callable
 
 from bench.benchconfig import BenchConfig
 from bench.drill import DrillRefused
-from bench.errors import InputError, find_repo_root
+from drivers.contract.errors import InputError
+from drivers.contract.checks import find_repo_root
 from bench.links import make_links, started_services
 from bench.load_emulation import SPEED_SIGNAL, LoadEmulation
 from bench.prepared import (DEFAULT_SEED, MAX_SEED, TRACE_SIGNALS, PreparedRun, prepare_run,  # noqa: F401
@@ -36,7 +37,9 @@ from bench.run_trips import RunTrips
 from bench.scenario import Scenario
 from bench.supervisor import SafeStop, Supervisor
 from bench.telemetry_worker import TelemetryWorker
-from drivers.api import DriveIdentity, DriveLink, LinkError, LiveSample, LoadLink, LoadMode
+from drivers.api import DriveIdentity, DriveLink, LiveSample, LoadLink
+from drivers.contract.errors import LinkError
+from drivers.contract.load_map import LoadMode
 from drivers.reference import ReferenceConfig
 
 ProgressFn = Callable[[float, float], None]

@@ -11,11 +11,11 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from bench.benchconfig import BenchConfig, link_settings, measurable_signals
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 from bench.scenario import Scenario, parse_scenario, read_scenario_source, with_injections
 from drivers.api import LinkSettings
 from drivers.reference import ReferenceConfig
-from drivers.signals import SIGNAL_NAMES
+from drivers.contract.signals import SIGNAL_NAMES
 
 MAX_SEED = 2**63 - 1
 DEFAULT_SEED = 0           # a scenario without a seed runs with this one (recorded), so reruns are identical

@@ -7,7 +7,7 @@ import subprocess
 from importlib import metadata
 from typing import Any
 
-from bench.errors import find_repo_root
+from drivers.contract.checks import find_repo_root
 
 
 def utc_now() -> str:

@@ -23,13 +23,13 @@ import pyarrow.parquet as pq
 
 from bench.atomic_write import json_safe, write_text_atomic
 from bench.criteria import VERDICTS, CriterionResult
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 from bench.junit import write_junit
 from bench.memory import RELEASING_POOL, release_freed_memory
 from bench.provenance import software_identity, utc_now
 from bench.record_schema import JOURNAL, JUNIT, PARQUET, RECORD, RECORD_KEYS, RunRecord
 from bench.run_files import empty_schema, read_journal
-from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
+from drivers.contract.signals import SIGNAL_NAMES, TIME_COLUMN
 
 if TYPE_CHECKING:
     from bench.benchconfig import BenchConfig

@@ -22,7 +22,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 from bench.run_files import load_run
 
 OTHER = "other"
@@ -78,8 +78,8 @@ def load_suites(path: str | Path | None) -> Suites:
     """The suites file, folders resolved against the repository root that holds it; InputError when unreadable."""
     if path is None:
         return Suites()
-    from bench.benchconfig import read_toml
-    from bench.errors import find_repo_root
+    from drivers.contract.checks import read_toml
+    from drivers.contract.checks import find_repo_root
 
     path = Path(path)
     raw = read_toml(path)

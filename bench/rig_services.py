@@ -4,7 +4,7 @@ packages register (entry-point group drivebench.services) are accepted, by name 
 
 from __future__ import annotations
 
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 
 SERVICE_GROUP = "drivebench.services"
 

@@ -8,11 +8,11 @@ from dataclasses import asdict
 
 from bench.drill import (DRILL_SETTINGS, DrillRefused, proved_recently, refusal as drill_refusal, remember, run_drills,
                          unverified as drill_unverified)
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 from bench.run_periods import FEEDBACK_LOST_PERIODS, LIVE_SIGNALS
 from bench.supervisor import FeedbackCheck, UnitCheck
 from drivers.api import UnitsProfile
-from drivers.signals import SIGNAL_NAMES
+from drivers.contract.signals import SIGNAL_NAMES
 
 
 class RunArming:

@@ -12,8 +12,8 @@ from bench.record_schema import RunRecord
 from bench.run_periods import STALL_TIMEOUT_S
 from bench.summary_plot import BUCKETS as PLOT_BUCKETS, PLOT_SIGNALS, events_of, write_summary_png
 from bench.verdict import judge_run
-from drivers.api import LinkError
-from drivers.signals import TIME_COLUMN
+from drivers.contract.errors import LinkError
+from drivers.contract.signals import TIME_COLUMN
 
 
 @dataclass

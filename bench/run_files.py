@@ -11,10 +11,10 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from bench.criteria import VERDICTS
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 from bench.memory import RELEASING_POOL
 from bench.record_schema import JOURNAL, PARQUET, RECORD
-from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
+from drivers.contract.signals import SIGNAL_NAMES, TIME_COLUMN
 
 
 def empty_schema() -> pa.Schema:

@@ -11,7 +11,7 @@ import numpy as np
 from bench.run_periods import MAX_DEFERRED_APPENDS, RERUN_MAX_RATE_HZ, STALL_TIMEOUT_S
 from drivers.api import LiveSample
 from drivers.reference import onto_rows
-from drivers.signals import TIME_COLUMN
+from drivers.contract.signals import TIME_COLUMN
 
 
 def live_columns(samples: Sequence[LiveSample], names: Sequence[str]) -> dict[str, np.ndarray]:

@@ -10,7 +10,7 @@ from bench.atomic_write import json_safe
 from bench.run_periods import STUCK_GRACE_S, SUPERVISE_POLL_S
 from bench.run_thread import LoopThread
 from bench.supervisor import check_status
-from drivers.api import LinkError
+from drivers.contract.errors import LinkError
 
 
 class RunTrips:

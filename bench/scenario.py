@@ -13,16 +13,17 @@ import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from bench.benchconfig import (BenchConfig, drive_description, load_bench_config, read_toml_with_bytes,
-                               resolve_path)
+from bench.benchconfig import BenchConfig, drive_description, load_bench_config
 from bench.criteria import CriterionSpec, parse_criteria
-from bench.errors import InputError, Problems, find_repo_root
+from drivers.contract.checks import Problems, find_repo_root, read_toml_with_bytes, resolve_path
+from drivers.contract.errors import InputError
 from bench.load_emulation import EMULABLE, emulable
-from drivers import parameters
-from drivers.api import LoadMode
-from drivers.load_map import read_load_map
-from drivers.toml_file import TomlFileError, parse_toml_bytes
-from drivers.parameters import Capability, Parameter
+from drivers.contract import parameters
+from drivers.contract.load_map import LoadMode
+from drivers.contract.load_map import read_load_map
+from drivers.contract.errors import ContentError
+from drivers.contract.toml_file import parse_toml_bytes
+from drivers.contract.parameters import Capability, Parameter
 
 SCHEMA_VERSION = 1
 GRAVITY_M_S2 = 9.80665
@@ -151,7 +152,7 @@ def read_scenario_source(path: str | Path, text: str | bytes | None = None) -> t
     data = text.encode() if isinstance(text, str) else bytes(text)
     try:
         return parse_toml_bytes(data), data
-    except TomlFileError as exc:
+    except ContentError as exc:
         raise InputError([f"{path}: (file): {exc}"]) from None
 
 

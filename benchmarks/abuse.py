@@ -29,7 +29,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from drivers.serial_frames import SOF, Cmd, FrameDecoder, crc8, encode_frame  # noqa: E402
+from drivers.contract.serial_frames import SOF, Cmd, FrameDecoder, crc8, encode_frame  # noqa: E402
 
 ENDPOINTS = ("canopen_socketcand", "serial_tcp", "modbus_tcp")     # every front end, on free loopback ports
 # one_bench = false: the abuse clients and the normal client share the simulator

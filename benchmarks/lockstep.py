@@ -32,7 +32,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from drivers.api import LinkError, LinkSettings  # noqa: E402
+from drivers.contract.errors import LinkError
+from drivers.api import LinkSettings  # noqa: E402
 from drivers.canopen.bus import frame_bits  # noqa: E402
 from drivers.canopen.link import CanopenDriveLink  # noqa: E402
 from drivers.canopen.sdo import block_upload  # noqa: E402

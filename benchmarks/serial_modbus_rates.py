@@ -19,7 +19,7 @@ from pathlib import Path
 from drivers.modbus_load import ModbusLoadLink
 from drivers.api import LinkSettings
 from drivers.serial_link import SerialDriveLink
-from drivers.signals import SIGNAL_NAMES
+from drivers.contract.signals import SIGNAL_NAMES
 from sim_backend.device import SimulatedDevice
 from sim_backend.modbus_server import start_modbus_rtu_pty, start_modbus_tcp
 from sim_backend.serial_server import start_serial_pty, start_serial_tcp

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.signals import SIGNAL_INDEX as SI
+from drivers.contract.signals import SIGNAL_INDEX as SI
 from sim_backend.mechanics import LOAD_BRAKE, LOAD_TORQUE
 from sim_backend.spim.model import SpimDrive
 

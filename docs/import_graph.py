@@ -29,9 +29,9 @@ GROUPS: tuple[tuple[str, str, str, tuple[str, ...]], ...] = (
     ("contract", "contract: CiA 402, objects, parameters, signals, units, formats, errors, config checks", "drivers",
      ("drivers/contract/",
       # where the contract modules lived before drivers/contract/ (issue 22); harmless once they have moved
-      "drivers/cia402.py", "drivers/parameters.py", "drivers/signals.py", "drivers/units.py",
-      "drivers/trace_format.py", "drivers/load_map.py", "drivers/comm_loss.py", "drivers/toml_file.py",
-      "drivers/eds.py", "drivers/canopen/objects.py")),
+      "drivers/contract/cia402.py", "drivers/contract/parameters.py", "drivers/contract/signals.py", "drivers/contract/units.py",
+      "drivers/contract/trace_format.py", "drivers/contract/load_map.py", "drivers/contract/comm_loss.py", "drivers/contract/toml_file.py",
+      "drivers/eds.py", "drivers/contract/objects.py")),
     ("clients", "clients: CANopen, serial, Modbus links, reference sensor", "drivers", ("drivers/",)),
     ("inputs", "inputs: scenario, bench config, prepared run", "bench",
      ("bench/scenario.py", "bench/benchconfig.py", "bench/prepared", "bench/errors.py", "bench/rig_services.py",

@@ -6,15 +6,17 @@ LoadLink. The bench talks only to these protocols, so a real rig and the simulat
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol, Sequence
 
 import numpy as np
 
+from drivers.contract.cia402 import FAULT_RESET_POLICIES
+from drivers.contract.errors import LinkError
+from drivers.contract.load_map import LoadMode
+
 
 TIMINGS = ("lockstep", "realtime")
-FAULT_RESET_POLICIES = ("never", "once")
 
 
 @dataclass(frozen=True)
@@ -32,10 +34,6 @@ class LinkSettings:
             raise ValueError(f"timing: {self.timing!r} is not one of {', '.join(TIMINGS)}")
         if self.fault_reset not in FAULT_RESET_POLICIES:
             raise ValueError(f"fault_reset: {self.fault_reset!r} is not one of {', '.join(FAULT_RESET_POLICIES)}")
-
-
-class LinkError(RuntimeError):
-    """A protocol-level failure: timeout, abort, CRC error, lost heartbeat. The message says which."""
 
 
 def attempt_all(*actions: Callable[[], object]) -> None:
@@ -136,18 +134,6 @@ class DriveLink(Protocol):
     def close(self) -> None: ...
 
 
-class LoadMode(enum.IntEnum):
-    """Load machine modes (Modbus register map in config/od/load-machine-registers.toml).
-
-    Sign convention everywhere: the load torque T_L opposes positive rotation,
-    J*dw/dt = T_e - T_L - B*w.
-    """
-
-    TORQUE = 0      # active: T_L = value, keeps its sign whatever the speed (hanging mass on a drum)
-    VISCOUS = 1     # T_L = value * w, value in N*m/(rad/s) (DC generator into a resistor)
-    BRAKE = 2       # passive: T_L = value * sign(w), zero at standstill (powder brake, friction)
-
-
 @dataclass(frozen=True)
 class LoadFeedback:
     speed_mech_rad_s: float
@@ -160,7 +146,7 @@ class LoadLink(Protocol):
     """A load link subclasses LoadLink; members with a body as in DriveLink."""
 
     report: dict[str, Any]                   # what the link read from the machine and set in it, for the record
-    map: Any = None                          # its register map (drivers.load_map.LoadMap), for the record; None: none
+    map: Any = None                          # its register map (drivers.contract.load_map.LoadMap), for the record; None: none
     modes: tuple[LoadMode, ...] = ()         # the modes the machine has; empty: every LoadMode
 
     def open(self) -> str: ...

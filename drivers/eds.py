@@ -1,5 +1,5 @@
 """What a drive's EDS (or DCF) says before anything is connected: its identity numbers, whether it carries
-drivebench's extension, and which catalogue parameters (drivers.parameters) it offers.
+drivebench's extension, and which catalogue parameters (drivers.contract.parameters) it offers.
 
 The bench reads this at validation time, so `drivebench validate` and `drivebench run` judge a scenario against the
 same description of the drive.
@@ -13,14 +13,11 @@ from pathlib import Path
 import canopen
 from canopen import objectdictionary
 
-from drivers import extension, parameters
-from drivers.canopen import objects as o
+from drivers.contract import extension, parameters
+from drivers.contract.errors import ContentError
+from drivers.contract import objects as o
 
 MAX_EDS_BYTES = 4 * 1024 * 1024      # real EDS files are tens of kB; a DCF with data a few hundred
-
-
-class EdsError(ValueError):
-    """The file is not a usable object dictionary; the message is the reason, without the file name."""
 
 
 @dataclass(frozen=True)
@@ -59,33 +56,33 @@ class DeviceDescription:
 
 
 def read_eds(path: str | Path, node_id: int = 1) -> DeviceDescription:
-    """Parse an EDS/DCF; EdsError with the reason when it is not a regular, bounded, parseable object dictionary
+    """Parse an EDS/DCF; ContentError with the reason when it is not a regular, bounded, parseable object dictionary
     with a statusword (0x6041) — what every CiA 402 drive has."""
     path = Path(path)
     try:
         if not path.is_file():
-            raise EdsError("not a regular file")
+            raise ContentError("not a regular file")
         size = path.stat().st_size
     except OSError as exc:
-        raise EdsError(f"cannot read: {exc.strerror or exc}") from None
+        raise ContentError(f"cannot read: {exc.strerror or exc}") from None
     if size == 0:
-        raise EdsError("empty file")
+        raise ContentError("empty file")
     if size > MAX_EDS_BYTES:
-        raise EdsError(f"{size} bytes, larger than any object dictionary ({MAX_EDS_BYTES} bytes at most)")
+        raise ContentError(f"{size} bytes, larger than any object dictionary ({MAX_EDS_BYTES} bytes at most)")
     if path.suffix.lower() not in (".eds", ".dcf"):
-        raise EdsError("not an EDS or DCF file (the name must end in .eds or .dcf)")
+        raise ContentError("not an EDS or DCF file (the name must end in .eds or .dcf)")
     try:
         text = path.read_bytes()
         if b"\0" in text:
-            raise EdsError("binary data, not an EDS text file")
+            raise ContentError("binary data, not an EDS text file")
         od = canopen.import_od(str(path), node_id)
-    except EdsError:
+    except ContentError:
         raise
     except Exception as exc:       # configparser, ValueError, KeyError, UnicodeDecodeError: all "not an EDS"
         reason = " ".join(str(exc).split()) or type(exc).__name__
-        raise EdsError(f"not a valid EDS: {reason[:200]}") from None
+        raise ContentError(f"not a valid EDS: {reason[:200]}") from None
     if o.STATUSWORD not in od:
-        raise EdsError("no statusword 0x6041: not a CiA 402 drive")
+        raise ContentError("no statusword 0x6041: not a CiA 402 drive")
     info = od.device_information
     return DeviceDescription(path=path, vendor_id=info.vendor_number, product_code=info.product_number,
                              product_name=str(info.product_name or ""), od=od)

@@ -1,5 +1,5 @@
 """LoadLink to a load machine (dynamometer) over Modbus TCP or Modbus RTU, with pymodbus's sync clients, driven by
-the machine's register map file (drivers.load_map; config/load-machines/).
+the machine's register map file (drivers.contract.load_map; config/load-machines/).
 
 The [load] section: transport "modbus-tcp" (host, port) or "modbus-rtu" (port = device path, pty path or pyserial
 URL; baudrate), map (the machine's register map file), unit_id, timeout_s, retries.
@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import threading
 import time
+from typing import Any, Mapping
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -19,9 +20,13 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 from pymodbus.pdu import ExceptionResponse
 
-from drivers.api import LinkError, LoadFeedback, LoadLink, LoadMode, attempt_all
-from drivers.comm_loss import EXTERNAL_HINT
-from drivers.load_map import LoadMap, LoadMapError, Reg, read_load_map
+from drivers.contract.errors import LinkError
+from drivers.api import attempt_all, LoadFeedback, LoadLink
+from drivers.contract.load_map import LoadMode
+from drivers.contract.comm_loss import EXTERNAL_HINT
+from drivers.modbus_config import ModbusRtuConfig, ModbusTcpConfig
+from drivers.contract.load_map import LoadMap, read_load_map, Reg
+from drivers.contract.errors import ContentError
 
 EXCEPTION_TEXT = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
                   4: "server device failure", 6: "server busy", 11: "gateway target failed to respond"}
@@ -29,40 +34,43 @@ FEEDBACK = ("speed", "torque", "status")
 
 
 class ModbusLoadLink(LoadLink):
-    def __init__(self, section: dict, base_dir: Path):
-        self.transport = section.get("transport", "modbus-tcp")
+    def __init__(self, config: ModbusTcpConfig | ModbusRtuConfig | Mapping[str, Any], base_dir: Path):
+        self.transport = config.get("transport") or "modbus-tcp"
         if self.transport not in ("modbus-tcp", "modbus-rtu"):
             raise ValueError(f"[load] transport: '{self.transport}' is not 'modbus-tcp' or 'modbus-rtu'")
-        self.unit_id = int(section.get("unit_id", 1))
-        self.timeout_s = float(section.get("timeout_s", 0.5))
-        self.retries = int(section.get("retries", 1))
+        section = (ModbusTcpConfig if self.transport == "modbus-tcp" else ModbusRtuConfig).from_mapping(
+            {**config, "transport": self.transport})
+        self.config = section
+        self.unit_id = int(section.unit_id)
+        self.timeout_s = float(section.timeout_s)
+        self.retries = int(section.retries)
         if not 0 <= self.unit_id <= 247:
             raise ValueError(f"[load] unit_id: {self.unit_id} outside 0..247")
         if self.timeout_s <= 0 or self.retries < 0:
             raise ValueError("[load] timeout_s must be > 0 and retries >= 0")
-        if not section.get("map"):
+        if not section.map:
             raise ValueError("[load] map: the load machine's register map file is required (config/load-machines/)")
-        map_path = Path(section["map"])
+        map_path = Path(section.map)
         map_path = map_path if map_path.is_absolute() else Path(base_dir) / map_path
         try:
             self.map: LoadMap = read_load_map(map_path)
-        except LoadMapError as exc:
+        except ContentError as exc:
             raise ValueError(f"{map_path}: {exc}") from None
         if self.transport == "modbus-tcp":
-            self.host = str(section.get("host", "127.0.0.1"))
-            self.port = int(section.get("port", 502))
+            self.host = str(section.host or "127.0.0.1")
+            self.port = int(section.port if section.port is not None else 502)
             self.where = f"modbus-tcp {self.host}:{self.port} unit {self.unit_id}"
         else:
-            port = section.get("port")
+            port = section.port
             if not isinstance(port, str) or not port:
                 raise ValueError("[load] port: a serial port path or URL is required for modbus-rtu")
             self.serial_port = port
-            self.baudrate = int(section.get("baudrate", 19200))
+            self.baudrate = int(section.baudrate)
             self.where = f"modbus-rtu {port} unit {self.unit_id}"
         self.base_dir = base_dir
-        self.comm_loss = section.get("comm_loss", "watchdog")        # "external": the rig stops it by other means
-        self.external_stop = str(section.get("external_stop", ""))
-        self.drill_margin_ms = section.get("drill_margin_ms")
+        self.comm_loss = section.comm_loss         # "external": the rig stops it by other means
+        self.external_stop = str(section.external_stop or "")
+        self.drill_margin_ms = section.drill_margin_ms
         self.report: dict = {"map": self.map.name, "modes": [m.name.lower() for m in self.map.modes]}
         self._client: ModbusTcpClient | ModbusSerialClient | None = None
         self._lock = threading.Lock()          # the watchdog thread and the bench share the client

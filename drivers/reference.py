@@ -13,7 +13,7 @@ Without [reference]: a drive carrying drivebench's extension reports the simulat
 any other drive has none. A signal the bench cannot measure (true flux on a real rig) is "not measured", and a
 criterion on it is reported as not judged — never a pass.
 
-With source "load" or "none" the drive is not a source of rig truth at all: the signals drivers.signals marks as
+With source "load" or "none" the drive is not a source of rig truth at all: the signals drivers.contract.signals marks as
 `reference` (true speed, position error, true flux, load torque) are never taken from the drive, whatever it offers;
 the load machine gives speed_true_mech_rad_s and torque_load_nm, the rest is not measured. Its readings come at the
 SYNC rate; on a drive with a trace recorder they are interpolated onto the trace's rows (onto_rows).
@@ -27,7 +27,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from drivers.api import LoadFeedback
-from drivers.signals import SIGNALS
+from drivers.contract.sections import Section, key
+from drivers.contract.signals import SIGNALS
 
 SOURCES = ("load", "drive", "none")
 LOAD_SIGNALS = ("speed_true_mech_rad_s", "torque_load_nm")
@@ -35,8 +36,11 @@ RIG_TRUTH = tuple(s.name for s in SIGNALS if s.reference)    # what only a rig's
 
 
 @dataclass(frozen=True)
-class ReferenceConfig:
-    source: str | None = None                  # None: not stated (the drive decides)
+class ReferenceConfig(Section):
+    """[reference]: where the bench's true signals come from."""
+
+    SECTION = "reference"
+    source: str | None = key(None, kind="string", required=True, choices=SOURCES)   # None: not stated (the drive's)
 
     def signals(self, has_load: bool) -> tuple[str, ...]:
         """What the bench itself adds to every sample (the drive's own signals come from its profile)."""
@@ -50,7 +54,7 @@ class ReferenceConfig:
         return frozenset(RIG_TRUTH) if self.source in ("load", "none") else frozenset()
 
     def instruments(self, has_load: bool, load_map: Any = None, drive: str = "the drive") -> dict[str, str]:
-        """Which instrument each rig-truth signal comes from, for the record (`load_map`: drivers.load_map.LoadMap)."""
+        """Which instrument each rig-truth signal comes from, for the record (`load_map`: drivers.contract.load_map.LoadMap)."""
         out: dict[str, str] = {}
         for name in RIG_TRUTH:
             if name in self.signals(has_load):
@@ -93,17 +97,3 @@ def onto_rows(t_rows: np.ndarray, readings: Sequence[tuple[float, dict[str, floa
         col[t < tr[0] - 1e-9] = np.nan
         out[name] = col
     return out
-
-
-def check_section(table: Any, has_load: bool) -> tuple[ReferenceConfig | None, list[tuple[str, str]]]:
-    if table is None:
-        return ReferenceConfig(), []
-    if not isinstance(table, dict):
-        return None, [("reference", "must be a table: [reference] source = \"load\" | \"drive\" | \"none\"")]
-    problems = [(f"reference.{key}", "unknown key (allowed: source)") for key in table if key != "source"]
-    source = table.get("source")
-    if source not in SOURCES:
-        problems.append(("reference.source", f"must be one of {', '.join(repr(s) for s in SOURCES)}, got {source!r}"))
-    elif source == "load" and not has_load:
-        problems.append(("reference.source", "'load' needs a load machine ([load]) and this bench has none"))
-    return (None if problems else ReferenceConfig(source)), problems

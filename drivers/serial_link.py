@@ -12,42 +12,44 @@ import struct
 import threading
 import time
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 import serial
 
-from drivers import cia402
-from drivers.api import DriveIdentity, DriveLink, DriveStatus, LinkError, LinkSettings, LiveSample, attempt_all
-from drivers.comm_loss import EXTERNAL_HINT, CommLossConfig
-from drivers.serial_frames import (
+from drivers.contract import cia402
+from drivers.api import attempt_all, DriveIdentity, DriveLink, DriveStatus, LinkSettings, LiveSample
+from drivers.contract.errors import LinkError
+from drivers.contract.comm_loss import EXTERNAL_HINT, CommLossConfig
+from drivers.contract.serial_frames import (
     PROTOCOL_MAJOR, PROTOCOL_MINOR, RESPONSE_FLAG, SAMPLE_HEADER, Cmd, ErrorCode, Frame, FrameDecoder,
     encode_frame, fault_text, unpack_str8,
 )
-from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
-from drivers.trace_format import decode_rows, mask_for, selected_names
+from drivers.contract.signals import SIGNAL_NAMES, TIME_COLUMN
+from drivers.serial_config import SerialDriveConfig
+from drivers.contract.trace_format import decode_rows, mask_for, selected_names
 
 TRIGGER_IMMEDIATE = 0
 MAX_CATCH_UP_SYNCS = 100          # real time: more SYNCs than this behind and the link re-anchors its clock
 
 
 class SerialDriveLink(DriveLink):
-    def __init__(self, section: dict, base_dir: Path, settings: LinkSettings):
-        url = section.get("url") or section.get("port")      # bench configs call it `port`
-        if not isinstance(url, str) or not url:
+    def __init__(self, config: SerialDriveConfig | Mapping[str, Any], base_dir: Path, settings: LinkSettings):
+        cfg = SerialDriveConfig.from_mapping(config)
+        if not isinstance(cfg.port, str) or not cfg.port:
             raise ValueError("[drive] port: required for transport 'serial' (a device path or pyserial URL)")
-        self.url = url
-        self.baudrate = int(section.get("baudrate", 115200))
-        self.timeout_s = float(section.get("timeout_s", 0.5))
-        self.retries = int(section.get("retries", 3))
-        self.sync_period_s = float(section.get("sync_period_s", 0.001))
+        self.url = cfg.port
+        self.baudrate = int(cfg.baudrate)
+        self.timeout_s = float(cfg.timeout_s)
+        self.retries = int(cfg.retries)
+        self.sync_period_s = float(cfg.sync_period_s)
         self.timing = settings.timing
         self.fault_reset_policy = settings.fault_reset
         self._quick_stop_state: cia402.State | None = None     # set by begin_quick_stop, taken by quick_stop
-        self.standstill_mech_rad_s = float(section.get("standstill_mech_rad_s", cia402.STANDSTILL_MECH_RAD_S))
-        self.stop_timeout_s = float(section.get("stop_timeout_s", cia402.STOP_TIMEOUT_S))
+        self.standstill_mech_rad_s = float(cfg.standstill_mech_rad_s)
+        self.stop_timeout_s = float(cfg.stop_timeout_s)
         self.report: dict = {}                 # what the link read and set, for the record
-        self.comm_loss = CommLossConfig.from_section(section)
+        self.comm_loss = CommLossConfig.from_section(cfg)
         self._watchdog_armed = False
         if self.timeout_s <= 0 or self.retries < 0 or self.sync_period_s <= 0:
             raise ValueError("[drive] timeout_s and sync_period_s must be > 0 and retries >= 0")

@@ -1,11 +1,11 @@
-"""The simulated drive's CiA 402 power drive state machine: drivers.cia402's transitions and statusword, kept in a
+"""The simulated drive's CiA 402 power drive state machine: drivers.contract.cia402's transitions and statusword, kept in a
 record the CANopen node, the serial server and the comm-loss reaction share."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from drivers.cia402 import POWERED_STATES, State, StatusBit, next_state, statusword
+from drivers.contract.cia402 import POWERED_STATES, State, StatusBit, next_state, statusword
 
 
 @dataclass

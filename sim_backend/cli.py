@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from bench.cli import EXIT_FAIL, EXIT_PASS, _guarded, _json_default
+from drivers.contract.exits import EXIT_FAIL, EXIT_PASS, guarded as _guarded, json_default as _json_default
 
 
 @click.command(name="design-check")

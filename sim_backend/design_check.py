@@ -18,16 +18,17 @@ from typing import Any
 
 import numpy as np
 
-from sim_backend.drive import MotorConfigError, load_motor_config
+from drivers.contract.errors import InputError
+from sim_backend.drive import load_motor_config
 
 
 def estimator_gains(cfg: dict) -> dict[str, float]:
     try:
         return _estimator_gains(cfg)
     except KeyError as exc:
-        raise MotorConfigError(f"[firmware] {exc.args[0]}: missing") from None
+        raise InputError(f"[firmware] {exc.args[0]}: missing") from None
     except (TypeError, ValueError) as exc:
-        raise MotorConfigError(f"[firmware] estimator gains: {exc}") from None
+        raise InputError(f"[firmware] estimator gains: {exc}") from None
 
 
 def _estimator_gains(cfg: dict) -> dict[str, float]:
@@ -72,12 +73,12 @@ def run_design_check(motor_config_path: str | Path, speeds: Any = None, i_sx: fl
     """Poles over the speed range; i_sx, i_sy are recorded (they do not move the poles, see module doc)."""
     cfg = load_motor_config(motor_config_path)
     if cfg["motor"]["kind"] != "pmsm":
-        raise MotorConfigError(f"{motor_config_path}: [motor] kind: the design check is eq. (13) of the PMSM "
+        raise InputError(f"{motor_config_path}: [motor] kind: the design check is eq. (13) of the PMSM "
                                f"paper and needs kind = 'pmsm', got {cfg['motor']['kind']!r}")
     try:
         gains = estimator_gains(cfg)
-    except MotorConfigError as exc:
-        raise MotorConfigError(f"{motor_config_path}: {exc}") from None
+    except InputError as exc:
+        raise InputError(f"{motor_config_path}: {exc}") from None
     speeds = default_speeds() if speeds is None else np.asarray(speeds, dtype=float)
     per_speed = []
     worst: tuple[float, float, complex] | None = None

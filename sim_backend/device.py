@@ -13,11 +13,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers import parameters
-from drivers.canopen.objects import EMCY_HEARTBEAT, EMCY_OVERCURRENT
-from drivers.cia402 import Command, Mode, State
-from drivers.parameters import ParamKind
-from drivers.signals import SIGNAL_NAMES
+from drivers.contract import parameters
+from drivers.contract.objects import EMCY_HEARTBEAT, EMCY_OVERCURRENT
+from drivers.contract.cia402 import Command, Mode, State
+from drivers.contract.parameters import ParamKind
+from drivers.contract.signals import SIGNAL_NAMES
 from sim_backend.cia402_device import Cia402Device
 from sim_backend.comm_watchdog import Watchdog, WatchdogThread
 from sim_backend.faults import ControlwordWritten, FaultState, LoadWritten, apply_fault
@@ -104,7 +104,7 @@ class SimulatedDevice:
             self.model.set_load(self.load.mode, self.load.value, self.load.enabled)
 
     def write_named(self, name: str, value: float) -> None:
-        """A parameter of drivers.parameters: test hook, firmware parameter, plant injection or fault."""
+        """A parameter of drivers.contract.parameters: test hook, firmware parameter, plant injection or fault."""
         kind = getattr(self.model, "kind", None)
         param = parameters.lookup(name, kind)
         if param is None:

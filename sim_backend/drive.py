@@ -5,27 +5,21 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from bench.errors import InputError
-from drivers.toml_file import TomlFileError, read_toml_file
+from drivers.contract.errors import InputError
+from drivers.contract.errors import ContentError
+from drivers.contract.toml_file import read_toml_file
 from sim_backend.drive_model import DriveModel
-
-
-class MotorConfigError(InputError, ValueError):
-    """Bad motor config: the message names the file, the field and the reason (one problem line)."""
-
-    def __init__(self, message: str):
-        super().__init__([message])
 
 
 def load_motor_config(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:
         cfg, _ = read_toml_file(path)
-    except TomlFileError as exc:
-        raise MotorConfigError(f"{path}: (file): {exc}") from None
+    except ContentError as exc:
+        raise InputError(f"{path}: (file): {exc}") from None
     kind = cfg.get("motor", {}).get("kind") if isinstance(cfg.get("motor"), dict) else None
     if kind not in ("pmsm", "spim"):
-        raise MotorConfigError(f"{path}: [motor] kind: expected 'pmsm' or 'spim', got {kind!r}")
+        raise InputError(f"{path}: [motor] kind: expected 'pmsm' or 'spim', got {kind!r}")
     return cfg
 
 
@@ -45,7 +39,5 @@ def make_drive(motor_config: str | Path | dict, seed: int = 0, **options: Any) -
             from sim_backend.spim.model import SpimDrive
             return SpimDrive.from_config(cfg, seed, **options)
     except (KeyError, TypeError, ValueError) as exc:
-        if isinstance(exc, MotorConfigError):
-            raise
-        raise MotorConfigError(f"{where}: {exc}") from None
-    raise MotorConfigError(f"{where}: [motor] kind: expected 'pmsm' or 'spim', got {kind!r}")
+        raise InputError(f"{where}: {exc}") from None
+    raise InputError(f"{where}: [motor] kind: expected 'pmsm' or 'spim', got {kind!r}")

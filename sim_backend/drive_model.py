@@ -1,7 +1,7 @@
 """The contract every simulated drive model meets; the protocol servers only use this.
 
 A model owns plant + inverter + firmware + reference sensor + load machine for one drive and steps them
-in fixed control periods. It returns telemetry blocks whose columns are drivers.signals.SIGNAL_NAMES.
+in fixed control periods. It returns telemetry blocks whose columns are drivers.contract.signals.SIGNAL_NAMES.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The fault model of one simulated rig: which faults are active, the seeded random source every drop/corrupt
 decision draws from, and the log of what the device was told (typed events the tests and the fault campaign read).
 
-Fault names are drivers.parameters records of kind device fault or wire fault. Device faults act on the simulated
+Fault names are drivers.contract.parameters records of kind device fault or wire fault. Device faults act on the simulated
 drive or load machine itself; wire faults need the front ends' wrappers (sim_backend.wire_faults), which a rig
 carries when its bench declares `wire_faults = true`.
 """
@@ -12,15 +12,24 @@ import collections
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Union
+from typing import Any, Protocol, Union
 
 import numpy as np
 
-from drivers.cia402 import Command
-from drivers.parameters import ParamKind, Parameter
+from drivers.contract.cia402 import Command
+from drivers.contract.parameters import ParamKind, Parameter
 
-if TYPE_CHECKING:
-    from sim_backend.device import SimulatedDevice
+
+
+class FaultTarget(Protocol):
+    """What the fault models use of a simulated device (sim_backend.device.SimulatedDevice)."""
+
+    lock: Any               # threading.RLock
+    faults: "FaultState"
+    time_s: float
+    model: Any              # sim_backend.model.DriveModel
+    load: Any               # the load machine's state (enabled, mode, value, fault)
+    device: Any             # sim_backend.cia402 device state machine (power_enabled, state)
 
 WATCH_PERIOD_S = 0.05
 LOAD_FAULT_CODE = 0x7000         # the load machine's own fault code (its fault_code register)
@@ -131,7 +140,7 @@ class FaultState:
         return "send"
 
 
-def apply_fault(device: "SimulatedDevice", param: Parameter, value: float) -> None:
+def apply_fault(device: FaultTarget, param: Parameter, value: float) -> None:
     """A fault parameter written to the device (caller holds device.lock)."""
     f = device.faults
     name, on = param.name, bool(value)
@@ -174,7 +183,7 @@ def apply_fault(device: "SimulatedDevice", param: Parameter, value: float) -> No
         raise KeyError(f"no fault model for {name!r}")
 
 
-def safe_state(device: "SimulatedDevice") -> dict:
+def safe_state(device: FaultTarget) -> dict:
     """What the device says about its own safety at the end of a run."""
     with device.lock:
         return {"power_stage_on": bool(device.device.power_enabled), "state": device.device.state.name,
@@ -182,12 +191,12 @@ def safe_state(device: "SimulatedDevice") -> dict:
                 "load_mode": int(device.load.mode)}
 
 
-def is_safe(device: "SimulatedDevice") -> bool:
+def is_safe(device: FaultTarget) -> bool:
     s = safe_state(device)
     return not s["power_stage_on"] and not s["load_enabled"]
 
 
-def wait_safe(device: "SimulatedDevice", timeout_s: float = 4.0) -> bool:
+def wait_safe(device: FaultTarget, timeout_s: float = 4.0) -> bool:
     """True once the device is in the safe state (polled; its own comm-loss reaction may still be about to act)."""
     deadline = time.monotonic() + timeout_s
     while not is_safe(device):

@@ -4,7 +4,7 @@ On a lab rig nothing knows the plant's state: the drive's firmware reports its o
 shaft's speed comes from an encoder on the dynamometer and its torque from a transducer. `InstrumentedModel` wraps a
 DriveModel so that the simulated rig gives exactly that:
 
-- the drive's telemetry carries no rig truth: the columns of drivers.signals marked `reference` (speed_true, pos_err,
+- the drive's telemetry carries no rig truth: the columns of drivers.contract.signals marked `reference` (speed_true, pos_err,
   flux_true, torque_load) are NaN, as from a firmware without a position sensor (the drivebench extension as a lab's
   drive would carry it: drive clock, trace recorder, estimator telemetry, test hooks);
 - load_feedback() (what the Modbus dynamometer serves) is the encoder's and the transducer's reading:
@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 from scipy.signal import lfilter
 
-from drivers.signals import SIGNAL_INDEX, SIGNALS
+from drivers.contract.signals import SIGNAL_INDEX, SIGNALS
 
 TRUTH_COLUMNS = tuple(SIGNAL_INDEX[s.name] for s in SIGNALS if s.reference)
 _SPEED = SIGNAL_INDEX["speed_true_mech_rad_s"]

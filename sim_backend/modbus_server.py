@@ -1,6 +1,6 @@
 """The simulated load machine's Modbus server (TCP on 127.0.0.1, RTU on a pty), on pymodbus 3.16.
 
-It serves drivebench's own register map, config/load-machines/drivebench-sim.toml, read with drivers.load_map like
+It serves drivebench's own register map, config/load-machines/drivebench-sim.toml, read with drivers.contract.load_map like
 any map (the file is the single description of the machine's registers). pymodbus >= 3.13 has no datastore
 get/setValues hooks; its SimDevice `action` callback runs before every register access: writes are validated and
 applied to SimulatedDevice.set_load there, reads refresh the feedback registers from DriveModel.load_feedback().
@@ -22,8 +22,8 @@ from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from drivers.api import LoadMode
-from drivers.load_map import LoadMap, Reg, read_load_map
+from drivers.contract.load_map import LoadMode
+from drivers.contract.load_map import LoadMap, read_load_map, Reg
 from sim_backend.device import SimulatedDevice
 
 MAP_FILE = Path(__file__).resolve().parent.parent / "config" / "load-machines" / "drivebench-sim.toml"

@@ -6,7 +6,7 @@ Layout (see docs/canopen.md):
   0x1000-0x1A07  CiA 301 communication objects (identity, heartbeat, SYNC, EMCY, 4 RPDOs, 8 TPDOs)
   0x6040-0x6502  CiA 402 objects; velocities are INTEGER32 in mrad/s, mechanical
   0x2000-0x2002  drive clock (step counter), control period, drive kind
-  0x2010-0x201F  live telemetry, REAL32, one object per drivers.signals.SIGNAL_NAMES entry (PDO mappable)
+  0x2010-0x201F  live telemetry, REAL32, one object per drivers.contract.signals.SIGNAL_NAMES entry (PDO mappable)
   0x2030-0x203F  the same as scaled INTEGER16 (EDS Factor), for when REAL32 does not fit the bus budget
   0x2100/0x2101  trace recorder: configuration record and DOMAIN data (SDO block upload)
   0x2200+/0x2300+/0x2400+/0x2480+  test hooks / firmware parameters / plant injections / fault injections, REAL32 rw
@@ -18,17 +18,17 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from drivers import extension, parameters
-from drivers.canopen import objects as o
-from drivers.canopen.objects import (
+from drivers.contract import extension, parameters
+from drivers.contract import objects as o
+from drivers.contract.objects import (
     DOMAIN, INTEGER8, INTEGER16, INTEGER32, REAL32, UNSIGNED8, UNSIGNED16, UNSIGNED32, VISIBLE_STRING, signal_index,
 )
-from drivers.parameters import ParamKind
-from drivers.signals import SIGNALS
+from drivers.contract.parameters import ParamKind
+from drivers.contract.signals import SIGNALS
 
 SCALE_BY_UNIT = {"rad/s": 0.05, "rad": 1e-4, "Wb": 1e-4, "A": 0.01, "V": 0.1, "N*m": 0.01}
 N_RPDO, N_TPDO = o.N_RPDO_MAX, o.N_TPDO_MAX
-# one object block per parameter kind (drivers.parameters), in catalogue order
+# one object block per parameter kind (drivers.contract.parameters), in catalogue order
 PARAMETER_BLOCKS = ((o.EXT_HOOK_BASE, (ParamKind.TEST_HOOK,)), (o.EXT_FIRMWARE_BASE, (ParamKind.FIRMWARE,)),
                     (o.EXT_PLANT_BASE, (ParamKind.PLANT,)),
                     (o.EXT_FAULT_BASE, (ParamKind.WIRE_FAULT, ParamKind.DEVICE_FAULT)))
@@ -153,10 +153,10 @@ def objects(kind: str) -> list[Obj]:
     for sub, (name, dtype, access) in o.TRACE_SUBS.items():
         trace_subs[sub] = Var(name, dtype, access, defaults[sub])
     objs.append(Obj(o.EXT_TRACE, "trace_recorder", subs=trace_subs,
-                    description="mask: bit i = drivers.signals.SIGNAL_NAMES[i]"))
+                    description="mask: bit i = drivers.contract.signals.SIGNAL_NAMES[i]"))
     objs.append(Obj(o.EXT_TRACE_DATA, "trace_data", Var(
         "trace_data", DOMAIN, "ro",
-        description="oldest recorded rows (drivers.trace_format), removed once the upload completes")))
+        description="oldest recorded rows (drivers.contract.trace_format), removed once the upload completes")))
     for base, kinds in PARAMETER_BLOCKS:
         for i, name in enumerate(parameters.names_for(kind, *kinds)):
             objs.append(Obj(base + i, name, Var(name, REAL32, "rw", "0")))

@@ -8,9 +8,10 @@ protocol over TCP or a pty, the load machine over Modbus TCP or Modbus RTU on a 
 ends carry the fault wrappers (sim_backend.wire_faults). The device's own reaction to a silent master is the
 standard one, configured by the bench (CANopen 0x1016/0x6007, the serial watchdog, the Modbus watchdog register).
 
-`start` is the `[services]` starter the simulated bench configs name (`start = "sim_backend.rig:start"`): it reads
-[simulator] (motor, serial line, and for a third-party drive `drive = "generic"` with its units and rated values),
-the bench's [drive]/[load] transports and [bench] wire_faults. `sim serve` builds its rig with the same function.
+`start` is the `[services]` starter the simulated bench configs name (`start = "sim_backend.rig:start"`): its rig
+is described by rig_spec from [simulator] (drivers.contract.simulator.SimulatorConfig: motor, serial line, and for a
+third-party drive `drive = "generic"` with its units and rated values), the bench's [drive]/[load] transports and
+[bench] wire_faults. `sim serve` describes its rig with the same function.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+from drivers.contract.simulator import SimulatorConfig, SimulatorServeConfig, endpoint
 from sim_backend.canopen.generic import DriveSpec
 from sim_backend.device import SimulatedDevice
 from sim_backend.drive_model import DriveModel
@@ -124,7 +126,7 @@ def _found_running(device: SimulatedDevice, drive: DriveSpec | None) -> None:
     speed = drive.found_running_mech_rad_s if drive is not None else None
     if not speed:
         return
-    from drivers.signals import SIGNAL_NAMES
+    from drivers.contract.signals import SIGNAL_NAMES
 
     with device.lock:
         for word in (0x06, 0x07, 0x0F):
@@ -194,7 +196,7 @@ def _modbus(stack: contextlib.ExitStack, rig: Rig) -> None:
     spec = rig.spec
     regs = None
     if spec.load_map is not None:
-        from drivers.load_map import read_load_map
+        from drivers.contract.load_map import read_load_map
         regs = read_load_map(spec.load_map)
     if spec.modbus == "rtu-pty":
         server = start_modbus_rtu_pty(rig.device, regs=regs)
@@ -210,51 +212,54 @@ def _modbus(stack: contextlib.ExitStack, rig: Rig) -> None:
     stack.callback(stop)
 
 
+def rig_spec(sim: SimulatorConfig, *, seed: int, where: str, transport: str | None = None,
+             eds: str | Path | None = None, node_id: int = 1, load_transport: str | None = None, load_map: str | Path | None = None,
+             wire_faults: bool = False, serve: SimulatorServeConfig | None = None) -> RigSpec:
+    """The one place a rig is described from a bench config's [simulator] (with the [drive], [load] and [bench] keys
+    the rig needs): in process (the [services] starter, front ends by the bench's transports) or served
+    (`sim serve`, front ends on [simulator.serve]'s endpoints)."""
+    common = dict(motor=sim.motor, seed=seed, drive=drive_spec(sim), node_id=node_id, wire_faults=wire_faults,
+                  load_map=load_map, instruments=_instruments(sim, where))
+    if serve is None:
+        return RigSpec(**common, eds=eds if transport == "canopen" else None,
+                       serial=sim.serial_line if transport == "serial" else None,
+                       modbus={"modbus-tcp": "tcp", "modbus-rtu": "rtu-pty"}.get(load_transport or ""))
+    socketcand, serial_tcp, modbus_tcp = (endpoint(serve.canopen_socketcand), endpoint(serve.serial_tcp),
+                                          endpoint(serve.modbus_tcp))
+    return RigSpec(**common, eds=eds if socketcand else None, socketcand=socketcand,
+                   serial="tcp" if serial_tcp else None, serial_tcp=serial_tcp or (LOOPBACK, 0),
+                   modbus="tcp" if modbus_tcp else None, modbus_tcp=modbus_tcp or (LOOPBACK, 0),
+                   exclusive=serve.one_bench)
+
+
 def spec_for_bench(bench_cfg: dict, seed: int) -> RigSpec:
-    """The in-process rig a simulated bench config describes."""
+    """The in-process rig a simulated bench config describes (the plain tables a [services] starter receives)."""
     where = bench_cfg.get("_path", "bench config")
-    simulator = bench_cfg.get("simulator") or {}
-    motor = simulator.get("motor")
-    if not motor:
+    if not (bench_cfg.get("simulator") or {}).get("motor"):
         raise RuntimeError(f"{where}: simulator.motor: missing (a simulated bench needs a motor model)")
+    sim = SimulatorConfig.from_mapping(bench_cfg["simulator"])
     drive, load = bench_cfg.get("drive") or {}, bench_cfg.get("load") or {}
-    transport = drive.get("transport")
-    load_transport = load.get("transport")
-    return RigSpec(
-        motor=motor, seed=seed, drive=drive_spec(simulator),
-        eds=drive.get("eds") if transport == "canopen" else None,
-        node_id=int(drive.get("node_id") or 1),
-        serial=(simulator.get("serial_line") or "tcp") if transport == "serial" else None,
-        modbus={"modbus-tcp": "tcp", "modbus-rtu": "rtu-pty"}.get(load_transport),
-        wire_faults=bool((bench_cfg.get("bench") or {}).get("wire_faults", False)),
-        load_map=load.get("map") if load_transport else None,
-        instruments=_instruments(simulator, where),
-    )
+    return rig_spec(sim, seed=seed, where=where, transport=drive.get("transport"), eds=drive.get("eds"),
+                    node_id=int(drive.get("node_id") or 1), load_transport=load.get("transport"),
+                    load_map=load.get("map") if load.get("transport") else None,
+                    wire_faults=bool((bench_cfg.get("bench") or {}).get("wire_faults", False)))
 
 
-def _instruments(simulator: dict, where: str):
+def _instruments(sim: SimulatorConfig, where: str):
     """[simulator.instruments], checked (RuntimeError `file: field: reason`), or None."""
-    if simulator.get("instruments") is None:
+    if sim.instruments is None:
         return None
     from sim_backend.instruments import InstrumentSpec
-    return InstrumentSpec.from_table(simulator["instruments"], f"{where}: simulator.instruments")
+    return InstrumentSpec.from_table(sim.instruments, f"{where}: simulator.instruments")
 
 
-GENERIC_KEYS = ("velocity_unit", "velocity_side", "encoder_increments_per_rev", "rated_current_a", "rated_torque_nm",
-                "fixed_pdo_mapping", "comm_loss_reaction", "found_running_mech_rad_s", "tpdo_stops_after_s",
-                "tpdo_stops", "csv_only", "event_tpdos_only", "boot_delay_s")
-
-
-def drive_spec(simulator: dict) -> DriveSpec | None:
-    """[simulator] drive = "generic": a third-party CiA 402 drive from the bench's EDS, with these keys."""
-    kind = simulator.get("drive", "drivebench")
-    if kind == "drivebench":
+def drive_spec(sim: SimulatorConfig) -> DriveSpec | None:
+    """[simulator] drive = "generic": a third-party CiA 402 drive from the bench's EDS, with its stated options."""
+    if sim.drive == "drivebench":
         return None
-    if kind != "generic":
-        raise RuntimeError(f"simulator.drive: {kind!r} is not 'drivebench' or 'generic'")
-    gear = simulator.get("gear_ratio")
-    return DriveSpec(**{k: simulator[k] for k in GENERIC_KEYS if k in simulator},
-                     **({"gear_ratio": (float(gear[0]), float(gear[1]))} if gear else {}))
+    if sim.drive != "generic":
+        raise RuntimeError(f"simulator.drive: {sim.drive!r} is not 'drivebench' or 'generic'")
+    return DriveSpec(**sim.generic())
 
 
 @contextlib.contextmanager

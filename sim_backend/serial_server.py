@@ -25,15 +25,15 @@ from typing import Any
 
 import numpy as np
 
-from drivers.serial_frames import (
+from drivers.contract.serial_frames import (
     MAX_PAYLOAD, PROTOCOL_MAJOR, PROTOCOL_MINOR, RESPONSE_FLAG, SAMPLE_HEADER, Cmd, ErrorCode, Frame,
     FrameDecoder, encode_frame, error_payload, pack_str8,
 )
-from drivers.signals import SIGNAL_NAMES
-from drivers import extension, parameters
-from drivers.cia402 import FAULT_RESET_BIT, State
+from drivers.contract.signals import SIGNAL_NAMES
+from drivers.contract import extension, parameters
+from drivers.contract.cia402 import FAULT_RESET_BIT, State
 from sim_backend.device import SimulatedDevice
-from drivers.ratelog import RateLimitedLog
+from drivers.contract.ratelog import RateLimitedLog
 from sim_backend.trace import TRIGGER_IMMEDIATE, TRIGGER_ON_ENABLE
 
 log = logging.getLogger(__name__)

@@ -17,130 +17,56 @@ import threading
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from bench.errors import InputError
-from drivers.toml_file import TomlFileError, read_toml_file
+from drivers.contract.checks import Problems, find_repo_root, read_toml, resolve_path
+from drivers.contract.errors import InputError
+from drivers.contract.simulator import SimulatorConfig
 
 if TYPE_CHECKING:
     from sim_backend.rig import RigSpec
-
-
-class ServeError(InputError):
-    """Bad config: one line naming file, field and reason (the bench's input-error family)."""
-
-    def __init__(self, message: str):
-        super().__init__([message])
 
 
 class EndpointDied(RuntimeError):
     """A protocol server stopped serving by itself."""
 
 
-def _endpoint(path: Path, serve: dict, key: str) -> tuple[str, int] | None:
-    value = serve.get(key)
-    if value is None:
-        return None
-    host, sep, port = str(value).rpartition(":")
-    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
-        raise ServeError(f"{path}: simulator.serve.{key}: expected 'host:port', got {value!r}")
-    if not _loopback(host):
-        raise ServeError(f"{path}: simulator.serve.{key}: {host} is not a loopback address: the simulator serves "
-                         f"127.0.0.1 only (no authentication: anyone who reaches the port drives the rig)")
-    return host, int(port)
-
-
-def _loopback(host: str) -> bool:
-    import ipaddress
-
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
 def _resolve(path: Path, value: str) -> Path:
     """The bench's own path rule (absolute, else from the repository root, else next to the config); a file that
     is not found comes back as named next to the config, for the error message."""
-    from bench.benchconfig import resolve_path
-    from bench.errors import find_repo_root
-
     found = resolve_path(str(value), find_repo_root(path), also=path.parent)
     return found if found is not None else path.parent / value
 
 
-def load_serve_config(config_path: str | Path) -> dict:
+def load_serve_config(config_path: str | Path) -> "RigSpec":
+    """The rig [simulator] and [simulator.serve] describe; InputError `file: field: reason` lines."""
+    from sim_backend.rig import rig_spec
+
     path = Path(config_path)
+    cfg = read_toml(path)
+    problems = Problems(path)
+    table = problems.table(cfg, "simulator", "")
+    if table is not None and "serve" not in table:
+        problems.add("simulator.serve", "missing table of endpoints")
+    sim = SimulatorConfig.read(table, problems, root=find_repo_root(path), also=path.parent) if table else None
+    drive, load = cfg.get("drive") or {}, cfg.get("load") or {}
+    eds = _resolve(path, drive.get("eds", "config/od/drivebench-pmsm.eds"))
+    if not eds.exists():
+        problems.add("drive.eds", f"file not found: {drive.get('eds')!r}")
+    load_map = _resolve(path, load["map"]) if load.get("map") else None
+    if load_map is not None and not load_map.exists():
+        problems.add("load.map", f"file not found: {load['map']!r}")
+    problems.raise_if_any()
     try:
-        cfg, _ = read_toml_file(path)
-    except TomlFileError as exc:
-        raise ServeError(f"{path}: (file): {exc}") from None
-    sim = cfg.get("simulator")
-    if not isinstance(sim, dict) or not sim.get("motor"):
-        raise ServeError(f"{path}: simulator.motor: missing (sim serve needs a motor model)")
-    serve = sim.get("serve")
-    if not isinstance(serve, dict):
-        raise ServeError(f"{path}: simulator.serve: missing table of endpoints")
-    drive = cfg.get("drive", {})
-    toy = sim["motor"] == "toy"        # sim_backend.toy.ToyDrive: protocol tests without physics
-    out = {
-        "motor": "toy" if toy else _resolve(path, sim["motor"]),
-        "seed": int(sim.get("seed", 0)),
-        "eds": _resolve(path, drive.get("eds", "config/od/drivebench-pmsm.eds")),
-        "node_id": int(drive.get("node_id", 1)),
-        "socketcand": _endpoint(path, serve, "canopen_socketcand"),
-        "serial": _endpoint(path, serve, "serial_tcp"),
-        "modbus": _endpoint(path, serve, "modbus_tcp"),
-        "wire_faults": bool((cfg.get("bench") or {}).get("wire_faults", False)),
-        "drive": _drive_spec(path, sim),
-        "one_bench": serve.get("one_bench", True),
-        "load_map": _resolve(path, (cfg.get("load") or {})["map"]) if (cfg.get("load") or {}).get("map") else None,
-        "instruments": _instrument_spec(path, sim),
-    }
-    if not isinstance(out["one_bench"], bool):
-        raise ServeError(f"{path}: simulator.serve.one_bench: must be true or false, got {out['one_bench']!r}")
-    if not toy and not out["motor"].exists():
-        raise ServeError(f"{path}: simulator.motor: file not found: {sim['motor']!r}")
-    if out["load_map"] is not None and not out["load_map"].exists():
-        raise ServeError(f"{path}: load.map: file not found: {cfg['load']['map']!r}")
-    if not out["eds"].exists():
-        raise ServeError(f"{path}: drive.eds: file not found: {drive.get('eds')!r}")
-    return out
-
-
-def _drive_spec(path: Path, simulator: dict):
-    from sim_backend.rig import drive_spec
-    try:
-        return drive_spec(simulator)
-    except (RuntimeError, TypeError) as exc:
-        raise ServeError(f"{path}: simulator.drive: {exc}") from None
-
-
-def _instrument_spec(path: Path, simulator: dict):
-    """[simulator.instruments]: the dynamometer's encoder and torque transducer of an instruments rig, or None."""
-    if simulator.get("instruments") is None:
-        return None
-    from sim_backend.instruments import InstrumentSpec
-    try:
-        return InstrumentSpec.from_table(simulator["instruments"], f"{path}: simulator.instruments")
+        return rig_spec(sim, seed=sim.seed, where=str(path), eds=eds, node_id=int(drive.get("node_id", 1)),
+                        load_map=load_map, wire_faults=bool((cfg.get("bench") or {}).get("wire_faults", False)),
+                        serve=sim.serve)
     except RuntimeError as exc:
-        raise ServeError(str(exc)) from None
+        raise InputError(str(exc) if str(exc).startswith(str(path)) else f"{path}: simulator: {exc}") from None
 
 
-def rig_spec(cfg: dict) -> "RigSpec":
-    from sim_backend.rig import RigSpec
-    return RigSpec(motor=cfg["motor"], seed=cfg["seed"], drive=cfg["drive"], eds=cfg["eds"] if cfg["socketcand"] else None,
-                   node_id=cfg["node_id"], socketcand=cfg["socketcand"],
-                   serial="tcp" if cfg["serial"] else None, serial_tcp=cfg["serial"] or ("127.0.0.1", 0),
-                   modbus="tcp" if cfg["modbus"] else None, modbus_tcp=cfg["modbus"] or ("127.0.0.1", 0),
-                   wire_faults=cfg["wire_faults"], exclusive=cfg["one_bench"],
-                   load_map=cfg.get("load_map"), instruments=cfg.get("instruments"))
-
-
-def serve(cfg: dict, stop: threading.Event, out=sys.stdout) -> None:
+def serve(spec: "RigSpec", stop: threading.Event, out=sys.stdout) -> None:
     from sim_backend.rig import build
 
-    with build(rig_spec(cfg)) as rig:
+    with build(spec) as rig:
         for name in ("canopen", "serial", "modbus"):
             if name in rig.endpoints:
                 print(f"{name} {rig.endpoints[name]}", file=out, flush=True)
@@ -155,8 +81,9 @@ def serve(cfg: dict, stop: threading.Event, out=sys.stdout) -> None:
 def main(config_path: str | Path) -> int:
     try:
         cfg = load_serve_config(config_path)
-    except ServeError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    except InputError as exc:
+        for line in exc.problems:
+            print(f"error: {line}", file=sys.stderr)
         return 2
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}

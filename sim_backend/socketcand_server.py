@@ -23,7 +23,7 @@ from typing import Any
 
 import can
 
-from drivers.ratelog import RateLimitedLog
+from drivers.contract.ratelog import RateLimitedLog
 
 log = logging.getLogger(__name__)
 

@@ -9,8 +9,8 @@ import math
 
 import numpy as np
 
-from drivers.signals import SIGNAL_INDEX, SIGNAL_NAMES
-from drivers.parameters import ParamKind, names_for
+from drivers.contract.signals import SIGNAL_INDEX, SIGNAL_NAMES
+from drivers.contract.parameters import ParamKind, names_for
 from sim_backend.mechanics import LOAD_BRAKE, LOAD_TORQUE, LOAD_VISCOUS
 
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivers.signals import SIGNAL_NAMES
-from drivers.trace_format import encode_rows, row_dtype
+from drivers.contract.signals import SIGNAL_NAMES
+from drivers.contract.trace_format import encode_rows, row_dtype
 
 TRIGGER_IMMEDIATE = 0       # records from start()
 TRIGGER_ON_ENABLE = 1       # records from the first sample with the power stage enabled
@@ -87,7 +87,7 @@ class TraceRecorder:
         self._count += n
 
     def read(self, max_rows: int) -> bytes:
-        """Remove and return up to max_rows of the oldest rows, encoded (drivers.trace_format)."""
+        """Remove and return up to max_rows of the oldest rows, encoded (drivers.contract.trace_format)."""
         n = min(max_rows, self._count)
         idx = (self._head + np.arange(n)) % self.capacity_rows
         self._head = (self._head + n) % self.capacity_rows

@@ -43,7 +43,8 @@ import pyarrow.parquet as pq
 from scipy.ndimage import maximum_filter1d, minimum_filter1d
 from scipy.signal import lfilter
 
-from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
+from drivers.contract.signals import SIGNAL_NAMES, TIME_COLUMN
+from drivers.contract.errors import InputError
 from sim_backend.mechanics import LOAD_TORQUE
 from sim_backend.drive_model import DriveModel
 
@@ -71,10 +72,6 @@ BLIND_SPEED = 2.0
 BLIND_TIME_S = 0.02
 # injections a replay cannot repeat: the device's and the wire's faults act on the rig, not on the motor and firmware
 NOT_REPLAYED_PREFIXES = ("fault_",)
-
-
-class TwinInputError(ValueError):
-    """A run directory, motor file or option the twin cannot use: one line `file: field: reason`."""
 
 
 @dataclass(frozen=True)
@@ -116,36 +113,36 @@ def _resolve(path: str | Path, *bases: Path) -> Path:
 
 
 def read_run(run_dir: str | Path) -> RecordedRun:
-    """Read a run directory; TwinInputError names the file and field that cannot be used."""
+    """Read a run directory; InputError names the file and field that cannot be used."""
     run_dir = Path(run_dir)
     record_path = run_dir / RECORD
     try:
         record = json.loads(record_path.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise TwinInputError(f"{record_path}: (file): not found (not a run directory?)") from None
+        raise InputError(f"{record_path}: (file): not found (not a run directory?)") from None
     except (OSError, ValueError) as exc:
-        raise TwinInputError(f"{record_path}: (file): unreadable: {exc}") from None
+        raise InputError(f"{record_path}: (file): unreadable: {exc}") from None
     if not isinstance(record, dict):
-        raise TwinInputError(f"{record_path}: (file): not a run record (a JSON object is expected)")
+        raise InputError(f"{record_path}: (file): not a run record (a JSON object is expected)")
     parquet = run_dir / TELEMETRY
     try:
         table = pq.read_table(parquet)
     except FileNotFoundError:
-        raise TwinInputError(f"{parquet}: (file): not found (the run did not finish; `drivebench show` recovers "
+        raise InputError(f"{parquet}: (file): not found (the run did not finish; `drivebench show` recovers "
                              f"its journal)") from None
     except (OSError, pa.ArrowException) as exc:
-        raise TwinInputError(f"{parquet}: (file): not a readable Parquet file: {' '.join(str(exc).split())[:160]}") \
+        raise InputError(f"{parquet}: (file): not a readable Parquet file: {' '.join(str(exc).split())[:160]}") \
             from None
     if TIME_COLUMN not in table.column_names:
-        raise TwinInputError(f"{parquet}: {TIME_COLUMN}: column missing: not drivebench telemetry")
+        raise InputError(f"{parquet}: {TIME_COLUMN}: column missing: not drivebench telemetry")
     try:
         raw = {n: table.column(n).to_numpy().astype(np.float64) for n in table.column_names
                if n == TIME_COLUMN or n in SIGNAL_NAMES}
     except (TypeError, ValueError, pa.ArrowException) as exc:
-        raise TwinInputError(f"{parquet}: (file): not numeric telemetry: {exc}") from None
+        raise InputError(f"{parquet}: (file): not numeric telemetry: {exc}") from None
     t = raw.pop(TIME_COLUMN)
     if t.size < 2 or not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
-        raise TwinInputError(f"{parquet}: {TIME_COLUMN}: needs at least two rows on a strictly increasing drive clock")
+        raise InputError(f"{parquet}: {TIME_COLUMN}: needs at least two rows on a strictly increasing drive clock")
     scenario = record.get("scenario") if isinstance(record.get("scenario"), dict) else {}
     duration = scenario.get("duration_s")
     keep = t <= float(duration) + 1e-9 if isinstance(duration, (int, float)) else np.ones(t.size, bool)
@@ -153,9 +150,9 @@ def read_run(run_dir: str | Path) -> RecordedRun:
     t = t[keep]
     columns = {n: v[keep] for n, v in raw.items()}
     if t.size < 2:
-        raise TwinInputError(f"{parquet}: {TIME_COLUMN}: fewer than two rows within the scenario's duration")
+        raise InputError(f"{parquet}: {TIME_COLUMN}: fewer than two rows within the scenario's duration")
     if "speed_ref_mech_rad_s" not in columns or not np.isfinite(columns["speed_ref_mech_rad_s"]).any():
-        raise TwinInputError(f"{parquet}: speed_ref_mech_rad_s: not recorded (the twin replays the reference as the "
+        raise InputError(f"{parquet}: speed_ref_mech_rad_s: not recorded (the twin replays the reference as the "
                              f"drive received it)")
     notes: list[str] = []
     if "torque_load_nm" not in columns or not np.isfinite(columns["torque_load_nm"]).any():
@@ -176,7 +173,7 @@ def _injections(record: dict, record_path: Path, notes: list[str]) -> tuple[list
                 at = item.get("applied_t_s", item["at_s"])
                 out.append(Injection(float(at), str(item["name"]), float(item["value"])))
             except (AttributeError, KeyError, TypeError, ValueError):
-                raise TwinInputError(f"{record_path}: injections_applied[{i}]: expected at_s, name and value") \
+                raise InputError(f"{record_path}: injections_applied[{i}]: expected at_s, name and value") \
                     from None
         return out, "record"
     scenario = record.get("scenario") if isinstance(record.get("scenario"), dict) else {}
@@ -197,7 +194,7 @@ def _injections(record: dict, record_path: Path, notes: list[str]) -> tuple[list
         items = tomllib.loads(data.decode("utf-8")).get("injection", [])
         out = [Injection(float(x["at_s"]), str(x["name"]), float(x["value"])) for x in items]
     except (tomllib.TOMLDecodeError, UnicodeDecodeError, AttributeError, KeyError, TypeError, ValueError) as exc:
-        raise TwinInputError(f"{path}: injection: cannot be read: {exc}") from None
+        raise InputError(f"{path}: injection: cannot be read: {exc}") from None
     return sorted(out, key=lambda inj: inj.at_s), "scenario"   # stable: same-time injections keep file order
 
 
@@ -262,7 +259,7 @@ def _instruments(cfg: dict, path: Path) -> Instruments | None:
                            float(table.get("torque_bandwidth_hz", 0.0)), float(table.get("dyno_inertia_kgm2", 0.0)),
                            float(sync))
     except (TypeError, ValueError) as exc:
-        raise TwinInputError(f"{path}: simulator.instruments: {exc}") from None
+        raise InputError(f"{path}: simulator.instruments: {exc}") from None
 
 
 def encoder_view(t: np.ndarray, speed: np.ndarray, inst: Instruments) -> np.ndarray:
@@ -306,14 +303,14 @@ def read_motor(path: str | Path) -> dict[str, Any]:
     try:
         cfg = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise TwinInputError(f"{path}: (file): not found") from None
+        raise InputError(f"{path}: (file): not found") from None
     except (OSError, UnicodeDecodeError) as exc:
-        raise TwinInputError(f"{path}: (file): unreadable: {exc}") from None
+        raise InputError(f"{path}: (file): unreadable: {exc}") from None
     except tomllib.TOMLDecodeError as exc:
-        raise TwinInputError(f"{path}: (file): not TOML: {exc}") from None
+        raise InputError(f"{path}: (file): not TOML: {exc}") from None
     kind = (cfg.get("motor") or {}).get("kind") if isinstance(cfg.get("motor"), dict) else None
     if kind not in ("pmsm", "spim"):
-        raise TwinInputError(f"{path}: motor.kind: expected 'pmsm' or 'spim', got {kind!r}")
+        raise InputError(f"{path}: motor.kind: expected 'pmsm' or 'spim', got {kind!r}")
     return cfg
 
 
@@ -326,7 +323,7 @@ def build_drive(cfg: dict[str, Any], seed: int = 0, noise: bool = False, where: 
         from sim_backend.spim.model import SpimDrive
         return SpimDrive.from_config(cfg, seed, noise=noise)
     except (KeyError, TypeError, ValueError) as exc:
-        raise TwinInputError(f"{where}: {exc}") from None
+        raise InputError(f"{where}: {exc}") from None
 
 
 def get_key(cfg: dict[str, Any], dotted: str) -> float:
@@ -360,7 +357,7 @@ def _held(values: np.ndarray | None, n: int, default: float = 0.0) -> np.ndarray
 
 def replay(cfg: dict[str, Any], run: RecordedRun, *, noise: bool = False, seed: int | None = None,
            where: str = "motor") -> dict[str, np.ndarray]:
-    """The twin's telemetry at the recorded rows' times (one column per signal of drivers.signals)."""
+    """The twin's telemetry at the recorded rows' times (one column per signal of drivers.contract.signals)."""
     drive = build_drive(cfg, run.record.get("seed", 0) if seed is None else seed, noise, where)
     period = drive.control_period_s
     n = run.t.size
@@ -401,7 +398,7 @@ def _apply(drive: DriveModel, inj: Injection) -> None:
         else:
             drive.set_hook(inj.name, inj.value)
     except (KeyError, ValueError) as exc:
-        raise TwinInputError(f"{RECORD}: injections: {inj.name} = {inj.value:g} at {inj.at_s:g} s: the twin cannot "
+        raise InputError(f"{RECORD}: injections: {inj.name} = {inj.value:g} at {inj.at_s:g} s: the twin cannot "
                              f"apply it ({' '.join(str(exc).split())[:200]})") from None
 
 

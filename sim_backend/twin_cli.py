@@ -13,6 +13,8 @@ from typing import Any
 
 import click
 
+from drivers.contract.errors import InputError
+
 from sim_backend import twin as tw
 
 EXIT_INSIDE, EXIT_OUTSIDE, EXIT_ERROR = 0, 1, 2
@@ -27,7 +29,7 @@ def _tolerances(items: tuple[str, ...]) -> dict[str, float]:
         except ValueError:
             number = math.nan
         if name not in tw.COMPARED or not math.isfinite(number) or number <= 0:
-            raise tw.TwinInputError(f"--tol: {item}: expected SIGNAL=VALUE > 0 with SIGNAL one of "
+            raise InputError(f"--tol: {item}: expected SIGNAL=VALUE > 0 with SIGNAL one of "
                                     f"{', '.join(tw.COMPARED)}")
         out[name] = number
     return out
@@ -54,7 +56,7 @@ def run_twin(run_dir: str, motor: str | None, do_fit: bool | str, params: tuple[
     run = tw.read_run(run_dir)
     motor_path = Path(motor) if motor else run.motor_path
     if motor_path is None:
-        raise tw.TwinInputError(f"{Path(run_dir) / tw.RECORD}: bench.path: the run's bench names no [simulator] "
+        raise InputError(f"{Path(run_dir) / tw.RECORD}: bench.path: the run's bench names no [simulator] "
                                 f"motor (a real rig): give the motor file with --motor")
     cfg = tw.read_motor(motor_path)
     tw.build_drive(cfg, where=str(motor_path)).step(1)          # a bad motor file fails here; kernels compiled
@@ -63,7 +65,7 @@ def run_twin(run_dir: str, motor: str | None, do_fit: bool | str, params: tuple[
     replay_s = time.perf_counter() - t0
     results = tw.compare(run, twin, tolerances, time_tol_s, blind_speed, cfg["motor"]["kind"])
     if not results:
-        raise tw.TwinInputError(f"{run.run_dir / tw.TELEMETRY}: (file): none of {', '.join(tw.COMPARED)} is recorded")
+        raise InputError(f"{run.run_dir / tw.TELEMETRY}: (file): none of {', '.join(tw.COMPARED)} is recorded")
     doc: dict[str, Any] = {
         "run_dir": str(run.run_dir), "motor": str(motor_path), "kind": cfg["motor"]["kind"],
         "inside": all(r.inside for r in results), "signals": _signals_doc(results), "replay_s": replay_s,
@@ -169,17 +171,17 @@ def twin(run_dir, motor, do_fit, fit_mechanics, params, write_motor, plot_path, 
     """Replay a recorded run through the simulated drive, show where twin and rig part; --fit the motor."""
     try:
         if do_fit and fit_mechanics:
-            raise tw.TwinInputError("--fit-mechanics: --fit: give one of them")
+            raise InputError("--fit-mechanics: --fit: give one of them")
         if write_motor and not (do_fit or fit_mechanics):
-            raise tw.TwinInputError(f"{write_motor}: --write-motor: needs --fit or --fit-mechanics")
+            raise InputError(f"{write_motor}: --write-motor: needs --fit or --fit-mechanics")
         do_fit = "mechanics" if fit_mechanics else do_fit
         if not (math.isfinite(time_tol_s) and time_tol_s >= 0):
-            raise tw.TwinInputError(f"--time-tol: {time_tol_s}: expected a number of seconds >= 0")
+            raise InputError(f"--time-tol: {time_tol_s}: expected a number of seconds >= 0")
         if not (math.isfinite(blind_speed) and blind_speed >= 0):
-            raise tw.TwinInputError(f"--blind-speed: {blind_speed}: expected a speed in mech rad/s >= 0")
+            raise InputError(f"--blind-speed: {blind_speed}: expected a speed in mech rad/s >= 0")
         doc = run_twin(run_dir, motor, do_fit, params, write_motor, plot_path, _tolerances(tol_items), time_tol_s,
                        blind_speed)
-    except tw.TwinInputError as exc:
+    except InputError as exc:
         click.echo(" ".join(str(exc).split()), err=True)
         sys.exit(EXIT_ERROR)
     except Exception as exc:                    # an unforeseen failure: one line, never a traceback

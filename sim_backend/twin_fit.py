@@ -28,7 +28,8 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 from scipy.optimize import least_squares
 
-from sim_backend.twin import BLIND_SPEED, ESTIMATES, TOLERANCES, RecordedRun, TwinInputError, blind_rows, \
+from drivers.contract.errors import InputError
+from sim_backend.twin import BLIND_SPEED, ESTIMATES, TOLERANCES, RecordedRun, blind_rows, \
     build_drive, get_key, read_motor, replay, with_values
 
 PARAMS: dict[str, tuple[str, ...]] = {
@@ -122,14 +123,14 @@ def fit(cfg: dict[str, Any], run: RecordedRun, keys: tuple[str, ...] | None = No
         try:
             get_key(cfg, key)
         except (KeyError, ValueError, TypeError):
-            raise TwinInputError(f"motor: {key}: not a number in the motor file (--param names a dotted key)") \
+            raise InputError(f"motor: {key}: not a number in the motor file (--param names a dotted key)") \
                 from None
     start = np.array([get_key(cfg, k) for k in keys])
     if np.any(start <= 0):
-        raise TwinInputError(f"motor: {keys[int(np.argmin(start))]}: the fit needs a start value > 0")
+        raise InputError(f"motor: {keys[int(np.argmin(start))]}: the fit needs a start value > 0")
     fit_signals = {n: tol for n, tol in (signals or FIT_SIGNALS[kind]).items() if run.measured(n)}
     if not fit_signals:
-        raise TwinInputError(f"{run.run_dir}: telemetry.parquet: none of {', '.join(FIT_SIGNALS[kind])} is recorded")
+        raise InputError(f"{run.run_dir}: telemetry.parquet: none of {', '.join(FIT_SIGNALS[kind])} is recorded")
     rows = np.arange(run.t.size)[::decimate]
     names = list(fit_signals)
     smooth_s = SMOOTH_S.get(kind, 0.0) if smooth_s is None else smooth_s
@@ -232,7 +233,7 @@ def fit_mechanics(run: RecordedRun, torque_signal: str = "torque_est_nm", start:
     needed = ("speed_true_mech_rad_s", torque_signal, "torque_load_nm")
     for name in needed:
         if not run.measured(name):
-            raise TwinInputError(f"{run.run_dir / 'telemetry.parquet'}: {name}: not recorded (the mechanics fit needs "
+            raise InputError(f"{run.run_dir / 'telemetry.parquet'}: {name}: not recorded (the mechanics fit needs "
                                  f"the shaft speed, the drive's reported torque and the measured load)")
     t = run.t
     w = run.columns["speed_true_mech_rad_s"]

@@ -16,7 +16,7 @@ import time
 
 import can
 
-from drivers.canopen.objects import HEARTBEAT
+from drivers.contract.objects import HEARTBEAT
 from sim_backend.canopen.virtual_bus import FastVirtualBus
 from sim_backend.faults import FaultState
 

@@ -11,9 +11,10 @@ from typing import Sequence
 
 import numpy as np
 
-from drivers.api import (DriveIdentity, DriveLink, DriveStatus, LinkError, LiveSample, LoadFeedback, LoadLink,
-                         LoadMode)
-from drivers.signals import SIGNAL_INDEX, TIME_COLUMN
+from drivers.api import DriveIdentity, DriveLink, DriveStatus, LiveSample, LoadFeedback, LoadLink
+from drivers.contract.signals import SIGNAL_INDEX, TIME_COLUMN
+from drivers.contract.errors import LinkError
+from drivers.contract.load_map import LoadMode
 from sim_backend.toy import ToyDrive
 
 

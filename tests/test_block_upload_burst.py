@@ -9,7 +9,7 @@ import numpy as np
 
 import sim_backend.canopen.block_server as block_server
 from drivers.canopen.sdo import accept_segments as _accept_segments, block_upload
-from drivers.trace_format import decode_rows, mask_for
+from drivers.contract.trace_format import decode_rows, mask_for
 from sim_backend.canopen.virtual_bus import FastVirtualBus
 from sim_backend.rig import private_channel
 from tests.canopen_helpers import Sniffer, rig

@@ -12,8 +12,8 @@ import can
 import canopen
 import pytest
 
-from drivers.api import LinkError
-from drivers.canopen import objects as o
+from drivers.contract.errors import LinkError
+from drivers.contract import objects as o
 from drivers.canopen.sdo import block_upload
 MAX_STALLED_SUBBLOCKS = 3
 from sim_backend.rig import private_channel

@@ -17,7 +17,7 @@ from click.testing import CliRunner
 from bench.campaign import load_campaign, points, wilson_interval
 from bench.campaign_run import pass_rate_grid, run_campaign, write_results
 from bench.cli import cli
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 from bench.orchestrator import run_scenario
 from bench.scenario import Injection, load_scenario
 

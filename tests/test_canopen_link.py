@@ -8,9 +8,9 @@ import time
 import numpy as np
 import pytest
 
-from drivers.api import LinkError
-from drivers.extension import FIRMWARE_VERSION
-from drivers.extension import PRODUCT_CODES, VENDOR_ID
+from drivers.contract.errors import LinkError
+from drivers.contract.extension import FIRMWARE_VERSION
+from drivers.contract.extension import PRODUCT_CODES, VENDOR_ID
 from tests.canopen_helpers import EDS, rig
 
 LIVE = ["speed_ref_mech_rad_s", "speed_est_mech_rad_s", "i_sy_a"]
@@ -231,7 +231,7 @@ def test_realtime_mode_samples_are_continuous_on_the_drive_clock():
 
 
 def test_live_signals_fall_back_to_scaled_integers_when_real32_exceeds_the_bus():
-    from drivers.signals import SIGNAL_NAMES
+    from drivers.contract.signals import SIGNAL_NAMES
     with rig(sync_period_s=0.001) as r:
         r.link.configure(list(SIGNAL_NAMES), TRACE, 1)   # 16 x REAL32 at 1 kHz would need >100 %
         assert r.link.live_encoding == "scaled"
@@ -251,7 +251,7 @@ def test_live_signals_fall_back_to_scaled_integers_when_real32_exceeds_the_bus()
 
 
 def test_inprocess_service_opens_private_endpoints():
-    from bench.benchconfig import load_bench_config, link_settings
+    from bench.benchconfig import link_settings, load_bench_config
     from drivers.canopen.link import CanopenDriveLink
     from sim_backend.rig import start
     from tests.canopen_helpers import REPO

@@ -6,9 +6,9 @@ import canopen
 import pytest
 from canopen.objectdictionary import ODVariable
 
-from drivers import extension, parameters
+from drivers.contract import extension, parameters
 from drivers.eds import read_eds
-from drivers.signals import SIGNAL_NAMES
+from drivers.contract.signals import SIGNAL_NAMES
 from sim_backend import od_gen
 from tests.canopen_helpers import REPO
 

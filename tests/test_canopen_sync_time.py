@@ -16,12 +16,13 @@ import numpy as np
 import pytest
 
 from bench.criteria import time_axis
-from drivers.api import LinkError, LinkSettings
-from drivers.canopen import objects as o
+from drivers.contract.errors import LinkError
+from drivers.api import LinkSettings
+from drivers.contract import objects as o
 from drivers.canopen.bus import bus_kwargs
 from drivers.canopen.link import CanopenDriveLink
 from drivers.canopen.sync import IntervalStats, SyncProducer, SyncTimeline
-from drivers.cia402 import Mode
+from drivers.contract.cia402 import Mode
 from sim_backend.canopen.generic import DriveSpec
 from sim_backend.rig import RigSpec, build, private_channel
 

@@ -9,8 +9,8 @@ import canopen
 import numpy as np
 import pytest
 
-from drivers.api import LinkError
-from drivers.trace_format import decode_rows, mask_for
+from drivers.contract.errors import LinkError
+from drivers.contract.trace_format import decode_rows, mask_for
 from sim_backend.canopen.node import start_node
 from sim_backend.device import SimulatedDevice
 from sim_backend.rig import private_channel

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from drivers.signals import SIGNAL_NAMES
-from drivers.trace_format import decode_rows, mask_for
-from drivers.cia402 import State
+from drivers.contract.signals import SIGNAL_NAMES
+from drivers.contract.trace_format import decode_rows, mask_for
+from drivers.contract.cia402 import State
 from sim_backend.cia402_device import Cia402Device
 from sim_backend.trace import TRIGGER_ON_ENABLE, TraceRecorder
 
@@ -68,7 +68,7 @@ def test_trace_waits_for_enable_trigger():
 def test_standstill_wait_is_bounded_in_drive_time_too():
     """A frozen speed estimate never reaches standstill: in lockstep the wait ends after stop_timeout_s of drive time
     (max_advances SYNCs), long before the wall-clock bound, so the drive's trace recorder cannot overrun."""
-    from drivers import cia402
+    from drivers.contract import cia402
 
     advances = []
     report = cia402.wait_standstill(lambda: advances.append(1), lambda: 12.0, 0.5, timeout_s=30.0, max_advances=500)
@@ -83,8 +83,8 @@ def test_standstill_wait_ends_when_the_drive_ends_its_quick_stop_itself():
     """After a unit trip the drive's speed, through the bench's wrong factor, may never read below 0.5 rad/s (here a
     frozen 12): the drive's own SWITCH ON DISABLED (0x605A 1-3: stopped by its judgement) ends the wait; a link error
     while asking ends it too, without a standstill claimed."""
-    from drivers import cia402
-    from drivers.api import LinkError
+    from drivers.contract import cia402
+    from drivers.contract.errors import LinkError
 
     advances = []
     report = cia402.wait_standstill(lambda: advances.append(1), lambda: 12.0, 0.5, timeout_s=30.0, max_advances=500,

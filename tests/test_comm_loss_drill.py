@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from drivers import cia402
+from drivers.contract import cia402
 from sim_backend.canopen.generic import DriveSpec
 from tests.test_third_party_drives import LIVE, generic_link, sync_for
 
@@ -271,7 +271,7 @@ def test_probe_drill_reports_and_refuses(tmp_path):
 
 
 def test_the_service_runs_an_unverified_rig_only_when_an_admin_marked_it(tmp_path):
-    from bench.errors import InputError
+    from drivers.contract.errors import InputError
     from bench.service.rigs import load_rigs
 
     bench = bench_with(tmp_path, drive='comm_loss = "external"\nexternal_stop = "STO relay on watchdog K3"\n')

@@ -15,7 +15,7 @@ from bench.compare import compare_runs
 from bench.criteria import evaluate, verdict
 from bench.recorder import RunRecorder
 from bench.scenario import load_scenario
-from drivers.signals import SIGNAL_NAMES
+from drivers.contract.signals import SIGNAL_NAMES
 
 REPO = Path(__file__).resolve().parents[1]
 

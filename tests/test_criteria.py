@@ -209,7 +209,7 @@ def test_ripple_pp_and_std():
 
 def test_rise_time_percent_bounds_are_checked_at_load(tmp_path):
     from bench.criteria import parse_criteria
-    from bench.errors import Problems
+    from drivers.contract.checks import Problems
 
     p = Problems(tmp_path / "s.toml")
     item = {"name": "r", "kind": "rise_time", "signal": "speed_true_mech_rad_s", "window_s": [0.0, 1.0],

@@ -69,17 +69,17 @@ def test_table_lists_every_speed():
 
 
 def test_missing_gain_names_file_and_field(tmp_path):
-    from sim_backend.drive import MotorConfigError
+    from drivers.contract.errors import InputError
     text = open(CONFIG, encoding="utf-8").read().replace("flux_est_kp = 5000.0", "")
     bad = tmp_path / "nogain.toml"
     bad.write_text(text)
-    with pytest.raises(MotorConfigError, match=r"nogain\.toml: \[firmware\] flux_est_kp: missing"):
+    with pytest.raises(InputError, match=r"nogain\.toml: \[firmware\] flux_est_kp: missing"):
         run_design_check(bad)
 
 
 def test_non_pmsm_config_is_refused_clearly(tmp_path):
-    from sim_backend.drive import MotorConfigError
+    from drivers.contract.errors import InputError
     other = tmp_path / "other.toml"
     other.write_text('[motor]\nkind = "spim"\n')
-    with pytest.raises(MotorConfigError, match=r"other\.toml: \[motor\] kind: .*needs kind = 'pmsm'"):
+    with pytest.raises(InputError, match=r"other\.toml: \[motor\] kind: .*needs kind = 'pmsm'"):
         run_design_check(other)

@@ -17,7 +17,7 @@ from bench.criteria import evaluate, verdict
 from bench.recorder import RunRecorder
 from bench.run_files import load_run
 from bench.scenario import load_scenario
-from drivers.signals import SIGNAL_NAMES
+from drivers.contract.signals import SIGNAL_NAMES
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 from bench.scenario import load_scenario
-from drivers import parameters
-from drivers.parameters import ParamKind
+from drivers.contract import parameters
+from drivers.contract.parameters import ParamKind
 from sim_backend.faults import FaultState
 
 FAULT_INJECTIONS = parameters.names_for("pmsm", ParamKind.DEVICE_FAULT, ParamKind.WIRE_FAULT)

@@ -91,7 +91,7 @@ def test_the_drive_firmware_reports_no_rig_truth_and_the_dyno_reads_through_its_
         m.set_speed_ref(20.0)
     truth = plain.step(5000)                         # 0.5 s: the same drive, same seed, without instruments
     seen = model.step(5000)
-    from drivers.signals import SIGNAL_INDEX
+    from drivers.contract.signals import SIGNAL_INDEX
     for name in ("speed_true_mech_rad_s", "pos_err_elec_rad", "flux_true_wb", "torque_load_nm"):
         assert np.isnan(seen[:, SIGNAL_INDEX[name]]).all(), name
     est = SIGNAL_INDEX["speed_est_mech_rad_s"]
@@ -196,7 +196,7 @@ def test_sim_serve_serves_the_instruments_rig_with_its_dyno_map(tmp_path):
     import re
     import threading
 
-    from drivers.api import LoadMode
+    from drivers.contract.load_map import LoadMode
     from drivers.modbus_load import ModbusLoadLink
 
     text = (REPO / "config/benches/sim-pmsm-instruments.toml").read_text()
@@ -240,7 +240,7 @@ def test_sim_serve_serves_the_instruments_rig_with_its_dyno_map(tmp_path):
 def test_the_torque_transducer_sees_the_dynamometer_rotor_accelerate():
     """In line between motor and dynamometer the transducer reads T_L + J_dyno dw/dt: while the shaft accelerates with
     no load it reads J_dyno times the (lagged) acceleration of the plant; at steady speed the load torque alone."""
-    from drivers.signals import SIGNAL_INDEX
+    from drivers.contract.signals import SIGNAL_INDEX
 
     spec = InstrumentSpec(encoder_noise_counts=0.0, torque_noise_nm=0.0, dyno_inertia_kgm2=5e-4)
     plain = make_model(REPO / "config/motors/pmsm-paper.toml", 3)

@@ -11,7 +11,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from bench.load_emulation import BRAKE_BAND_MECH_RAD_S, emulable, emulated_torque_nm, lag_bounds_s
-from drivers.api import LoadMode
+from drivers.contract.load_map import LoadMode
 
 REPO = Path(__file__).resolve().parents[1]
 RAMP = REPO / "tests/data/viscous-emulation-ramp.toml"

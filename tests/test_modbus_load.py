@@ -12,8 +12,10 @@ from pathlib import Path
 
 import pytest
 
-from drivers.api import LinkError, LoadMode
-from drivers.load_map import LoadMapError, read_load_map
+from drivers.contract.errors import LinkError
+from drivers.contract.load_map import LoadMode
+from drivers.contract.errors import ContentError
+from drivers.contract.load_map import read_load_map
 from drivers.modbus_load import ModbusLoadLink
 from sim_backend.device import SimulatedDevice
 from sim_backend.modbus_server import MAP_FILE, TORQUE_LIMIT_NM, start_modbus_rtu_pty, start_modbus_tcp
@@ -68,7 +70,7 @@ def test_word_orders_and_types():
 def test_map_file_problems_name_the_field(tmp_path, text, field, reason):
     path = tmp_path / "m.toml"
     path.write_text(text)
-    with pytest.raises(LoadMapError) as err:
+    with pytest.raises(ContentError) as err:
         read_load_map(path)
     assert any(f == field and reason in r for f, r in err.value.problems), err.value.problems
 

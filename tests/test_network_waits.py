@@ -12,7 +12,8 @@ from pathlib import Path
 import pytest
 
 import drivers.canopen.bus as canbus
-from drivers.api import LinkError, LinkSettings
+from drivers.contract.errors import LinkError
+from drivers.api import LinkSettings
 from drivers.canopen.link import CanopenDriveLink
 from drivers.modbus_load import ModbusLoadLink
 

@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 from bench.orchestrator import LIVE_SIGNALS, run_scenario
 from bench.record_schema import RECORD_KEYS
 from bench.run_files import load_run
-from drivers.api import LinkError
+from drivers.contract.errors import LinkError
 from tests.fakes import SAFE_STOP, FakeRig
 
 BENCH = """

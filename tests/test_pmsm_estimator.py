@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.signals import SIGNAL_INDEX as COL
+from drivers.contract.signals import SIGNAL_INDEX as COL
 from sim_backend.drive import make_drive
 from sim_backend.mechanics import LOAD_TORQUE, LOAD_VISCOUS
 

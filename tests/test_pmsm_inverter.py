@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from drivers.signals import SIGNAL_INDEX as COL
+from drivers.contract.signals import SIGNAL_INDEX as COL
 from sim_backend.drive import load_motor_config, make_drive
 from sim_backend.three_phase_inverter import (adc_lsb, adc_sample, clarke, inverse_clarke, limit_to_linear_range,
                                   switching_error_voltage)

@@ -8,10 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from drivers.signals import SIGNAL_INDEX as COL
-from drivers.signals import SIGNAL_NAMES
-from sim_backend.drive import MotorConfigError, load_motor_config, make_drive
-from drivers.parameters import ParamKind, names_for
+from drivers.contract.signals import SIGNAL_INDEX as COL
+from drivers.contract.signals import SIGNAL_NAMES
+from drivers.contract.errors import InputError
+from sim_backend.drive import load_motor_config, make_drive
+from drivers.contract.parameters import ParamKind, names_for
 from sim_backend.mechanics import LOAD_BRAKE, LOAD_TORQUE, LOAD_VISCOUS
 from sim_backend.drive_model import DriveModel
 from sim_backend.pmsm.model import PmsmDrive
@@ -124,17 +125,17 @@ def test_position_offset_hook_is_one_shot():
 def test_make_drive_errors_name_file_and_field(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text('[motor]\nkind = "bldc"\n')
-    with pytest.raises(MotorConfigError, match=r"bad\.toml: \[motor\] kind"):
+    with pytest.raises(InputError, match=r"bad\.toml: \[motor\] kind"):
         make_drive(bad)
     cfg = load_motor_config(CONFIG)
     del cfg["plant"]["rs_ohm"]
-    with pytest.raises(MotorConfigError, match=r"\[plant\] rs_ohm: missing"):
+    with pytest.raises(InputError, match=r"\[plant\] rs_ohm: missing"):
         make_drive(cfg)
     cfg = load_motor_config(CONFIG)
     cfg["firmware"]["flux_est_kp"] = "fast"
-    with pytest.raises(MotorConfigError, match=r"\[firmware\] flux_est_kp: expected a number"):
+    with pytest.raises(InputError, match=r"\[firmware\] flux_est_kp: expected a number"):
         make_drive(cfg)
-    with pytest.raises(MotorConfigError, match=r"\(file\): not found"):
+    with pytest.raises(InputError, match=r"\(file\): not found"):
         make_drive(tmp_path / "missing.toml")
 
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from drivers.signals import SIGNAL_INDEX as COL
+from drivers.contract.signals import SIGNAL_INDEX as COL
 from sim_backend.drive import load_motor_config, make_drive
 from sim_backend.pmsm import plant as pl
 

@@ -11,11 +11,11 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-import drivers.toml_file
+import drivers.contract.toml_file
 from bench.campaign import load_campaign, points
 from bench.campaign_run import _as_dict, run_point
 from bench.cli import cli
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 from bench.prepared import PreparedRun, prepare_run
 
 REPO = Path(__file__).resolve().parents[1]
@@ -29,7 +29,7 @@ def parses(monkeypatch) -> collections.Counter:
     """How often each file is read and parsed as TOML (the one TOML reader, wherever it was imported), by resolved
     path; TOML parsed from memory counts under "<text>"."""
     counts: collections.Counter = collections.Counter()
-    read, parse = drivers.toml_file.read_toml_file, drivers.toml_file.parse_toml_bytes
+    read, parse = drivers.contract.toml_file.read_toml_file, drivers.contract.toml_file.parse_toml_bytes
 
     def counted_read(path, *args, **kwargs):
         counts[Path(path).resolve()] += 1
@@ -42,7 +42,7 @@ def parses(monkeypatch) -> collections.Counter:
     for module in list(sys.modules.values()):
         if getattr(module, "read_toml_file", None) is read:
             monkeypatch.setattr(module, "read_toml_file", counted_read)
-        if getattr(module, "parse_toml_bytes", None) is parse and module is not drivers.toml_file:
+        if getattr(module, "parse_toml_bytes", None) is parse and module is not drivers.contract.toml_file:
             monkeypatch.setattr(module, "parse_toml_bytes", counted_parse)
     return counts
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import canopen
 from pymodbus.client import ModbusTcpClient
 
-from drivers import cia402
+from drivers.contract import cia402
 from tests.test_sim_serve import _endpoints, _serve
 
 REPO = Path(__file__).resolve().parents[1]

@@ -20,11 +20,11 @@ import pytest
 
 from bench.benchconfig import BenchConfig, BenchSection
 from bench.criteria import CriterionResult
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 from bench.record_schema import JOURNAL
 from bench.recorder import RunRecorder
 from bench.run_files import load_run
-from drivers.signals import SIGNAL_NAMES
+from drivers.contract.signals import SIGNAL_NAMES
 
 SCENARIO = SimpleNamespace(name="demo/run 1", path=Path("/x/demo.toml"), sha256="ab" * 32, duration_s=1.0)
 BENCH = BenchConfig(path="/x/bench.toml", bench=BenchSection(name="sim-test"), drive={})

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from bench.rerun_view import RerunStream, default_blueprint, rrd_entity_paths, viewer_reachable
-from drivers.signals import SIGNAL_NAMES
+from drivers.contract.signals import SIGNAL_NAMES
 
 
 def block(t0: float, n: int = 1000, dt: float = 1e-4) -> tuple[np.ndarray, dict[str, np.ndarray]]:

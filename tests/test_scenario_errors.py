@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 from bench.scenario import load_scenario
 from tests.scenario_fixtures import write_bench, write_scenario
 

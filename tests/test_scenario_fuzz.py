@@ -7,7 +7,7 @@ from pathlib import Path
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 from bench.scenario import load_scenario
 from tests.scenario_fixtures import REPO, write_bench
 

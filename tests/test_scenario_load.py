@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 
 from bench.benchconfig import load_bench_config
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 from bench.scenario import GRAVITY_M_S2, default_max_duration_s, load_scenario
-from drivers.api import LoadMode
+from drivers.contract.load_map import LoadMode
 from tests.scenario_fixtures import REPO, write_bench, write_scenario
 
 

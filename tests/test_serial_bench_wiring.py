@@ -6,7 +6,7 @@ import pytest
 
 from bench.benchconfig import load_bench_config
 from bench.links import make_links, started_services
-from drivers.api import LoadMode
+from drivers.contract.load_map import LoadMode
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -5,7 +5,7 @@ import struct
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.serial_frames import Cmd, Frame, FrameDecoder, crc8, crc32, encode_frame
+from drivers.contract.serial_frames import Cmd, Frame, FrameDecoder, crc8, crc32, encode_frame
 
 
 def crc8_reference(data: bytes) -> int:

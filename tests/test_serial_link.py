@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.api import LinkError
-from drivers.serial_frames import RESPONSE_FLAG, Cmd, ErrorCode, FrameDecoder, encode_frame
+from drivers.contract.errors import LinkError
+from drivers.contract.serial_frames import RESPONSE_FLAG, Cmd, ErrorCode, FrameDecoder, encode_frame
 from drivers.api import LinkSettings
-from drivers.cia402 import state_name as state_from_statusword
+from drivers.contract.cia402 import state_name as state_from_statusword
 from drivers.serial_link import SerialDriveLink
-from drivers.signals import SIGNAL_NAMES
+from drivers.contract.signals import SIGNAL_NAMES
 from sim_backend.device import SimulatedDevice
 from sim_backend.serial_server import SerialProtocolHandler, start_serial_pty, start_serial_tcp
 from sim_backend.toy import ToyDrive
@@ -425,7 +425,7 @@ def test_missing_port_is_a_config_error():
 
 def bogus_header(length: int = 60000) -> bytes:
     """A corrupted header that still passes its CRC-8: it announces a payload that never comes."""
-    from drivers.serial_frames import crc8
+    from drivers.contract.serial_frames import crc8
     head = struct.pack("<HBB", length, 0x33, 0xC2)
     return b"\xa5\x5a" + head + bytes([crc8(head)])
 

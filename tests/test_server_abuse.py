@@ -15,8 +15,9 @@ from pathlib import Path
 import can
 import pytest
 
-from drivers.api import LinkError, LinkSettings
-from drivers.serial_frames import SOF, Cmd, crc8
+from drivers.contract.errors import LinkError
+from drivers.api import LinkSettings
+from drivers.contract.serial_frames import SOF, Cmd, crc8
 from drivers.serial_link import SerialDriveLink
 from sim_backend.device import SimulatedDevice
 from sim_backend.rig import RigSpec, build

@@ -249,7 +249,7 @@ def test_scenario_paths_outside_the_scenario_root_are_refused(api, path, tmp_pat
 
 
 def test_bad_scenarios_give_the_clis_lines(api):
-    from bench.errors import InputError
+    from drivers.contract.errors import InputError
     from bench.orchestrator import prepare
 
     op = H(api.tokens.operator)

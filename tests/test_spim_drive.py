@@ -9,13 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.signals import SIGNAL_INDEX as SI
-from drivers.signals import SIGNAL_NAMES
+from drivers.contract.signals import SIGNAL_INDEX as SI
+from drivers.contract.signals import SIGNAL_NAMES
 from sim_backend.drive import make_drive
-from drivers.parameters import ParamKind, names_for
+from drivers.contract.parameters import ParamKind, names_for
 from sim_backend.mechanics import LOAD_BRAKE, LOAD_TORQUE
 from sim_backend.spim import firmware as fw
-from sim_backend.spim.model import ConfigError, SpimDrive
+from drivers.contract.errors import ContentError
+from sim_backend.spim.model import SpimDrive
 
 CONFIG = Path(__file__).resolve().parents[1] / "config/motors/spim-paper.toml"
 RPM = 2 * math.pi / 60
@@ -222,5 +223,5 @@ def test_contract_columns_names_and_errors():
         d.set_hook("fw_rs_ohm", 1.0)
     bad = config()
     bad["plant"]["rsd_ohm"] = -1.0
-    with pytest.raises(ConfigError, match=r"\[plant\] rsd_ohm"):
+    with pytest.raises(ContentError, match=r"\[plant\] rsd_ohm"):
         SpimDrive.from_config(bad, 0)

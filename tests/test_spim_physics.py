@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.signals import SIGNAL_INDEX as SI
+from drivers.contract.signals import SIGNAL_INDEX as SI
 from sim_backend.mechanics import LOAD_BRAKE
 from sim_backend.spim import plant as pl
 from sim_backend.spim.model import SpimDrive

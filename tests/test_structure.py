@@ -30,11 +30,12 @@ def _type_checking_nodes(tree: ast.AST) -> set[int]:
     return skip
 
 
-def imports_of(module: str) -> set[str]:
-    """Project modules `module` imports anywhere in its body (functions included), TYPE_CHECKING blocks excluded."""
+def imports_of(module: str, type_only: bool = False) -> set[str]:
+    """Project modules `module` imports anywhere in its body (functions included); TYPE_CHECKING blocks excluded
+    unless `type_only` (a circle through annotations is still a circle in the design)."""
     path = MODULES[module]
     tree = ast.parse(path.read_text())
-    skip = _type_checking_nodes(tree)
+    skip = set() if type_only else _type_checking_nodes(tree)
     found: set[str] = set()
     for node in ast.walk(tree):
         if id(node) in skip:
@@ -59,10 +60,16 @@ def imports_of(module: str) -> set[str]:
 
 
 GRAPH = {m: imports_of(m) for m in MODULES}
+GRAPH_WITH_TYPES = {m: imports_of(m, type_only=True) for m in MODULES}
+CONTRACT = "drivers.contract"
+
+
+def _in_contract(module: str) -> bool:
+    return module == CONTRACT or module.startswith(CONTRACT + ".")
 
 
 def test_the_graph_sees_imports():
-    assert "drivers.cia402" in GRAPH["drivers.canopen.link"]
+    assert "drivers.contract.cia402" in GRAPH["drivers.canopen.link"]
     assert "sim_backend.device" in GRAPH["sim_backend.rig"]         # a function-level import counts too
 
 
@@ -133,6 +140,29 @@ def test_no_import_cycle_in_any_package():
     assert _cycles(GRAPH) == []
 
 
+def test_the_type_only_graph_sees_type_checking_imports():
+    with_types = {m for m, deps in GRAPH_WITH_TYPES.items() if deps - GRAPH[m]}
+    assert with_types, "no module has a TYPE_CHECKING import: the variant would test nothing"
+
+
+def test_no_import_cycle_even_through_type_only_imports():
+    assert _cycles(GRAPH_WITH_TYPES) == []
+
+
+def test_the_contract_imports_nothing_outside_itself():
+    contract = [m for m in MODULES if _in_contract(m)]
+    assert len(contract) >= 10
+    offending = {m: sorted(d for d in GRAPH_WITH_TYPES[m] if not _in_contract(d)) for m in contract}
+    assert {m: d for m, d in offending.items() if d} == {}
+
+
+def test_the_simulator_imports_no_bench_module_and_of_drivers_only_the_contract():
+    offending = {m: sorted(d for d in deps if d.split(".")[0] == "bench" or
+                           (d.split(".")[0] == "drivers" and not _in_contract(d)))
+                 for m, deps in GRAPH_WITH_TYPES.items() if m.split(".")[0] == "sim_backend"}
+    assert {m: d for m, d in offending.items() if d} == {}
+
+
 @pytest.mark.parametrize("transport", ["canopen", "serial"])
 def test_a_bench_without_services_hands_its_own_settings_to_the_drive_link(tmp_path, transport):
     """A real rig has no [services]: its [bench] timing and fault_reset must still reach the link (before, they
@@ -162,3 +192,15 @@ port = 502
     link, _ = make_links(cfg, REPO)
     assert link.timing == "realtime"
     assert link.fault_reset_policy == "never"
+
+
+def _layer(module: str) -> str:
+    return "contract" if _in_contract(module) else module.split(".")[0]
+
+
+def test_layers_import_only_downwards():
+    """contract <- drivers' clients <- bench; contract <- sim_backend (counting type-only imports)."""
+    allowed = {("drivers", "contract"), ("bench", "contract"), ("bench", "drivers"), ("sim_backend", "contract")}
+    edges = {(_layer(m), _layer(d)) for m, deps in GRAPH_WITH_TYPES.items() for d in deps if _layer(m) != _layer(d)}
+    assert edges <= allowed, sorted(edges - allowed)
+    assert {("bench", "contract"), ("sim_backend", "contract"), ("drivers", "contract")} <= edges

@@ -12,8 +12,9 @@ from pathlib import Path
 import can
 import pytest
 
-from drivers.api import LinkError, LinkSettings
-from drivers.canopen import objects as o
+from drivers.contract.errors import LinkError
+from drivers.api import LinkSettings
+from drivers.contract import objects as o
 from drivers.canopen.link import CanopenDriveLink
 from drivers.canopen.probe import probe, scan
 from sim_backend.canopen.generic import DriveSpec

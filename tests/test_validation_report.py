@@ -14,7 +14,7 @@ from bench.criteria import evaluate, verdict
 from bench.recorder import RunRecorder
 from bench.report import criteria_comments, firmware_deviations, load_suites, main, write_report
 from bench.scenario import load_scenario
-from drivers.signals import SIGNAL_NAMES
+from drivers.contract.signals import SIGNAL_NAMES
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 
 EXIT_PASS, EXIT_FAIL, EXIT_ERROR = 0, 1, 2
 DEFAULT_DATA = "runs/service"

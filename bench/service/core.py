@@ -9,7 +9,8 @@ from pathlib import Path
 
 from sqlalchemy import select, update
 
-from bench.errors import InputError, find_repo_root
+from drivers.contract.errors import InputError
+from drivers.contract.checks import find_repo_root
 from bench.service.auth import Principal, TokenCache
 from bench.service.db import FINAL_STATES, STATES, CriterionValue, Database, Rig, Run, Token, iso, now, open_database
 from bench.service.errors import ApiError, bad_input, not_found
@@ -294,7 +295,7 @@ def _stated_external(bench: str) -> str | None:
     """The rig page says plainly when the rig's comm-loss reaction is stated in its bench config, not drilled."""
     from bench.benchconfig import load_bench_config
     from bench.drill import stated_external
-    from bench.errors import InputError
+    from drivers.contract.errors import InputError
 
     try:
         return stated_external(load_bench_config(bench))

@@ -25,7 +25,7 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from bench.service.limits import (BODY_IDLE_TIMEOUT_S, FD_RESERVE, HEAD_TIMEOUT_S, KEEP_ALIVE_S, MAX_CONNECTIONS,
                                   READ_CACHE_ENTRIES, READ_CACHE_S, body_limit)
-from drivers.ratelog import RateLimitedLog
+from drivers.contract.ratelog import RateLimitedLog
 
 log = logging.getLogger("drivebench.serve")
 

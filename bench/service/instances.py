@@ -16,7 +16,7 @@ from pathlib import Path
 from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 from bench.service.db import Database, Instance, iso, now
 
 # a run process of an instance on another host cannot be asked: its service's death reaches it by

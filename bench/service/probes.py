@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 from sqlalchemy import select
 
-from bench.errors import find_repo_root
+from drivers.contract.checks import find_repo_root
 from bench.service.auth import Principal
 from bench.service.db import Database, Rig, RigProbe, iso, now
 from bench.service.errors import ApiError, not_found

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from sqlalchemy import select
 
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 from bench.service.auth import Principal
 from bench.service.db import Database, Rig, Run, RunCandidate, iso
 from bench.service.errors import ApiError, bad_input

@@ -9,7 +9,7 @@ import functools
 import time
 from pathlib import Path
 
-from bench.errors import InputError
+from drivers.contract.errors import InputError
 
 MAX_SCENARIOS = 300
 LOG_TAIL_LINES = 12

@@ -17,9 +17,11 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from bench.benchconfig import load_bench_config, read_toml, resolve_path
+from bench.benchconfig import load_bench_config
+from drivers.contract.checks import read_toml, resolve_path
 from bench.drill import stated_external
-from bench.errors import InputError, Problems, find_repo_root
+from drivers.contract.errors import InputError
+from drivers.contract.checks import find_repo_root, Problems
 
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 DEFAULT_SIM_CONCURRENCY = 2

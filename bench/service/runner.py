@@ -32,7 +32,7 @@ from typing import Callable
 from sqlalchemy import and_, or_, select, update
 from sqlalchemy.exc import IntegrityError
 
-from bench.errors import find_repo_root
+from drivers.contract.checks import find_repo_root
 from bench.service import instances
 from bench.service.db import CriterionValue, Database, Instance, Lease, Rig, Run, RunCandidate, iso, now
 from bench.service.leases import active_leases, held_rigs

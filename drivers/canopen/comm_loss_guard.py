@@ -14,10 +14,10 @@ from typing import Any
 
 import canopen
 
-from drivers.api import LinkError
-from drivers.canopen import objects as o
+from drivers.contract.errors import LinkError
+from drivers.contract import objects as o
 from drivers.canopen.sdo import SdoAccess
-from drivers.comm_loss import EXTERNAL_HINT, CommLossConfig
+from drivers.contract.comm_loss import EXTERNAL_HINT, CommLossConfig
 
 @dataclass
 class CommLossGuard:

@@ -11,16 +11,34 @@ again only when it proceeds.
 
 from __future__ import annotations
 
+import threading
 import time
 from datetime import datetime, timezone
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable, Protocol
 
-from drivers import cia402
-from drivers.api import LinkError
-from drivers.comm_loss import EXTERNAL_HINT
+from drivers.contract import cia402
+from drivers.contract.errors import LinkError
+from drivers.contract.comm_loss import EXTERNAL_HINT, CommLossConfig
 
-if TYPE_CHECKING:
-    from drivers.canopen.link import CanopenDriveLink
+
+
+class DrillLink(Protocol):
+    """What the drill uses of an armed CANopen drive link (drivers.canopen.link.CanopenDriveLink)."""
+
+    where: str
+    comm_loss_config: CommLossConfig
+    node: Any                                   # canopen.RemoteNode
+    _guard: Any                                 # drivers.canopen.comm_loss.CommLossGuard
+    _cancel: threading.Event
+    _step_timeout_s: float
+
+    def read_statusword(self) -> int: ...
+    def write_controlword(self, word: int) -> None: ...
+    def enable_velocity_mode(self) -> None: ...
+    def disable(self) -> None: ...
+    def take_emcy(self) -> list[tuple[int, str]]: ...
+    def heartbeat_state(self) -> tuple[int | None, float]: ...
+    def drop_pending(self) -> list[str]: ...
 
 POLL_S = 0.005            # statusword polls (SDO) while the heartbeat is withheld
 LATE_WATCH_S = 1.0        # after the deadline the bench keeps looking this long: a late reaction is told from none
@@ -31,7 +49,7 @@ def _utc() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
 
 
-def drill(link: "CanopenDriveLink", before_withhold: Callable[[], None] | None = None) -> dict[str, Any]:
+def drill(link: DrillLink, before_withhold: Callable[[], None] | None = None) -> dict[str, Any]:
     """Run the drill on an armed link (configure() done); the drive is left disabled, the bench heartbeat running.
     `before_withhold` is called once the drive holds the shaft (enabled at zero velocity), just before the heartbeat
     stops (the bench drills its load machine meanwhile). Returns the drill's record: `result` is "passed", "failed"
@@ -116,13 +134,13 @@ def drill(link: "CanopenDriveLink", before_withhold: Callable[[], None] | None =
     return report
 
 
-def _check_cancelled(link: "CanopenDriveLink") -> None:
+def _check_cancelled(link: DrillLink) -> None:
     """The run was abandoned (operator abort, the supervisor): the safe stop has the drive now, not the drill."""
     if link._cancel.is_set():
         raise LinkError(f"{link.where}: comm-loss drill abandoned: the run is stopping")
 
 
-def _rearm(link: "CanopenDriveLink", word: int) -> list[str]:
+def _rearm(link: DrillLink, word: int) -> list[str]:
     """Heartbeat back, the drive off (a fault the drill caused reset), NMT operational, the drill's traces gone;
     returns the link's complaints during the drill (TPDOs stop while the drive is pre-operational)."""
     link._guard.resume()

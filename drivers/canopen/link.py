@@ -3,7 +3,7 @@
 What the bench gets from a drive:
 - identity (0x1018), device name (0x1008), software version (0x100A) and its drive profile (drivers.canopen.profile):
   which objects give which signals in which units, read from the drive's factor group at connect time;
-- the 402 state machine (drivers.cia402) stepped by SDO — confirmed, and usable whatever state the drive's PDOs are
+- the 402 state machine (drivers.contract.cia402) stepped by SDO — confirmed, and usable whatever state the drive's PDOs are
   in; the target velocity streamed by an RPDO when one carries it (else by SDO), in the drive's velocity unit;
 - live samples from TPDOs sent on SYNC (drivers.canopen.pdo: our mapping where the drive allows it, else the one read
   from the device; the drive's own PDO parameters restored at the end);
@@ -31,7 +31,7 @@ import struct
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import can
 import canopen
@@ -40,19 +40,22 @@ from canopen import objectdictionary
 from canopen.emcy import EmcyError
 from canopen.sdo import SdoAbortedError
 
-from drivers import cia402
-from drivers.api import DriveIdentity, DriveLink, DriveStatus, LinkError, LinkSettings, LiveSample
-from drivers.canopen import objects as o
+from drivers.contract import cia402
+from drivers.api import DriveIdentity, DriveLink, DriveStatus, LinkSettings, LiveSample
+from drivers.contract.errors import LinkError
+from drivers.contract import objects as o
 from drivers.canopen import pdo as pdos
+from drivers.canopen.config import CanopenDriveConfig
 from drivers.canopen.bus import BusErrorCounter, SocketcandRefusal, bus_kwargs, make_bus, open_bus
 from drivers.canopen.comm_loss_guard import CommLossGuard
 from drivers.canopen import drill as drills
-from drivers.comm_loss import CommLossConfig
-from drivers.canopen.profile import DriveProfile, ProfileConfig, ProfileError, resolve
+from drivers.contract.comm_loss import CommLossConfig
+from drivers.canopen.profile import DriveProfile, ProfileConfig, resolve
+from drivers.contract.errors import ContentError
 from drivers.canopen.sdo import SdoAccess, block_upload
 from drivers.canopen.sync import NativeSync, ReceiveClock, SyncProducer, SyncTimeline, has_native_cyclic
-from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
-from drivers.trace_format import decode_rows, mask_for
+from drivers.contract.signals import SIGNAL_NAMES, TIME_COLUMN
+from drivers.contract.trace_format import decode_rows, mask_for
 
 log = logging.getLogger(__name__)
 
@@ -66,22 +69,22 @@ VELOCITY_MODES = {"auto": None, "pv": cia402.Mode.PROFILE_VELOCITY, "csv": cia40
 
 
 class CanopenDriveLink(DriveLink):
-    def __init__(self, section: dict, base_dir: Path, settings: LinkSettings):
-        self.section = dict(section)
-        eds = Path(section["eds"])
+    def __init__(self, config: CanopenDriveConfig | Mapping[str, Any], base_dir: Path, settings: LinkSettings):
+        cfg = self.section = CanopenDriveConfig.from_mapping(config)
+        eds = Path(cfg.eds)
         self.eds_path = eds if eds.is_absolute() else Path(base_dir) / eds
-        self.node_id = int(section["node_id"])
-        self.sync_period_s = float(section.get("sync_period_s", 0.001))
-        self.heartbeat_timeout_s = float(section.get("heartbeat_timeout_s", 0.5))
-        self.sdo_timeout_s = float(section.get("sdo_timeout_s", 0.5))
-        self.pdo_policy = section.get("pdo", "auto")
-        self.standstill_mech_rad_s = float(section.get("standstill_mech_rad_s", cia402.STANDSTILL_MECH_RAD_S))
-        self.stop_timeout_s = float(section.get("stop_timeout_s", cia402.STOP_TIMEOUT_S))
-        self.boot_timeout_s = float(section.get("boot_timeout_s", 0.0))
-        self.velocity_mode_choice = str(section.get("velocity_mode", "auto"))
+        self.node_id = int(cfg.node_id)
+        self.sync_period_s = float(cfg.sync_period_s)
+        self.heartbeat_timeout_s = float(cfg.heartbeat_timeout_s)
+        self.sdo_timeout_s = float(cfg.sdo_timeout_s)
+        self.pdo_policy = cfg.pdo
+        self.standstill_mech_rad_s = float(cfg.standstill_mech_rad_s)
+        self.stop_timeout_s = float(cfg.stop_timeout_s)
+        self.boot_timeout_s = float(cfg.boot_timeout_s)
+        self.velocity_mode_choice = str(cfg.velocity_mode)
         self.mode = cia402.Mode.PROFILE_VELOCITY      # what enable_velocity_mode() selected
-        self.profile_config = ProfileConfig.from_section(section)
-        self.comm_loss_config = CommLossConfig.from_section(section)
+        self.profile_config = ProfileConfig.from_section(cfg)
+        self.comm_loss_config = CommLossConfig.from_section(cfg)
         self.timing = settings.timing
         self.fault_reset_policy = settings.fault_reset
         # Waits the drive's SDO timeout does not cover: a lockstep SYNC's TPDOs and the frames inside a running
@@ -161,7 +164,7 @@ class CanopenDriveLink(DriveLink):
         name, version = (self._optional_text(index) for index in (o.DEVICE_NAME, o.SOFTWARE_VERSION))
         try:
             self.profile = resolve(self.profile_config, vendor, product, sdo.read_standard, sdo.has)
-        except ProfileError as exc:
+        except ContentError as exc:
             raise LinkError(f"{self.where}: drive profile: {exc}") from None
         has_trace = False
         if self.profile.extension:
@@ -625,7 +628,7 @@ class CanopenDriveLink(DriveLink):
     def sync_producer(self) -> SyncProducer | NativeSync | None:
         return self._sync
 
-    # -- 402 state machine (drivers.cia402; controlword by SDO: confirmed, whatever the PDOs do) -----
+    # -- 402 state machine (drivers.contract.cia402; controlword by SDO: confirmed, whatever the PDOs do) -----
     def _send_rpdo(self) -> None:
         rpdo = self.plan.rpdo if self.plan is not None else None
         if rpdo is None:

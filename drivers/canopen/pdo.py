@@ -17,8 +17,9 @@ from typing import Callable, Iterable, Sequence
 
 from canopen import objectdictionary
 
-from drivers.api import LinkError, LiveSample
-from drivers.canopen import objects as o
+from drivers.contract.errors import LinkError
+from drivers.api import LiveSample
+from drivers.contract import objects as o
 from drivers.canopen.bus import frame_bits
 from drivers.canopen.sdo import SdoAccess
 

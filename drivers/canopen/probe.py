@@ -14,13 +14,14 @@ from typing import Any
 import can
 import canopen
 
-from drivers import cia402, extension
-from drivers.api import LinkError
-from drivers.canopen import objects as o
+from drivers.contract import cia402, extension
+from drivers.contract.errors import LinkError
+from drivers.contract import objects as o
 from drivers.canopen.bus import bus_kwargs, open_bus
-from drivers.canopen.profile import ProfileConfig, ProfileError, resolve
+from drivers.canopen.profile import ProfileConfig, resolve
+from drivers.contract.errors import ContentError
 from drivers.canopen.sdo import SdoAccess
-from drivers.units import UnitError, decode_velocity_unit
+from drivers.contract.units import decode_velocity_unit
 
 SCAN_TIMEOUT_S = 0.05
 
@@ -82,7 +83,7 @@ def probe(section: dict, base_dir: Path) -> dict[str, Any]:
         unit_code = sdo.read_standard(o.SI_UNIT_VELOCITY, 0)
         try:
             unit = decode_velocity_unit(unit_code).name if unit_code is not None else "not on this drive"
-        except UnitError as exc:
+        except ContentError as exc:
             unit = f"0x{unit_code:08X}: {exc}"
         consumers = sdo.read_standard(o.CONSUMER_HEARTBEAT, 0)
         report: dict[str, Any] = {
@@ -121,7 +122,7 @@ def probe(section: dict, base_dir: Path) -> dict[str, Any]:
         try:
             profile = resolve(ProfileConfig.from_section(section), vendor, product or 0, sdo.read_standard, sdo.has)
             report["profile"] = profile.as_record()
-        except ProfileError as exc:
+        except ContentError as exc:
             report["profile"] = {"error": str(exc)}
         # last: a stray answer on another node's SDO channel must not meet one of the reads above
         bench_id = int(section.get("bench_node_id", o.HEARTBEAT_BENCH_NODE_ID))

@@ -6,7 +6,7 @@ Two kinds:
   (per mille of the rated torque 0x6076), current actual 0x6078 -> i_sy_a (per mille of the rated current 0x6075;
   CiA 402 leaves open which current, most drives report the torque-producing one), DC link 0x6079 -> vdc_v (mV);
   target velocity 0x60FF in the drive's velocity unit. Overridable per signal in the bench config.
-- "drivebench": the drive carries drivebench's extension (drivers.extension): its REAL32 signal objects, drive
+- "drivebench": the drive carries drivebench's extension (drivers.contract.extension): its REAL32 signal objects, drive
   clock and trace recorder, plus the standard objects for the state machine and the velocity target.
 
 Units come from the device at connect time (0x60A9 SI unit velocity, 0x608F encoder resolution, 0x6091 gear
@@ -22,11 +22,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from drivers import extension
-from drivers.canopen import objects as o
-from drivers.signals import SIGNAL_NAMES
-from drivers.toml_file import known_entries
-from drivers.units import (MILLI, PER_MILLE, SIDES, UnitError, VelocityScale, VelocityUnit, decode_velocity_unit,
+from drivers.contract import extension
+from drivers.contract import objects as o
+from drivers.contract.errors import ContentError
+from drivers.contract.signals import SIGNAL_NAMES
+from drivers.contract.toml_file import known_entries
+from drivers.contract.units import (MILLI, PER_MILLE, SIDES, VelocityScale, VelocityUnit, decode_velocity_unit,
                            parse_velocity_unit)
 
 PROFILES = ("auto", "cia402", "drivebench")
@@ -40,10 +41,6 @@ STANDARD_SOURCES: dict[str, tuple[int, str]] = {
     "vdc_v": (o.DC_LINK_VOLTAGE, "millivolt"),
 }
 SCALES = ("velocity", "torque", "current", "millivolt", "factor")
-
-
-class ProfileError(ValueError):
-    """The drive and the bench config do not give the bench what it needs; the message says what to do."""
 
 
 @dataclass(frozen=True)
@@ -116,7 +113,7 @@ Reader = Callable[[int, int], "int | None"]   # SDO read of a standard object; N
 def _agree(what: str, read: float | None, stated: float | None, same: Callable[[float, float], bool],
            where_read: str, notes: dict[str, str]) -> float | None:
     if read is not None and stated is not None and not same(read, stated):
-        raise ProfileError(f"{what}: the drive reports {read} ({where_read}), the bench config states {stated}: "
+        raise ContentError(f"{what}: the drive reports {read} ({where_read}), the bench config states {stated}: "
                            "correct the bench config (or the drive) before running")
     if read is not None:
         notes[what] = f"read from the drive ({where_read})"
@@ -132,7 +129,7 @@ SIDE_HELP = ("[drive] velocity_side = \"motor\" (the drive's unit counts the mot
 
 def _velocity_side(unit: VelocityUnit, gear: tuple[float, float] | None, stated: str | None, gear_from: str,
                    notes: dict[str, str]) -> str:
-    """Which shaft the drive's velocity unit counts, and where that came from (notes); ProfileError where a gear ratio
+    """Which shaft the drive's velocity unit counts, and where that came from (notes); ContentError where a gear ratio
     other than 1:1 makes it matter and nothing says."""
     geared = gear is not None and gear[0] != gear[1]
     if stated is not None:
@@ -142,7 +139,7 @@ def _velocity_side(unit: VelocityUnit, gear: tuple[float, float] | None, stated:
         notes["velocity_side"] = "motor: increments of the motor encoder (CiA 402 0x608F: increments per motor rev)"
         return "motor"
     if geared:
-        raise ProfileError(f"velocity unit {unit.name} with a gear ratio of {gear[0]:g}:{gear[1]:g} ({gear_from}: "
+        raise ContentError(f"velocity unit {unit.name} with a gear ratio of {gear[0]:g}:{gear[1]:g} ({gear_from}: "
                            f"motor revs : driving shaft revs): which shaft does the drive's {unit.name} count? No "
                            f"CiA 402 object says: state {SIDE_HELP}")
     notes["velocity_side"] = ("shaft: no gear (1:1), motor and driving shaft turn alike" if gear is not None else
@@ -156,7 +153,7 @@ def resolve(cfg: ProfileConfig, vendor_id: int, product_code: int, read: Reader,
     """The profile of a connected drive. `read(index, sub)` reads the device (None when it has no such object);
     `has_object(index)` says whether the drive's EDS has the object."""
     if cfg.profile not in PROFILES:
-        raise ProfileError(f"profile {cfg.profile!r} is not one of {', '.join(PROFILES)}")
+        raise ContentError(f"profile {cfg.profile!r} is not one of {', '.join(PROFILES)}")
     kind = cfg.profile
     if kind == "auto":
         kind = "drivebench" if extension.carries_extension(vendor_id, product_code) else "cia402"
@@ -166,14 +163,14 @@ def resolve(cfg: ProfileConfig, vendor_id: int, product_code: int, read: Reader,
     try:
         read_unit = decode_velocity_unit(unit_code) if unit_code is not None else None
         stated_unit = parse_velocity_unit(cfg.velocity_unit) if cfg.velocity_unit else None
-    except UnitError as exc:
-        raise ProfileError(f"velocity unit: {exc}") from None
+    except ContentError as exc:
+        raise ContentError(f"velocity unit: {exc}") from None
     if read_unit is not None and stated_unit is not None and read_unit != stated_unit:
-        raise ProfileError(f"velocity unit: the drive reports {read_unit.name} (0x60A9 = 0x{unit_code:08X}), the bench "
+        raise ContentError(f"velocity unit: the drive reports {read_unit.name} (0x60A9 = 0x{unit_code:08X}), the bench "
                            f"config states {stated_unit.name}: correct the bench config (or the drive) before running")
     unit = read_unit or stated_unit
     if unit is None:
-        raise ProfileError("velocity unit unknown: the drive has no SI unit velocity (0x60A9); state it in the bench "
+        raise ContentError("velocity unit unknown: the drive has no SI unit velocity (0x60A9); state it in the bench "
                            "config ([drive] velocity_unit, e.g. \"rpm\" or \"inc/s\") — the bench never assumes one")
     notes["velocity_unit"] = ("read from the drive (0x60A9)" if read_unit is not None
                               else "stated in the bench config (the drive has no 0x60A9)")
@@ -185,7 +182,7 @@ def resolve(cfg: ProfileConfig, vendor_id: int, product_code: int, read: Reader,
                             cfg.encoder_increments_per_rev, lambda a, b: abs(a - b) < 1e-9 * max(a, b),
                             "0x608F", notes)
         if not increments:
-            raise ProfileError(f"velocity unit {unit.name}: the encoder resolution is unknown (no 0x608F): state "
+            raise ContentError(f"velocity unit {unit.name}: the encoder resolution is unknown (no 0x608F): state "
                                "[drive] encoder_increments_per_rev")
     motor_revs, shaft_revs = read(o.GEAR_RATIO, 1), read(o.GEAR_RATIO, 2)
     gear_read = (float(motor_revs), float(shaft_revs)) if motor_revs and shaft_revs else None
@@ -196,7 +193,7 @@ def resolve(cfg: ProfileConfig, vendor_id: int, product_code: int, read: Reader,
         if side == "motor":
             what = ("counts motor encoder increments" if unit.needs_encoder and cfg.velocity_side is None
                     else "counts the motor (velocity_side)")
-            raise ProfileError(f"velocity unit {unit.name} {what} and the drive has no gear ratio (0x6091): state "
+            raise ContentError(f"velocity unit {unit.name} {what} and the drive has no gear ratio (0x6091): state "
                                "[drive] gear_ratio = [motor_revs, shaft_revs] ([1, 1] without a gearbox)")
         gear = (1.0, 1.0)
         notes["gear_ratio"] = ("not applied: the velocity unit counts the driving shaft (no 0x6091 on the drive, "
@@ -230,7 +227,7 @@ def resolve(cfg: ProfileConfig, vendor_id: int, product_code: int, read: Reader,
         else:
             factor, note = factors[spec["scale"]]
             if factor is None:
-                raise ProfileError(f"signals.{signal}: scale {spec['scale']!r} needs the motor's rated "
+                raise ContentError(f"signals.{signal}: scale {spec['scale']!r} needs the motor's rated "
                                    f"{spec['scale']} (0x607{6 if spec['scale'] == 'torque' else 5} or "
                                    f"[drive] rated_{spec['scale']}_{'nm' if spec['scale'] == 'torque' else 'a'})")
         sources.append(SignalSource(signal, index, subindex, factor, note))
@@ -259,7 +256,7 @@ def check_section(section: dict, has_object: Callable[[int], bool], is_extension
     if isinstance(unit, str) and unit:
         try:
             parsed = parse_velocity_unit(unit)
-        except UnitError:
+        except ContentError:
             pass                                # config_keys reports it
         else:
             if parsed.needs_encoder and not has_object(o.POSITION_ENCODER_RESOLUTION) \
@@ -320,7 +317,7 @@ def _object_ref(text: Any) -> tuple[int, int] | None:
 def config_keys(section: dict) -> tuple[dict[str, Any], list[tuple[str, str]]]:
     """The profile, PDO, comm-loss and python-can keys of a CANopen [drive] table, normalised, and (field, reason)
     problems. Units are checked here; whether the EDS has what they need, by check_section."""
-    from drivers import comm_loss
+    from drivers.contract import comm_loss
     from drivers.canopen.pdo import POLICIES
 
     out, problems = comm_loss.check_keys(section, comm_loss.STOP_KEYS + ("error_behaviour", "bench_node_id"))
@@ -343,7 +340,7 @@ def config_keys(section: dict) -> tuple[dict[str, Any], list[tuple[str, str]]]:
                 continue
             try:
                 parse_velocity_unit(value)
-            except UnitError as exc:
+            except ContentError as exc:
                 bad(key, str(exc))
                 continue
         elif key == "units_confirmed":

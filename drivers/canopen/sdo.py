@@ -14,8 +14,8 @@ import numpy as np
 from canopen import objectdictionary
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
-from drivers.api import LinkError
-from drivers.canopen import objects as o
+from drivers.contract.errors import LinkError
+from drivers.contract import objects as o
 
 
 NO_SUCH_OBJECT = (o.ABORT_NOT_IN_OD, 0x06090011)     # object / subindex does not exist

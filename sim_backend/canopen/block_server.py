@@ -10,7 +10,7 @@ import numpy as np
 from canopen.node import LocalNode
 from canopen.sdo import SdoAbortedError, SdoServer
 
-from drivers.canopen import objects as o
+from drivers.contract import objects as o
 from sim_backend.canopen.virtual_bus import send_frames
 
 

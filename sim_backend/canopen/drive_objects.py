@@ -13,10 +13,11 @@ from typing import Callable
 from canopen import objectdictionary
 from canopen.sdo import SdoAbortedError
 
-from drivers.canopen import objects as o
-from drivers.cia402 import FAULT_RESET_BIT, State
-from drivers.signals import SIGNAL_INDEX, SIGNAL_NAMES
-from drivers.units import MRAD_PER_S, UnitError, VelocityScale, decode_velocity_unit
+from drivers.contract import objects as o
+from drivers.contract.cia402 import FAULT_RESET_BIT, State
+from drivers.contract.signals import SIGNAL_INDEX, SIGNAL_NAMES
+from drivers.contract.units import decode_velocity_unit, MRAD_PER_S, VelocityScale
+from drivers.contract.errors import ContentError
 from sim_backend.device import SimulatedDevice
 
 log = logging.getLogger(__name__)
@@ -135,7 +136,7 @@ class Cia402Objects:
                 unit = decode_velocity_unit(value)
                 scale = dataclasses.replace(self.units.velocity, unit=unit)
                 scale.rad_s_per_unit
-            except UnitError:
+            except ContentError:
                 raise SdoAbortedError(o.ABORT_INVALID_VALUE) from None
             self.units.velocity = scale
         elif index == o.QUICK_STOP_OPTION:
@@ -173,7 +174,7 @@ class Cia402Objects:
 
 class ExtensionObjects:
     """drivebench's manufacturer objects: drive clock, live signals, trace recorder, parameters
-    (drivers.canopen.objects EXT_*). Present only in the drivebench EDS files."""
+    (drivers.contract.objects EXT_*). Present only in the drivebench EDS files."""
 
     def __init__(self, device: SimulatedDevice, od: objectdictionary.ObjectDictionary):
         self.device = device

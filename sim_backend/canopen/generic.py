@@ -27,9 +27,9 @@ from dataclasses import dataclass
 from canopen import objectdictionary
 from canopen.objectdictionary import ODRecord, ODVariable
 
-from drivers import extension
-from drivers.canopen import objects as o
-from drivers.units import MRAD_PER_S, VelocityScale, decode_velocity_unit, parse_velocity_unit
+from drivers.contract import extension
+from drivers.contract import objects as o
+from drivers.contract.units import decode_velocity_unit, MRAD_PER_S, parse_velocity_unit, VelocityScale
 from sim_backend.canopen.drive_objects import DriveUnits
 
 

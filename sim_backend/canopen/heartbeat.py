@@ -5,12 +5,19 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
-from drivers.canopen import objects as o
+from drivers.contract import objects as o
 
-if TYPE_CHECKING:
-    from sim_backend.canopen.node import SimCanopenNode
+
+
+class HeartbeatNode(Protocol):
+    """What the heartbeat producer and consumer use of a simulated node (sim_backend.canopen.node.SimCanopenNode)."""
+
+    node_id: int
+    node: Any               # canopen.LocalNode (its nmt state)
+    network: Any            # canopen.Network
+    device: Any             # sim_backend.device.SimulatedDevice (master watchdog, lock)
 
 log = logging.getLogger(__name__)
 
@@ -22,7 +29,7 @@ class HeartbeatProducer:
     (python-can's cyclic task) can starve for seconds behind a busy 1 kHz receive thread in one process.
     """
 
-    def __init__(self, node: "SimCanopenNode"):
+    def __init__(self, node: HeartbeatNode):
         self._node = node
         self._period_s = 0.0
         self._last = 0.0
@@ -72,7 +79,7 @@ class HeartbeatConsumer:
     the device's master watchdog is armed with the shortest time and touched by every heartbeat of a watched node.
     On expiry the device applies 0x6007; with 0x1029 sub 1 = 0 the node also goes pre-operational."""
 
-    def __init__(self, node: "SimCanopenNode"):
+    def __init__(self, node: HeartbeatNode):
         self._node = node
         self._subscribed: set[int] = set()
 

@@ -22,8 +22,8 @@ import canopen
 from canopen import objectdictionary
 from canopen.sdo import SdoAbortedError
 
-from drivers.canopen import objects as o
-from drivers.cia402 import State
+from drivers.contract import objects as o
+from drivers.contract.cia402 import State
 from sim_backend.canopen.block_server import DriveLocalNode
 from sim_backend.canopen import generic
 from sim_backend.canopen.drive_objects import Cia402Objects, ExtensionObjects, error_register_for

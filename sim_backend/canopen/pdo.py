@@ -11,7 +11,7 @@ from typing import Callable
 from canopen import objectdictionary
 from canopen.sdo import SdoAbortedError
 
-from drivers.canopen import objects as o
+from drivers.contract import objects as o
 
 log = logging.getLogger(__name__)
 

@@ -23,8 +23,8 @@ import math
 import numpy as np
 from numba import njit
 
-from drivers import signals
-from drivers.signals import SIGNAL_INDEX
+from drivers.contract import signals
+from drivers.contract.signals import SIGNAL_INDEX
 import sim_backend.numerics as numerics
 from sim_backend.numerics import smooth_sign
 from sim_backend.pmsm.numba_cache import drop_stale_cache

@@ -11,8 +11,8 @@ import math
 import numpy as np
 from numba import njit
 
-from drivers import signals
-from drivers.signals import SIGNAL_INDEX
+from drivers.contract import signals
+from drivers.contract.signals import SIGNAL_INDEX
 from sim_backend import mechanics, numerics, three_phase_inverter
 from sim_backend.three_phase_inverter import adc_sample, limit_to_linear_range, switching_error_voltage
 from sim_backend.pmsm import firmware as fw

@@ -8,9 +8,10 @@ from typing import Any
 
 import numpy as np
 
-from drivers.signals import SIGNAL_NAMES
-from drivers.parameters import ParamKind, checked, names_for
+from drivers.contract.signals import SIGNAL_NAMES
+from drivers.contract.parameters import ParamKind, checked, names_for
 from sim_backend.three_phase_inverter import adc_lsb, draw_measurement_noise
+from drivers.contract.errors import ContentError
 from sim_backend.mechanics import LOAD_BRAKE, LOAD_TORQUE, LOAD_VISCOUS
 from sim_backend.pmsm import firmware as fw
 from sim_backend.pmsm import kernel as kn
@@ -22,27 +23,23 @@ _INVERTER_VALUES = {"inverter_dead_time_s": kn.I_DEAD_TIME, "inverter_device_dro
 _PLANT_FACTORS = {"plant_rs": pl.P_RS, "plant_ls": pl.P_LS, "plant_flux": pl.P_FLUX, "plant_inertia": pl.P_INERTIA}
 
 
-class ConfigError(ValueError):
-    """A motor config value is missing or wrong; the message names section, field and reason."""
-
-
 def _get(cfg: dict, section: str, key: str, default: Any = None) -> Any:
     sec = cfg.get(section)
     if not isinstance(sec, dict):
-        raise ConfigError(f"[{section}] missing")
+        raise ContentError(f"[{section}] missing")
     if key not in sec:
         if default is not None:
             return default
-        raise ConfigError(f"[{section}] {key}: missing")
+        raise ContentError(f"[{section}] {key}: missing")
     return sec[key]
 
 
 def _num(cfg: dict, section: str, key: str, default: float | None = None, positive: bool = False) -> float:
     value = _get(cfg, section, key, default)
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(f"[{section}] {key}: expected a number, got {value!r}")
+        raise ContentError(f"[{section}] {key}: expected a number, got {value!r}")
     if positive and not value > 0:
-        raise ConfigError(f"[{section}] {key}: must be > 0, got {value!r}")
+        raise ContentError(f"[{section}] {key}: must be > 0, got {value!r}")
     return float(value)
 
 
@@ -106,7 +103,7 @@ class PmsmDrive:
     def from_config(cls, cfg: dict, seed: int, *, noise: bool = True) -> "PmsmDrive":
         kind = _get(cfg, "motor", "kind")
         if kind != "pmsm":
-            raise ConfigError(f"[motor] kind: expected 'pmsm', got {kind!r}")
+            raise ContentError(f"[motor] kind: expected 'pmsm', got {kind!r}")
         pole_pairs = _num(cfg, "motor", "pole_pairs", positive=True)
         plant = np.zeros(pl.N_PARAMS)
         plant[pl.P_RS] = _num(cfg, "plant", "rs_ohm", positive=True)

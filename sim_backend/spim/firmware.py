@@ -43,7 +43,7 @@ N_FW_PARAMS = 34
  S_ID_REF, S_LAM_D, S_LAM_Q, S_CM_D, S_CM_Q, S_T_OFF) = range(32)
 N_FW_STATE = 32
 
-# telemetry columns the firmware writes (indices into drivers.signals.SIGNAL_NAMES)
+# telemetry columns the firmware writes (indices into drivers.contract.signals.SIGNAL_NAMES)
 C_SPEED_REF, C_SPEED_EST, C_SPEED_TRUE, C_POS_EST, C_POS_ERR, C_FLUX_EST, C_FLUX_TRUE, C_ISX, C_ISY, \
     C_ISX_REF, C_ISY_REF, C_USX, C_USY, C_TORQUE_EST, C_TORQUE_LOAD, C_VDC = range(16)
 

@@ -8,8 +8,9 @@ from typing import Any
 
 import numpy as np
 
-from drivers.signals import SIGNAL_NAMES
-from drivers.parameters import ParamKind, checked, names_for
+from drivers.contract.signals import SIGNAL_NAMES
+from drivers.contract.parameters import ParamKind, checked, names_for
+from drivers.contract.errors import ContentError
 from sim_backend.numerics import wrap_angle
 from sim_backend.mechanics import LOAD_BRAKE, LOAD_TORQUE, LOAD_VISCOUS
 from sim_backend.spim import firmware as fw
@@ -37,14 +38,10 @@ _MAY_BE_ZERO = {"dead_time_s", "device_drop_v", "current_noise_a", "current_lsb_
                 "flux_current_model_gain_rad_s", "demagnetising_time_s"}
 
 
-class ConfigError(ValueError):
-    """A motor config value is missing or wrong; the message names section, field and reason."""
-
-
 def _section(cfg: dict, name: str) -> dict:
     sec = cfg.get(name)
     if not isinstance(sec, dict):
-        raise ConfigError(f"[{name}] missing")
+        raise ContentError(f"[{name}] missing")
     return sec
 
 
@@ -53,12 +50,12 @@ def _numbers(cfg: dict, section: str, keys: tuple[str, ...]) -> dict[str, float]
     out = {}
     for key in keys:
         if key not in sec:
-            raise ConfigError(f"[{section}] {key}: missing")
+            raise ContentError(f"[{section}] {key}: missing")
         value = sec[key]
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise ConfigError(f"[{section}] {key}: expected a finite number, got {value!r}")
+            raise ContentError(f"[{section}] {key}: expected a finite number, got {value!r}")
         if value < 0 or (value == 0 and key not in _MAY_BE_ZERO):
-            raise ConfigError(f"[{section}] {key}: must be > 0, got {value!r}")
+            raise ContentError(f"[{section}] {key}: must be > 0, got {value!r}")
         out[key] = float(value)
     return out
 
@@ -97,23 +94,23 @@ class SpimDrive:
     def from_config(cls, cfg: dict, seed: int, *, noise: bool = True) -> "SpimDrive":
         kind = _section(cfg, "motor").get("kind")
         if kind != "spim":
-            raise ConfigError(f"[motor] kind: expected 'spim', got {kind!r}")
+            raise ContentError(f"[motor] kind: expected 'spim', got {kind!r}")
         pole_pairs = _numbers(cfg, "motor", ("pole_pairs",))["pole_pairs"]
         plant = _numbers(cfg, "plant", _PLANT_KEYS)
         plant["pole_pairs"] = pole_pairs
         substeps = _section(cfg, "plant").get("substeps", 2)
         if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
-            raise ConfigError(f"[plant] substeps: expected an integer >= 1, got {substeps!r}")
+            raise ContentError(f"[plant] substeps: expected an integer >= 1, got {substeps!r}")
         mech = _numbers(cfg, "mechanics", ("inertia_kgm2", "viscous_nm_s_rad"))
         inv_cfg = _numbers(cfg, "inverter", _INVERTER_KEYS)
         meas = _numbers(cfg, "measurement", _MEASUREMENT_KEYS)
         fw_cfg: dict[str, Any] = _numbers(cfg, "firmware", _FIRMWARE_NUMBERS)
         common = _section(cfg, "firmware").get("common_leg", "centred")
         if common not in ("centred", "fixed"):
-            raise ConfigError(f"[firmware] common_leg: expected 'centred' or 'fixed', got {common!r}")
+            raise ContentError(f"[firmware] common_leg: expected 'centred' or 'fixed', got {common!r}")
         fw_cfg["common_leg"] = common
         if fw_cfg["pole_pairs"] != pole_pairs:
-            raise ConfigError("[firmware] pole_pairs: differs from [motor] pole_pairs")
+            raise ContentError("[firmware] pole_pairs: differs from [motor] pole_pairs")
         return cls(plant, mech, substeps, inv_cfg, meas, fw_cfg, seed, noise)
 
     # ---- DriveModel ----

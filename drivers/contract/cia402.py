@@ -14,7 +14,9 @@ import enum
 import time
 from typing import Callable, Protocol
 
-from drivers.api import FAULT_RESET_POLICIES, LinkError
+from drivers.contract.errors import LinkError
+
+FAULT_RESET_POLICIES = ("never", "once")     # a drive found in FAULT at enable: reset it once, or never
 
 
 class State(enum.Enum):

@@ -1,4 +1,6 @@
-"""Bad-input errors: one line per problem, `<file>: <field>: <reason>`, never a traceback for the user."""
+"""Config checks every reader of a person's files shares (bench and simulator): a Problems collector that gathers
+`file: field: reason` lines and raises them as one InputError, typed getters, the TOML reader with its file prefix,
+and the path rule (absolute, else from the repository root, else next to the file)."""
 
 from __future__ import annotations
 
@@ -6,18 +8,8 @@ import math
 from pathlib import Path
 from typing import Any
 
-
-class InputError(Exception):
-    """A scenario, bench config or run directory the bench cannot use. str(e) lists every problem, one per line."""
-
-    def __init__(self, problems: list[str]):
-        self.problems = [one_line(p) for p in problems]
-        super().__init__("\n".join(self.problems))
-
-
-def one_line(text: str) -> str:
-    """Control characters (a key with an escaped newline, a stray tab) shown escaped: one problem, one line."""
-    return "".join(c if c.isprintable() or c == " " else repr(c)[1:-1] for c in text)
+from drivers.contract.errors import ContentError, InputError, one_line
+from drivers.contract.toml_file import read_toml_file
 
 
 class Problems:
@@ -149,3 +141,40 @@ def find_repo_root(start: str | Path | None = None) -> Path:
             if (d / "pyproject.toml").is_file():
                 return d
     return Path.cwd()
+
+
+def read_toml(path: str | Path) -> dict[str, Any]:
+    """A TOML input file parsed; InputError `file: (file): reason` when it cannot be used."""
+    return read_toml_with_bytes(path)[0]
+
+
+def read_toml_with_bytes(path: str | Path) -> tuple[dict[str, Any], bytes]:
+    try:
+        return read_toml_file(path)
+    except ContentError as exc:
+        raise InputError([f"{path}: (file): {exc}"]) from None
+
+
+def resolve_path(value: str, root: Path, also: Path | None = None) -> Path | None:
+    """An existing file for `value`: absolute, else under the repo root, else under `also`."""
+    if not value.strip():
+        return None
+    try:
+        p = Path(value).expanduser()
+        if p.is_absolute():
+            return p if p.is_file() else None
+        for base in (root, also):
+            if base is not None and (base / p).is_file():
+                return (base / p).resolve()
+    except (OSError, ValueError, RuntimeError):   # a name too long for the file system, no such user (~x)
+        return None
+    return None
+
+
+def existing_path(problems: Problems, field: str, value: str, root: Path, also: Path | None = None) -> str | None:
+    """The absolute path of an existing file for `value`, or None with a `field: file not found` problem."""
+    found = resolve_path(value, root, also)
+    if found is None:
+        problems.add(field, f"file not found: {value!r} (relative paths are taken from the repo root {root})")
+        return None
+    return str(found)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from drivers.canopen.objects import HEARTBEAT_BENCH_NODE_ID
+from drivers.contract.objects import HEARTBEAT_BENCH_NODE_ID
 
 
 MODES = ("heartbeat", "external")   # the serial line's WATCHDOG command is its "heartbeat"

@@ -2,7 +2,7 @@
 SDO block-transfer command bytes and abort codes (CiA 301, CiA 402), and drivebench's extension objects.
 
 The extension objects (0x2000-0x24FF) are drivebench's manufacturer range: a bench uses them only on a drive whose
-identity says it carries the extension (drivers.extension), never because an index exists in an EDS.
+identity says it carries the extension (drivers.contract.extension), never because an index exists in an EDS.
 """
 
 from __future__ import annotations
@@ -106,15 +106,15 @@ EMCY_OVERCURRENT = 0x2310
 EMCY_PDO_LENGTH = 0x8210            # PDO not processed due to length error
 EMCY_HEARTBEAT = 0x8130             # life guard / heartbeat error
 
-# -- drivebench extension objects (drivers.extension) ------------------------------------------------------------
+# -- drivebench extension objects (drivers.contract.extension) ------------------------------------------------------------
 EXT_STEP_COUNT = 0x2000             # drive clock: control periods since power-up, UNSIGNED32
 EXT_CONTROL_PERIOD_NS = 0x2001
 EXT_DRIVE_KIND = 0x2002
-EXT_SIGNAL_BASE = 0x2010            # live telemetry, REAL32, one per drivers.signals.SIGNAL_NAMES entry
+EXT_SIGNAL_BASE = 0x2010            # live telemetry, REAL32, one per drivers.contract.signals.SIGNAL_NAMES entry
 EXT_SCALED_BASE = 0x2030            # the same as INTEGER16, value = raw * EDS Factor
 SCALED_PREFIX = "scaled_"
 EXT_TRACE = 0x2100                  # trace recorder configuration record (TRACE_SUBS)
-EXT_TRACE_DATA = 0x2101             # DOMAIN: oldest recorded rows (drivers.trace_format), SDO block upload
+EXT_TRACE_DATA = 0x2101             # DOMAIN: oldest recorded rows (drivers.contract.trace_format), SDO block upload
 TRACE_SUBS = {  # subindex: (name, data type, access)
     1: ("trace_signal_mask", UNSIGNED32, "rw"),
     2: ("trace_decimation", UNSIGNED16, "rw"),
@@ -129,7 +129,7 @@ TRACE_SUBS = {  # subindex: (name, data type, access)
 TRACE_MASK, TRACE_DECIMATION, TRACE_TRIGGER, TRACE_CONTROL = 1, 2, 3, 4
 TRACE_ROWS_AVAILABLE, TRACE_ROW_SIZE, TRACE_LOST_ROWS, TRACE_CAPACITY, TRACE_MAX_ROWS = 5, 6, 7, 8, 9
 TRACE_STOP, TRACE_START, TRACE_CLEAR = 0, 1, 2
-# parameter objects (drivers.parameters), REAL32 rw, one block per parameter kind, in catalogue order
+# parameter objects (drivers.contract.parameters), REAL32 rw, one block per parameter kind, in catalogue order
 EXT_HOOK_BASE = 0x2200
 EXT_FIRMWARE_BASE = 0x2300
 EXT_PLANT_BASE = 0x2400

@@ -21,14 +21,15 @@ an example of a third-party map.
 
 from __future__ import annotations
 
+import enum
 import math
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from drivers.api import LoadMode
-from drivers.toml_file import TomlFileError, known_entries, read_toml_file
+from drivers.contract.errors import ContentError
+from drivers.contract.toml_file import known_entries, read_toml_file
 
 TYPES = {"uint16": (1, ">H"), "int16": (1, ">h"), "uint32": (2, ">I"), "int32": (2, ">i"), "float32": (2, ">f")}
 ROLES = ("enable", "setpoint", "mode", "speed", "torque", "status", "fault_code", "fault_reset", "watchdog",
@@ -42,12 +43,16 @@ SPEED_UNITS = {"rad/s": 1.0, "rpm": math.pi / 30.0}
 MAX_MAP_BYTES = 256 * 1024
 
 
-class LoadMapError(ValueError):
-    """Problems with a map file: a list of (field, reason)."""
+class LoadMode(enum.IntEnum):
+    """Load machine modes (Modbus register map in config/od/load-machine-registers.toml).
 
-    def __init__(self, problems: list[tuple[str, str]]):
-        self.problems = problems
-        super().__init__("; ".join(f"{f}: {r}" for f, r in problems))
+    Sign convention everywhere: the load torque T_L opposes positive rotation,
+    J*dw/dt = T_e - T_L - B*w.
+    """
+
+    TORQUE = 0      # active: T_L = value, keeps its sign whatever the speed (hanging mass on a drum)
+    VISCOUS = 1     # T_L = value * w, value in N*m/(rad/s) (DC generator into a resistor)
+    BRAKE = 2       # passive: T_L = value * sign(w), zero at standstill (powder brake, friction)
 
 
 @dataclass(frozen=True)
@@ -114,12 +119,12 @@ class LoadMap:
 
 
 def read_load_map(path: str | Path) -> LoadMap:
-    """Parse and check a map file; LoadMapError lists every problem as (field, reason)."""
+    """Parse and check a map file; ContentError lists every problem as (field, reason)."""
     path = Path(path)
     try:
         raw, _ = read_toml_file(path, MAX_MAP_BYTES)
-    except TomlFileError as exc:
-        raise LoadMapError([("(file)", str(exc))]) from None
+    except ContentError as exc:
+        raise ContentError([("(file)", str(exc))]) from None
     problems: list[tuple[str, str]] = []
     machine = raw.get("machine", {})
     if not isinstance(machine, dict):
@@ -152,7 +157,7 @@ def read_load_map(path: str | Path) -> LoadMap:
         if a1 < e0:
             problems.append((f"registers.{r1}", f"address {a1} overlaps registers.{r0} ({a0}..{e0 - 1})"))
     if problems:
-        raise LoadMapError(problems)
+        raise ContentError(problems)
     return LoadMap(path, str(machine.get("name", path.stem)), word_order, read_function, registers)
 
 

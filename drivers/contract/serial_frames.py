@@ -42,7 +42,7 @@ class Cmd(enum.IntEnum):
     TRACE_CONFIGURE = 0x30   # req: mask u32, decimation u16, trigger u8 -> (empty)
     TRACE_START = 0x31
     TRACE_STOP = 0x32
-    TRACE_READ = 0x33        # req: max_rows u16 -> mask u32, remaining u32, lost u32, rows (drivers.trace_format)
+    TRACE_READ = 0x33        # req: max_rows u16 -> mask u32, remaining u32, lost u32, rows (drivers.contract.trace_format)
     LIVE_CONFIGURE = 0x40    # req: mask u32 -> (empty)
     SAMPLE = 0x41            # -> live sample (see SAMPLE_HEADER)
     SYNC = 0x42              # req: n_steps u32 -> advance n_steps control periods, then live sample
@@ -60,7 +60,7 @@ class ErrorCode(enum.IntEnum):
 
 
 # Live sample (SAMPLE and SYNC replies): step u64, statusword u16, error_code u16, mask u32,
-# then one f64 per selected signal in drivers.signals.SIGNAL_NAMES order.
+# then one f64 per selected signal in drivers.contract.signals.SIGNAL_NAMES order.
 SAMPLE_HEADER = struct.Struct("<QHHI")
 
 

@@ -2,14 +2,14 @@
 
 A trace upload is a sequence of rows. Each row: the drive's step counter (uint32, little endian, in
 control periods since power-up) followed by the selected signals as float32 little endian, in
-drivers.signals.SIGNAL_NAMES order. The selection is a bit mask over SIGNAL_NAMES (bit i = signal i).
+drivers.contract.signals.SIGNAL_NAMES order. The selection is a bit mask over SIGNAL_NAMES (bit i = signal i).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from drivers.signals import SIGNAL_NAMES, TIME_COLUMN
+from drivers.contract.signals import SIGNAL_NAMES, TIME_COLUMN
 
 
 def selected_names(mask: int) -> list[str]:

@@ -1,7 +1,7 @@
 """One reader for every TOML input (scenarios, bench configs, load-machine maps, motor and serve configs).
 
 Only a regular file of bounded size is opened (a FIFO, a device such as /dev/zero or a directory would block or
-exhaust memory); it must be UTF-8 TOML nested at most MAX_DEPTH deep. TomlFileError carries the reason alone; each
+exhaust memory); it must be UTF-8 TOML nested at most MAX_DEPTH deep. ContentError carries the reason alone; each
 caller prefixes the file (and field "(file)"), so every problem stays one `file: field: reason` line."""
 
 from __future__ import annotations
@@ -12,55 +12,53 @@ import tomllib
 from pathlib import Path
 from typing import Any, Sequence
 
+from drivers.contract.errors import ContentError
+
 MAX_TOML_BYTES = 1 << 20      # 1 MiB: a scenario or config is a few kB
 MAX_DEPTH = 32
 
 
-class TomlFileError(ValueError):
-    """The file cannot be used; str(e) is the reason."""
-
-
 def read_toml_file(path: str | Path, max_bytes: int = MAX_TOML_BYTES) -> tuple[dict[str, Any], bytes]:
-    """(parsed table, the file's bytes) or TomlFileError."""
+    """(parsed table, the file's bytes) or ContentError."""
     path = Path(path)
     try:
         st = os.stat(path)
     except FileNotFoundError:
-        raise TomlFileError("not found") from None
+        raise ContentError("not found") from None
     except OSError as exc:
-        raise TomlFileError(f"cannot read: {exc.strerror or exc}") from None
+        raise ContentError(f"cannot read: {exc.strerror or exc}") from None
     if stat.S_ISDIR(st.st_mode):
-        raise TomlFileError("is a directory, not a TOML file")
+        raise ContentError("is a directory, not a TOML file")
     if not stat.S_ISREG(st.st_mode):
-        raise TomlFileError("not a regular file (a pipe, socket or device cannot be a TOML file)")
+        raise ContentError("not a regular file (a pipe, socket or device cannot be a TOML file)")
     if st.st_size > max_bytes:
-        raise TomlFileError(f"{st.st_size} bytes, larger than {max_bytes} bytes: not a config file")
+        raise ContentError(f"{st.st_size} bytes, larger than {max_bytes} bytes: not a config file")
     try:
         with open(path, "rb") as f:
             data = f.read(max_bytes + 1)
     except OSError as exc:
-        raise TomlFileError(f"cannot read: {exc.strerror or exc}") from None
+        raise ContentError(f"cannot read: {exc.strerror or exc}") from None
     return parse_toml_bytes(data, max_bytes), data
 
 
 def parse_toml_bytes(data: bytes, max_bytes: int = MAX_TOML_BYTES) -> dict[str, Any]:
     """The parsed table of a TOML document already in memory (an uploaded scenario), checked like a file's."""
     if len(data) > max_bytes:
-        raise TomlFileError(f"larger than {max_bytes} bytes: not a config file")
+        raise ContentError(f"larger than {max_bytes} bytes: not a config file")
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError:
-        raise TomlFileError("not valid TOML: not UTF-8 text") from None
+        raise ContentError("not valid TOML: not UTF-8 text") from None
     if "\0" in text:
-        raise TomlFileError("not valid TOML: binary data")
+        raise ContentError("not valid TOML: binary data")
     try:
         table = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise TomlFileError(f"not valid TOML: {' '.join(str(exc).split())}") from None
+        raise ContentError(f"not valid TOML: {' '.join(str(exc).split())}") from None
     except RecursionError:
-        raise TomlFileError(f"not valid TOML: nested deeper than this reader allows ({MAX_DEPTH} levels)") from None
+        raise ContentError(f"not valid TOML: nested deeper than this reader allows ({MAX_DEPTH} levels)") from None
     if _depth(table) > MAX_DEPTH:
-        raise TomlFileError(f"nested deeper than {MAX_DEPTH} levels: not a config file")
+        raise ContentError(f"nested deeper than {MAX_DEPTH} levels: not a config file")
     return table
 
 

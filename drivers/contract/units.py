@@ -1,6 +1,6 @@
 """A drive's own units and the bench's physical ones.
 
-The bench decides in shaft units: mechanical rad/s, rad, N*m, A, V (drivers.signals). A CiA 402 drive reports and
+The bench decides in shaft units: mechanical rad/s, rad, N*m, A, V (drivers.contract.signals). A CiA 402 drive reports and
 accepts its own: velocity in the unit its SI unit velocity object says (0x60A9, e.g. rev/min or increments/s),
 torque and current in per mille of the motor's rated values (0x6076, 0x6075), DC-link voltage in mV. This module
 turns those into a factor per object: physical value = drive value x factor, drive value = physical / factor.
@@ -15,6 +15,8 @@ import math
 import re
 from dataclasses import dataclass
 
+from drivers.contract.errors import ContentError
+
 TWO_PI = 2.0 * math.pi
 
 # CiA 303-2 unit codes a rotary drive uses, as (name, value in SI: rad for angles, s for times). Increments depend
@@ -22,10 +24,6 @@ TWO_PI = 2.0 * math.pi
 ANGLE_UNITS = {0x10: ("rad", 1.0), 0x41: ("deg", math.pi / 180.0), 0xB4: ("rev", TWO_PI), 0xB5: ("inc", None)}
 TIME_UNITS = {0x03: ("s", 1.0), 0x47: ("min", 60.0), 0x48: ("h", 3600.0)}
 PREFIXES = {-6: "u", -3: "m", -2: "c", -1: "d", 0: "", 3: "k"}
-
-
-class UnitError(ValueError):
-    """A unit the bench cannot turn into a physical one; the message says why."""
 
 
 @dataclass(frozen=True)
@@ -54,27 +52,27 @@ class VelocityUnit:
         angle = ANGLE_UNITS[self.angle][1]
         if angle is None:
             if not increments_per_rev or increments_per_rev <= 0:
-                raise UnitError(f"{self.name}: the encoder resolution (increments per revolution) is not known")
+                raise ContentError(f"{self.name}: the encoder resolution (increments per revolution) is not known")
             angle = TWO_PI / increments_per_rev
         return 10.0 ** self.exponent * angle / TIME_UNITS[self.time][1]
 
 
 def decode_velocity_unit(code: int) -> VelocityUnit:
-    """A 0x60A9 value -> VelocityUnit; UnitError for anything that is not a rotary velocity."""
+    """A 0x60A9 value -> VelocityUnit; ContentError for anything that is not a rotary velocity."""
     if not 0 <= code <= 0xFFFFFFFF:
-        raise UnitError(f"0x{code:X} is not an UNSIGNED32 SI unit")
+        raise ContentError(f"0x{code:X} is not an UNSIGNED32 SI unit")
     exponent = (code >> 24) & 0xFF
     exponent = exponent - 0x100 if exponent >= 0x80 else exponent
     angle, time_unit, reserved = (code >> 16) & 0xFF, (code >> 8) & 0xFF, code & 0xFF
     if reserved:
-        raise UnitError(f"0x{code:08X}: bits 7-0 of an SI unit must be 0")
+        raise ContentError(f"0x{code:08X}: bits 7-0 of an SI unit must be 0")
     if angle not in ANGLE_UNITS:
-        raise UnitError(f"0x{code:08X}: numerator unit 0x{angle:02X} is not an angle (rad, deg, rev, inc); "
+        raise ContentError(f"0x{code:08X}: numerator unit 0x{angle:02X} is not an angle (rad, deg, rev, inc); "
                         "the bench drives rotary shafts")
     if time_unit not in TIME_UNITS:
-        raise UnitError(f"0x{code:08X}: denominator unit 0x{time_unit:02X} is not a time (s, min, h)")
+        raise ContentError(f"0x{code:08X}: denominator unit 0x{time_unit:02X} is not a time (s, min, h)")
     if not -9 <= exponent <= 9:
-        raise UnitError(f"0x{code:08X}: exponent {exponent} is not a plausible velocity prefix")
+        raise ContentError(f"0x{code:08X}: exponent {exponent} is not a plausible velocity prefix")
     return VelocityUnit(exponent, angle, time_unit)
 
 
@@ -93,7 +91,7 @@ def parse_velocity_unit(text: str) -> VelocityUnit:
         t = t[:-3] + "rev/min"
     m = _NAME_RE.match(t)
     if not m or m.group("scale"):
-        raise UnitError(f"{text!r} is not a velocity unit (examples: rpm, rev/min, drev/min, inc/s, rad/s, "
+        raise ContentError(f"{text!r} is not a velocity unit (examples: rpm, rev/min, drev/min, inc/s, rad/s, "
                         "mrad/s, deg/s, or a 0x60A9 code such as 0x00B44700)")
     exponent = {p: e for e, p in PREFIXES.items()}[m.group("prefix")]
     angle = next(code for code, (name, _) in ANGLE_UNITS.items() if name == m.group("angle"))
