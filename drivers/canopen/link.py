@@ -48,6 +48,7 @@ from drivers.canopen.bus import BusErrorCounter, SocketcandRefusal, bus_kwargs, 
 from drivers.canopen.comm_loss import CommLossGuard
 from drivers.canopen import drill as drills
 from drivers.comm_loss import CommLossConfig
+from drivers.eds import load_od
 from drivers.canopen.profile import DriveProfile, ProfileConfig, ProfileError, resolve
 from drivers.canopen.sdo import SdoAccess, block_upload
 from drivers.canopen.sync import NativeSync, ReceiveClock, SyncProducer, SyncTimeline, has_native_cyclic
@@ -139,7 +140,7 @@ class CanopenDriveLink:
             raise LinkError(f"CAN interface {self.section.get('interface')!r} channel "
                             f"{self.section.get('channel')!r}: cannot open: {exc}") from None
         try:
-            od = canopen.import_od(str(self.eds_path), self.node_id)
+            od = load_od(self.eds_path, self.node_id)
         except Exception as exc:
             raise LinkError(f"{self.eds_path}: cannot load the object dictionary: {exc}") from None
         self.network.notifier.add_listener(self.bus_errors)

@@ -24,6 +24,7 @@ from canopen.sdo import SdoAbortedError
 
 from drivers.canopen import objects as o
 from drivers.cia402 import State
+from drivers.eds import load_od
 from sim_backend.canopen.block_server import DriveLocalNode
 from sim_backend.canopen import generic
 from sim_backend.canopen.drive_objects import Cia402Objects, ExtensionObjects, error_register_for
@@ -49,7 +50,7 @@ class SimCanopenNode:
         self.node_id = node_id
         self.network = canopen.Network(bus)
         self.network.NOTIFIER_CYCLE = 0.02      # stop() returns within 20 ms (the notifier thread polls)
-        od = canopen.import_od(str(eds_path), node_id)
+        od = load_od(eds_path, node_id)
         spec = drive or generic.DriveSpec()
         self.spec = spec
         self.added_objects = generic.add_missing_standard_objects(od, spec.comm_loss_objects, spec.comm_loss_reaction)
