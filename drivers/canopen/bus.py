@@ -170,6 +170,30 @@ class QuickVirtualBus(VirtualBus):
             raise can.CanOperationError("Could not send message to one or more recipients")
 
 
+def frame_dispatch(network: Any) -> Callable[[can.Message], None]:
+    """A canopen Network's receive listener in one call per frame: what canopen's MessageListener ->
+    Network.notify -> NodeScanner do in three (the subscribers' callbacks in order, then the scanner; error and
+    remote frames skipped; an exception logged, skipping the frame's remaining callbacks). ~70,000 frames a 20 s
+    lockstep run."""
+    subscribers, scanner = network.subscribers, network.scanner
+    canopen_log = logging.getLogger("canopen.network")
+
+    def on_frame(msg: can.Message) -> None:
+        if msg.is_error_frame or msg.is_remote_frame:
+            return
+        can_id = msg.arbitration_id
+        try:
+            callbacks = subscribers.get(can_id)
+            if callbacks:
+                data, timestamp = msg.data, msg.timestamp
+                for callback in callbacks:
+                    callback(can_id, data, timestamp)
+            scanner.on_message_received(can_id)
+        except Exception as exc:       # as canopen's listener: a callback's failure must not stop the receive thread
+            canopen_log.error(str(exc))
+    return on_frame
+
+
 def make_bus(kwargs: dict[str, Any]) -> can.BusABC:
     """can.Bus(**kwargs) (python-can's `virtual` interface: QuickVirtualBus); for socketcand a client that reads the
     server's handshake replies as a prefix of what arrives: python-can's compares the whole read with `< ok >`, and a

@@ -44,7 +44,7 @@ from drivers import cia402
 from drivers.api import DriveIdentity, DriveStatus, LinkError, LinkSettings, LiveSample
 from drivers.canopen import objects as o
 from drivers.canopen import pdo as pdos
-from drivers.canopen.bus import BusErrorCounter, SocketcandRefusal, bus_kwargs, make_bus, open_bus
+from drivers.canopen.bus import BusErrorCounter, SocketcandRefusal, bus_kwargs, frame_dispatch, make_bus, open_bus
 from drivers.canopen.comm_loss import CommLossGuard
 from drivers.canopen import drill as drills
 from drivers.comm_loss import CommLossConfig
@@ -143,7 +143,7 @@ class CanopenDriveLink:
             od = load_od(self.eds_path, self.node_id)
         except Exception as exc:
             raise LinkError(f"{self.eds_path}: cannot load the object dictionary: {exc}") from None
-        self.network.notifier.add_listener(self.bus_errors)
+        self.network.notifier.add_listener(self.bus_errors.on_message_received)   # without Listener.__call__
         self.node = self.network.add_node(self.node_id, od)
         self.node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout_s
         self.node.sdo.MAX_RETRIES = 1
@@ -186,6 +186,7 @@ class CanopenDriveLink:
         bus = make_bus(kwargs)
         self._refusal = SocketcandRefusal(bus) if kwargs["interface"] == "socketcand" else None
         self.network.bus = bus
+        self.network.listeners = [frame_dispatch(self.network)]
         return self.network.connect(**kwargs)
 
     def _read_identity_after_boot(self, interface: str) -> tuple[int, int, int, int]:
