@@ -168,17 +168,18 @@ def lockstep_orchestrator(duration: float, verdict_trace: bool, files: tuple[Pat
     matplotlib.use("Agg")
     import matplotlib.backends.backend_agg  # noqa: F401
     import matplotlib.figure  # noqa: F401
-    saved = orch.TRACE_SIGNALS
+    home = sys.modules[orch.trace_signals_for.__module__]     # where the default trace set lives
+    saved = home.TRACE_SIGNALS
     if verdict_trace:
         specs = load_scenario(scenario, bench).criteria
         wanted = {c.signal for c in specs} | {c.params.get("reference") for c in specs}
-        orch.TRACE_SIGNALS = tuple(n for n in saved if n in wanted)
+        home.TRACE_SIGNALS = tuple(n for n in saved if n in wanted)
     try:
         t0 = time.perf_counter()
         result = run_scenario(scenario, bench, out_root=scenario.parent / "runs", seed=1, rerun_mode="off")
         wall = time.perf_counter() - t0
     finally:
-        trace_signals, orch.TRACE_SIGNALS = orch.TRACE_SIGNALS, saved
+        trace_signals, home.TRACE_SIGNALS = home.TRACE_SIGNALS, saved
     drill = (result.record or {}).get("comm_loss") or {}
     return {"rtf": duration / wall, "wall_s": wall, "verdict": result.verdict, "error": result.error,
             "trace_signals": trace_signals, "drill_reused": isinstance(drill, dict) and "reused" in drill}

@@ -44,11 +44,12 @@ from drivers import cia402
 from drivers.api import DriveIdentity, DriveStatus, LinkError, LinkSettings, LiveSample
 from drivers.canopen import objects as o
 from drivers.canopen import pdo as pdos
-from drivers.canopen.bus import BusErrorCounter, SocketcandRefusal, bus_kwargs, frame_dispatch, make_bus, open_bus
+from drivers.canopen.bus import BusErrorCounter, SocketcandRefusal, bus_kwargs, make_bus, open_bus
 from drivers.canopen.comm_loss import CommLossGuard
 from drivers.canopen import drill as drills
 from drivers.comm_loss import CommLossConfig
 from drivers.eds import load_od
+from drivers.canopen.bus import frame_dispatch
 from drivers.canopen.profile import DriveProfile, ProfileConfig, ProfileError, resolve
 from drivers.canopen.sdo import SdoAccess, block_upload
 from drivers.canopen.sync import NativeSync, ReceiveClock, SyncProducer, SyncTimeline, has_native_cyclic
