@@ -7,6 +7,8 @@ same description of the drive.
 
 from __future__ import annotations
 
+import functools
+import pickle
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -53,6 +55,20 @@ class DeviceDescription:
                     and obj.writable and all(p.name != param.name for p in offered)):
                 offered.append(param)
         return tuple(offered)
+
+
+def load_od(path: str | Path, node_id: int) -> canopen.ObjectDictionary:
+    """canopen.import_od(path, node_id), parsed once per file version (size, mtime) in a process: every call gets its
+    own copy (callers add objects and change defaults), unpickled in ~3 ms instead of parsed in ~35 ms — each run of a
+    campaign worker, a test session or a benchmark opened the same EDS twice (the link and the simulated node)."""
+    path = Path(path)
+    stat = path.stat()
+    return pickle.loads(_od_snapshot(str(path), stat.st_size, stat.st_mtime_ns, node_id))
+
+
+@functools.lru_cache(maxsize=16)
+def _od_snapshot(path: str, size: int, mtime_ns: int, node_id: int) -> bytes:
+    return pickle.dumps(canopen.import_od(path, node_id), protocol=pickle.HIGHEST_PROTOCOL)
 
 
 def read_eds(path: str | Path, node_id: int = 1) -> DeviceDescription:

@@ -85,9 +85,12 @@ class Rig:
 
 def rig_model(spec: RigSpec) -> DriveModel:
     """The rig's drive model, seen through its instruments where the spec has them."""
-    from sim_backend.instruments import InstrumentedModel
     model = make_model(spec.motor, spec.seed)
-    return model if spec.instruments is None else InstrumentedModel(model, spec.instruments, spec.seed)
+    if spec.instruments is None:
+        return model
+    # only an instruments rig imports it: its scipy.signal import took 0.5-1.9 s of the first run on every rig
+    from sim_backend.instruments import InstrumentedModel
+    return InstrumentedModel(model, spec.instruments, spec.seed)
 
 
 @contextlib.contextmanager

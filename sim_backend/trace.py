@@ -69,10 +69,12 @@ class TraceRecorder:
                 self.triggered = True
             else:
                 return
-        steps = np.arange(first_step, first_step + len(block), dtype=np.int64)
-        keep = steps % self.decimation == 0
-        steps, block = steps[keep], block[keep]
-        n = len(steps)
+        # the rows whose step is a multiple of the decimation: a strided view, not a mask over every step
+        decimation = self.decimation
+        offset = (-first_step) % decimation
+        block = block[offset::decimation]
+        n = len(block)
+        steps = np.arange(first_step + offset, first_step + offset + n * decimation, decimation, dtype=np.int64)
         if n > self.capacity_rows:     # more than the ring holds: only the newest rows survive
             self.lost_rows += n - self.capacity_rows
             steps, block, n = steps[-self.capacity_rows:], block[-self.capacity_rows:], self.capacity_rows
@@ -81,9 +83,14 @@ class TraceRecorder:
             self._head = (self._head + overflow) % self.capacity_rows
             self._count -= overflow
             self.lost_rows += overflow
-        idx = (self._head + self._count + np.arange(n)) % self.capacity_rows
-        self._steps[idx] = steps
-        self._rows[idx] = block
+        start = (self._head + self._count) % self.capacity_rows
+        if start + n <= self.capacity_rows:        # the usual case: one stretch of the ring
+            self._steps[start:start + n] = steps
+            self._rows[start:start + n] = block
+        else:
+            idx = (start + np.arange(n)) % self.capacity_rows
+            self._steps[idx] = steps
+            self._rows[idx] = block
         self._count += n
 
     def read(self, max_rows: int) -> bytes:

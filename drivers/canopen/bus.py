@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import queue
 import re
 import socket
 import threading
@@ -10,6 +11,7 @@ import time
 from typing import Any, Callable
 
 import can
+from can.interfaces.virtual import VirtualBus
 
 log = logging.getLogger(__name__)
 
@@ -129,10 +131,76 @@ class SocketcandRefusal:
             return None, False
 
 
+class QuickVirtualBus(VirtualBus):
+    """python-can's `virtual` interface, same channels and delivery, cheaper per frame at the link's end: a frame
+    already queued is taken without the queue's lock and the receive log call (python-can logs every frame at level
+    9), and a sent frame is copied field by field for each receiver instead of by deepcopy. Measured on the receive
+    thread: ~30 % less CPU per frame of a block upload, the bulk of a lockstep run's frames."""
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        pending = self.queue.queue
+        # one reader (the notifier thread) pops; writers append under the queue's lock (a deque's popleft and append
+        # are atomic); a bounded queue (rx_queue_size) needs get() to wake a writer waiting for room
+        if pending and self._filters is None and not self.queue.maxsize and self._open \
+                and "_recv_internal" not in vars(self):          # a receive wrapped for a purpose goes through it
+            try:
+                return pending.popleft()
+            except IndexError:
+                pass
+        return super().recv(timeout)
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self._check_if_open()
+        timestamp = msg.timestamp if self.preserve_timestamps else time.time()
+        all_sent = True
+        for bus_queue in self.channel:
+            if bus_queue is self.queue and not self.receive_own_messages:
+                continue
+            copy = can.Message(timestamp=timestamp, arbitration_id=msg.arbitration_id,
+                               is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
+                               is_error_frame=msg.is_error_frame, channel=self.channel_id, dlc=msg.dlc,
+                               data=bytearray(msg.data), is_fd=msg.is_fd, is_rx=bus_queue is not self.queue,
+                               bitrate_switch=msg.bitrate_switch, error_state_indicator=msg.error_state_indicator,
+                               check=False)
+            try:
+                bus_queue.put(copy, block=True, timeout=timeout)
+            except queue.Full:
+                all_sent = False
+        if not all_sent:
+            raise can.CanOperationError("Could not send message to one or more recipients")
+
+
+def frame_dispatch(network: Any) -> Callable[[can.Message], None]:
+    """A canopen Network's receive listener in one call per frame: what canopen's MessageListener ->
+    Network.notify -> NodeScanner do in three (the subscribers' callbacks in order, then the scanner; error and
+    remote frames skipped; an exception logged, skipping the frame's remaining callbacks). ~70,000 frames a 20 s
+    lockstep run."""
+    subscribers, scanner = network.subscribers, network.scanner
+    canopen_log = logging.getLogger("canopen.network")
+
+    def on_frame(msg: can.Message) -> None:
+        if msg.is_error_frame or msg.is_remote_frame:
+            return
+        can_id = msg.arbitration_id
+        try:
+            callbacks = subscribers.get(can_id)
+            if callbacks:
+                data, timestamp = msg.data, msg.timestamp
+                for callback in callbacks:
+                    callback(can_id, data, timestamp)
+            scanner.on_message_received(can_id)
+        except Exception as exc:       # as canopen's listener: a callback's failure must not stop the receive thread
+            canopen_log.error(str(exc))
+    return on_frame
+
+
 def make_bus(kwargs: dict[str, Any]) -> can.BusABC:
-    """can.Bus(**kwargs); for socketcand a client that reads the server's handshake replies as a prefix of what
-    arrives: python-can's compares the whole read with `< ok >`, and a served drive's first frame in the same TCP
-    segment (`< ok >< frame 701 ... >`, the more likely with TCP_NODELAY) made it refuse a healthy rig."""
+    """can.Bus(**kwargs) (python-can's `virtual` interface: QuickVirtualBus); for socketcand a client that reads the
+    server's handshake replies as a prefix of what arrives: python-can's compares the whole read with `< ok >`, and a
+    served drive's first frame in the same TCP segment (`< ok >< frame 701 ... >`, the more likely with TCP_NODELAY)
+    made it refuse a healthy rig."""
+    if kwargs.get("interface") == "virtual":
+        return QuickVirtualBus(**{k: v for k, v in kwargs.items() if k != "interface"})
     if kwargs.get("interface") != "socketcand":
         return can.Bus(**kwargs)
     from can.interfaces.socketcand.socketcand import SocketCanDaemonBus, convert_ascii_message_to_can_message

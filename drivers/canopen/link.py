@@ -52,6 +52,8 @@ from drivers.canopen import drill as drills
 from drivers.contract.comm_loss import CommLossConfig
 from drivers.canopen.profile import DriveProfile, ProfileConfig, resolve
 from drivers.contract.errors import ContentError
+from drivers.eds import load_od
+from drivers.canopen.bus import frame_dispatch
 from drivers.canopen.sdo import SdoAccess, block_upload
 from drivers.canopen.sync import NativeSync, ReceiveClock, SyncProducer, SyncTimeline, has_native_cyclic
 from drivers.contract.signals import SIGNAL_NAMES, TIME_COLUMN
@@ -142,10 +144,10 @@ class CanopenDriveLink(DriveLink):
             raise LinkError(f"CAN interface {self.section.get('interface')!r} channel "
                             f"{self.section.get('channel')!r}: cannot open: {exc}") from None
         try:
-            od = canopen.import_od(str(self.eds_path), self.node_id)
+            od = load_od(self.eds_path, self.node_id)
         except Exception as exc:
             raise LinkError(f"{self.eds_path}: cannot load the object dictionary: {exc}") from None
-        self.network.notifier.add_listener(self.bus_errors)
+        self.network.notifier.add_listener(self.bus_errors.on_message_received)   # without Listener.__call__
         self.node = self.network.add_node(self.node_id, od)
         self.node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout_s
         self.node.sdo.MAX_RETRIES = 1
@@ -188,6 +190,7 @@ class CanopenDriveLink(DriveLink):
         bus = make_bus(kwargs)
         self._refusal = SocketcandRefusal(bus) if kwargs["interface"] == "socketcand" else None
         self.network.bus = bus
+        self.network.listeners = [frame_dispatch(self.network)]
         return self.network.connect(**kwargs)
 
     def _read_identity_after_boot(self, interface: str) -> tuple[int, int, int, int]:

@@ -345,6 +345,8 @@ class TpdoDecoder:
     _partial_t: float = 0.0
     _wraps: int = 0
     _last_step: int | None = None
+    # cob -> (the Tpdo, its layout, (role, factor) of each value it carries): built once, not at every frame
+    _plans: dict[int, tuple[Tpdo, struct.Struct, list[tuple[str, float]]]] = field(default_factory=dict)
 
     def add(self, tpdo: Tpdo) -> None:
         self.tpdos[tpdo.cob] = tpdo
@@ -356,7 +358,10 @@ class TpdoDecoder:
     def decode(self, cob: int, data: bytes, timestamp: float = 0.0) -> list[LiveSample] | str:
         """Finished samples (usually none or one), or an error text (wrong length)."""
         tpdo = self.tpdos[cob]
-        layout = tpdo.layout
+        plan = self._plans.get(cob)
+        if plan is None or plan[0] is not tpdo:
+            plan = self._plans[cob] = (tpdo, tpdo.layout, [(e.role, e.factor) for e in tpdo.entries if e.code])
+        _, layout, carried = plan
         if len(data) != layout.size:
             return f"TPDO 0x{cob:03X} has {len(data)} bytes, its mapping needs {layout.size}"
         out: list[LiveSample] = []
@@ -366,20 +371,16 @@ class TpdoDecoder:
         if not self._seen:
             self._start(timestamp)
         self._seen.add(cob)
-        values = iter(layout.unpack(data))
-        for entry in tpdo.entries:
-            if not entry.code:
-                continue
-            value = next(values)
-            if entry.role == "_statusword":
+        for (role, factor), value in zip(carried, layout.unpack(data)):
+            if role == "_statusword":
                 self.statusword = value
-            elif entry.role == "_step":
+            elif role == "_step":
                 if self._last_step is not None and value < self._last_step:
                     self._wraps += 1
                 self._last_step = value
                 self._partial_t = (value + (self._wraps << 32)) * self.control_period_s
-            elif entry.role and not entry.role.startswith("_"):
-                self._partial[entry.role] = value * entry.factor
+            elif role and not role.startswith("_"):
+                self._partial[role] = value * factor
         if len(self._seen) == len(self.tpdos):
             out.append(self._emit())
         return out

@@ -211,7 +211,7 @@ def block_upload(network: canopen.Network, node_id: int, index: int, subindex: i
 
 def find_abort(frames: list[bytearray]) -> bytearray | None:
     """An SDO abort among a sub-block's frames (0x80 is never a segment: sequence numbers start at 1)."""
-    if len(frames) > 16 and all(len(f) == 8 for f in frames):
+    if len(frames) > 16 and all(map((8).__eq__, map(len, frames))):      # every frame 8 bytes (no Python loop)
         heads = np.frombuffer(b"".join(frames), dtype=np.uint8)[::8]
         hits = np.flatnonzero(heads == o.SDO_ABORT)
         return frames[int(hits[0])] if hits.size else None
@@ -221,7 +221,7 @@ def find_abort(frames: list[bytearray]) -> bytearray | None:
 def accept_segments(frames: list[bytearray]) -> tuple[int, bool, bytes]:
     """(ackseq, last, data) of one sub-block: segments in sequence from 1, up to the first gap or the last
     segment of the transfer (what follows a gap is dropped; the server repeats it after our ack)."""
-    if not all(len(f) == 8 for f in frames):
+    if not all(map((8).__eq__, map(len, frames))):
         ackseq, last, pieces = 0, False, []
         for frame in frames:
             if not frame or frame[0] & 0x7F != ackseq + 1:

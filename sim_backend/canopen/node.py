@@ -24,6 +24,7 @@ from canopen.sdo import SdoAbortedError
 
 from drivers.contract import objects as o
 from drivers.contract.cia402 import State
+from drivers.eds import load_od
 from sim_backend.canopen.block_server import DriveLocalNode
 from sim_backend.canopen import generic
 from sim_backend.canopen.drive_objects import Cia402Objects, ExtensionObjects, error_register_for
@@ -49,7 +50,7 @@ class SimCanopenNode:
         self.node_id = node_id
         self.network = canopen.Network(bus)
         self.network.NOTIFIER_CYCLE = 0.02      # stop() returns within 20 ms (the notifier thread polls)
-        od = canopen.import_od(str(eds_path), node_id)
+        od = load_od(eds_path, node_id)
         spec = drive or generic.DriveSpec()
         self.spec = spec
         self.added_objects = generic.add_missing_standard_objects(od, spec.comm_loss_objects, spec.comm_loss_reaction)
@@ -152,7 +153,9 @@ class SimCanopenNode:
             self.consumer.configure([self._raw(index, k) for k in range(1, self._raw(index, 0) + 1)])
         if index == o.COMM_CYCLE_PERIOD:
             self.steps_per_sync = self._read_steps_per_sync()
-        if self.pdos.dirty and index in PDO_PARAMETERS:
+        # a write that cannot change the PDOs leaves them dirty: the next SYNC rebuilds them (~1 ms each, ~90 writes
+        # when the bench maps its PDOs)
+        if self.pdos.dirty and index in PDO_PARAMETERS and self.pdos.changes_pdos(index, subindex):
             self._rebuild_pdos()
 
     def _fast_getter(self, index: int, subindex: int):

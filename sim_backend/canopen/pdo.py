@@ -85,6 +85,20 @@ class PdoEngine:
         if not obj.pdo_mappable or bits != len(obj) or (tx and not obj.readable) or (not tx and not obj.writable):
             raise SdoAbortedError(o.ABORT_CANNOT_MAP)
 
+    def changes_pdos(self, index: int, subindex: int) -> bool:
+        """Whether a write just made to this PDO parameter can change what rebuild() reads: not a mapping entry past
+        the mapping's count, nor anything but the COB-ID of a PDO whose COB-ID says invalid (rebuild() skips it).
+        A remap (COB-ID invalid, count 0, entries, count, type, COB-ID valid) changes them at two of its writes."""
+        comm = index - 0x200 if is_mapping_parameter(index) else index
+        if comm == index and subindex == 1:
+            return True
+        try:
+            if self._raw(comm, 1) & o.COB_ID_INVALID:
+                return False
+            return not (comm != index and subindex > self._raw(index, 0))
+        except (KeyError, SdoAbortedError):
+            return True
+
     def _read(self, comm: int, mapping: int) -> Pdo:
         entries = [o.unpack_mapping_entry(self._raw(mapping, k)) for k in range(1, self._raw(mapping, 0) + 1)]
         timer = self._raw(comm, 5) if comm >= o.TPDO_COMM and 5 in getattr(self.od[comm], "subindices", {}) else 0

@@ -10,6 +10,38 @@ import canopen
 from can.interfaces.virtual import VirtualBus
 
 
+_MESSAGE_SLOTS = frozenset({"__weakref__", "arbitration_id", "bitrate_switch", "channel", "data", "dlc",
+                            "error_state_indicator", "is_error_frame", "is_extended_id", "is_fd", "is_remote_frame",
+                            "is_rx", "timestamp"})
+_new = object.__new__
+
+
+def _data_frame(timestamp: float, cob: int, channel, payload: bytes, is_rx: bool) -> can.Message:
+    """can.Message(timestamp=, arbitration_id=cob, is_extended_id=False, channel=, dlc=len(payload),
+    data=bytearray(payload), is_rx=): every field set as its __init__ sets it, ~4x cheaper (a block upload's
+    sub-block is 127 of them)."""
+    msg = _new(can.Message)
+    msg.timestamp = timestamp
+    msg.arbitration_id = cob
+    msg.is_extended_id = False
+    msg.is_remote_frame = False
+    msg.is_error_frame = False
+    msg.channel = channel
+    msg.is_fd = False
+    msg.is_rx = is_rx
+    msg.bitrate_switch = False
+    msg.error_state_indicator = False
+    msg.data = bytearray(payload)
+    msg.dlc = len(payload)
+    return msg
+
+
+if set(can.Message.__slots__) != _MESSAGE_SLOTS:      # another python-can: its own constructor
+    def _data_frame(timestamp: float, cob: int, channel, payload: bytes, is_rx: bool) -> can.Message:  # noqa: F811
+        return can.Message(timestamp=timestamp, arbitration_id=cob, is_extended_id=False, channel=channel,
+                           dlc=len(payload), data=bytearray(payload), is_rx=is_rx)
+
+
 class FastVirtualBus(VirtualBus):
     """python-can's `virtual` bus with a cheaper per-receiver copy (a new Message instead of deepcopy, ~2.5x
     faster per frame). Same channels, same delivery semantics; the simulator's end of the bus uses it because
@@ -49,9 +81,8 @@ class FastVirtualBus(VirtualBus):
             if bus_queue is self.queue and not self.receive_own_messages:
                 continue
             is_rx = bus_queue is not self.queue
-            copies = [can.Message(timestamp=now(), arbitration_id=cob, is_extended_id=False,
-                                  channel=self.channel_id, dlc=len(p), data=bytearray(p), is_rx=is_rx)
-                      for cob, p in frames]
+            channel = self.channel_id
+            copies = [_data_frame(now(), cob, channel, p, is_rx) for cob, p in frames]
             if bus_queue.maxsize:
                 for copy in copies:
                     bus_queue.put(copy)
