@@ -15,7 +15,7 @@ from sim_backend.pmsm import firmware as fw
 from sim_backend.pmsm import kernel as kn
 from sim_backend.pmsm import plant as pl
 
-ALLOWED_IMPORTS = {"__future__", "math", "numpy", "numba", "drivers", "drivers.contract.signals",
+ALLOWED_IMPORTS = {"__future__", "math", "numpy", "numba", "drivers.contract", "drivers.contract.signals",
                    "sim_backend.numerics", "sim_backend.pmsm.numba_cache"}
 
 
