@@ -25,8 +25,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.campaign import load_campaign  # noqa: E402
-from bench.campaign_run import run_campaign  # noqa: E402
+from bench.faces.campaign import load_campaign  # noqa: E402
+from bench.faces.campaign_run import run_campaign  # noqa: E402
 
 
 def timed(campaign_file: Path, out: Path, workers: int, engine: str = "local") -> tuple[float, list[dict]]:

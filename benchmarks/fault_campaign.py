@@ -1,6 +1,6 @@
 """Fault campaign: short runs with a random (seeded) injected fault each, through the real bench path.
 
-Every run: `bench.orchestrator.run_scenario` against the in-process simulator (CANopen on a virtual bus + Modbus
+Every run: `bench.run.orchestrator.run_scenario` against the in-process simulator (CANopen on a virtual bus + Modbus
 TCP; some runs over the serial protocol) built by `sim_backend.rig` with the wire-fault wrappers, one fault
 injected at a random drive
 time. Afterwards the simulated device itself is asked whether it is safe (power stage off, load machine
@@ -29,7 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from bench.run_files import load_run  # noqa: E402
+from bench.outputs.run_files import load_run  # noqa: E402
 from sim_backend import faults  # noqa: E402
 
 # kind -> (injection name, value drawn from the generator, transports it applies to)
@@ -200,10 +200,10 @@ def run_on_rig(scenario: Path, out_root: Path, bench: Path | None = None):
     """run_scenario through the bench path, on a rig built here (its [services] replaced by the same rig
     builder), so the simulated device can be asked afterwards. Returns (RunResult, Rig); the device is asked
     after its own comm-loss reaction had the time to act."""
-    from bench.benchconfig import load_bench_config
-    from bench.links import make_links
-    from bench.orchestrator import DEFAULT_SEED, run_scenario
-    from bench.scenario import load_scenario
+    from bench.inputs.benchconfig import load_bench_config
+    from bench.run.links import make_links
+    from bench.run.orchestrator import DEFAULT_SEED, run_scenario
+    from bench.inputs.scenario import load_scenario
     from sim_backend.rig import build, spec_for_bench
 
     loaded = load_scenario(scenario, bench=bench)

@@ -6,7 +6,7 @@
 2. lockstep (link): a 20 s profile (ramp, reversal, load, R_s injection) on the PMSM model through the
    in-process CANopen stack — SYNC every 10 ms of drive time, 8 live REAL32 signals on TPDOs, the verdict's
    signals (speed ref/true, flux est/true) recorded at 1 kHz by the drive and block-uploaded every 0.5 s.
-3. lockstep (orchestrator): a 20 s scenario (pmsm-rs-step stretched) through bench.orchestrator.run_scenario
+3. lockstep (orchestrator): a 20 s scenario (pmsm-rs-step stretched) through bench.run.orchestrator.run_scenario
    with the sim-pmsm bench config at sync_period_s = 0.01 and trace_decimation = 10 (recording, supervisor,
    criteria; Rerun off), once with the trace limited to the criteria's signals (lockstep_rtf) and once with
    the orchestrator's default trace of every signal (orch_all_signals_rtf). Both are a bench process's later
@@ -55,7 +55,7 @@ VERDICT_TRACE = ("speed_ref_mech_rad_s", "speed_true_mech_rad_s", "flux_est_wb",
 
 def live_signals() -> tuple[str, ...]:
     try:
-        from bench.orchestrator import LIVE_SIGNALS
+        from bench.run.orchestrator import LIVE_SIGNALS
         return tuple(LIVE_SIGNALS)
     except ImportError:
         return DEFAULT_LIVE
@@ -158,9 +158,9 @@ def lockstep_orchestrator(duration: float, verdict_trace: bool, files: tuple[Pat
     """verdict_trace: the drive records only the signals the scenario's criteria read (what
     docs/canopen.md recommends) instead of the orchestrator's default, every signal."""
     try:
-        import bench.orchestrator as orch
-        from bench.orchestrator import run_scenario
-        from bench.scenario import load_scenario
+        import bench.run.orchestrator as orch
+        from bench.run.orchestrator import run_scenario
+        from bench.inputs.scenario import load_scenario
     except ImportError:
         return None
     scenario, bench = files

@@ -38,7 +38,7 @@ def rss_mb() -> float:
 
 
 def run_once(tmp: Path, name: str, duration: float, rerun: str, samples: list, marks: dict):
-    from bench.orchestrator import run_scenario
+    from bench.run.orchestrator import run_scenario
 
     bench = tmp / "bench.toml"
     bench.write_text((REPO / "config/benches/sim-pmsm.toml").read_text()
@@ -60,7 +60,7 @@ def main() -> int:
     parser.add_argument("--duration", type=float, default=1200.0)
     parser.add_argument("--rerun", default="save", choices=("save", "off"))
     args = parser.parse_args()
-    import bench.orchestrator as orchestrator
+    import bench.run.orchestrator as orchestrator
 
     samples: list[tuple[float, float]] = []
     marks: dict[str, int] = {}

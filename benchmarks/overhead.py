@@ -30,9 +30,9 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-import bench.orchestrator as orch  # noqa: E402
-import bench.verdict as verdict_mod  # noqa: E402
-from bench.orchestrator import run_scenario  # noqa: E402
+import bench.run.orchestrator as orch  # noqa: E402
+import bench.run.verdict as verdict_mod  # noqa: E402
+from bench.run.orchestrator import run_scenario  # noqa: E402
 
 ending = sys.modules[orch._Run._finish.__module__]   # where the run's ending (and its plot call) lives
 
@@ -100,7 +100,7 @@ class Timed:
 def make_runner(scenario: Path, out_root: Path, drive_path: str = "auto"):
     if drive_path == "auto" and inprocess_available():
         # the scenario's own bench, with SDO/heartbeat timeouts for a loaded 2-core machine
-        from bench.scenario import load_scenario
+        from bench.inputs.scenario import load_scenario
 
         bench_src = Path(load_scenario(scenario).bench)
         bench = out_root / f"patient-{bench_src.name}"
@@ -111,12 +111,12 @@ def make_runner(scenario: Path, out_root: Path, drive_path: str = "auto"):
             return run_scenario(scenario, bench, out_root=out_root, rerun_mode="save")
         return run_once, f"in-process simulator of {bench_src.name} (SDO timeout 3 s)"
 
-    from bench.scenario import load_scenario
+    from bench.inputs.scenario import load_scenario
     from sim_backend.drive import make_drive
     from tests.fakes import FakeRig
 
     scen = load_scenario(scenario)
-    from bench.benchconfig import load_bench_config
+    from bench.inputs.benchconfig import load_bench_config
 
     motor = load_bench_config(scen.bench)["simulator"]["motor"]
     sync_period = load_bench_config(scen.bench)["drive"]["sync_period_s"]

@@ -111,8 +111,8 @@ max_duration_s = {max_duration}
 
 def command_latency(duration: float, period: float) -> dict:
     """The whole bench in real time; latency from the step's due SYNC to the first RPDO with its new target."""
-    from bench.orchestrator import run_scenario
-    import bench.links as links
+    from bench.run.orchestrator import run_scenario
+    import bench.run.links as links
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -137,7 +137,7 @@ def command_latency(duration: float, period: float) -> dict:
             can.Notifier(bus, [listener], timeout=0.01)
             return drive, load
 
-        import bench.orchestrator as orchestrator
+        import bench.run.orchestrator as orchestrator
         orchestrator.make_links = make_links
         try:
             result = run_scenario(scenario, out_root=tmp / "runs", rerun_mode="save")

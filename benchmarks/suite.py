@@ -19,7 +19,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.scenario import load_scenario  # noqa: E402
+from bench.inputs.scenario import load_scenario  # noqa: E402
 
 
 def main() -> int:

@@ -24,7 +24,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.orchestrator import run_scenario  # noqa: E402
+from bench.run.orchestrator import run_scenario  # noqa: E402
 from sim_backend import twin as tw  # noqa: E402
 from sim_backend.twin_fit import fit  # noqa: E402
 

@@ -7,7 +7,7 @@ has [simulator] gear_ratio = [m, s] and velocity_side = "motor", and the bench b
 shaft (e35: it reads 0x6091 and the bench config states velocity_side = "shaft"; technosoft: its config states
 gear_ratio = [1, 1] and the EDS has no 0x6091; cia402_slave: rpm stated, no gear anywhere). The shaft then turns k
 times faster than commanded (k = s/m: 1.5, 1.1, 10). scenarios/rig/speed-step-20rads.toml (ramp to 20 rad/s in 0.5 s,
-overspeed limit 40 rad/s) runs through bench.orchestrator.run_scenario against the in-process simulator; the rig's
+overspeed limit 40 rad/s) runs through bench.run.orchestrator.run_scenario against the in-process simulator; the rig's
 true shaft speed is sampled after every simulated SYNC (simulator truth, for this measurement only).
 
 Figures per rig and case: the trip's reason, its drive time, (runs that end) the dynamometer encoder's steady-state
@@ -33,7 +33,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import sim_backend.rig as sim_rig  # noqa: E402
-from bench.orchestrator import run_scenario  # noqa: E402
+from bench.run.orchestrator import run_scenario  # noqa: E402
 from drivers.canopen.profile import PROFILE_KEYS  # noqa: E402
 
 SCENARIO = REPO / "scenarios/rig/speed-step-20rads.toml"

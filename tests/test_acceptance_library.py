@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.scenario import load_scenario
+from bench.inputs.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parents[1]
 LIBRARY = sorted((REPO / "scenarios/rig").glob("accept-*.toml"))
@@ -47,7 +47,7 @@ def test_every_criterion_is_judged_on_the_reference_sensor_only(path):
 
 @pytest.mark.parametrize("path, rig", CASES, ids=[f"{p.stem}@{r}" for p, r in CASES])
 def test_the_library_passes_on_the_instruments_rigs(tmp_path, path, rig):
-    from bench.orchestrator import run_scenario
+    from bench.run.orchestrator import run_scenario
 
     result = run_scenario(path, REPO / f"config/benches/{rig}.toml", out_root=tmp_path, rerun_mode="off")
     criteria = result.record["criteria"]
@@ -60,7 +60,7 @@ def test_a_detuned_speed_loop_fails_the_step_response(tmp_path):
     """The firmware's own inertia parameter x0.1 (1e-4 for 1e-3 kg m^2: a lab can write it, it is the drive's
     parameter) cuts the speed loop's gain tenfold. Measured on seed 1: rise 0.064 s, overshoot 41 %, settling 0.84 s
     against 0.018 s, 12 %, 0.14 s; the library's limits (0.042 s, 21 %, 0.2 s) reject all three."""
-    from bench.orchestrator import run_scenario
+    from bench.run.orchestrator import run_scenario
 
     path = REPO / "scenarios/rig/accept-speed-step.toml"
     injection = '[[injection]]\nat_s = 0.0\nname = "fw_inertia_kgm2"\nvalue = 1e-4\n\n'
@@ -77,7 +77,7 @@ def test_a_detuned_speed_loop_fails_the_step_response(tmp_path):
 def test_the_library_runs_on_a_third_party_drive(tmp_path, stem):
     """The same files on a simulated third-party drive (technosoft.eds, inc/s, fixed PDO mapping, samples at the
     SYNC rate): every criterion judged on the load machine's feedback, and passed."""
-    from bench.orchestrator import run_scenario
+    from bench.run.orchestrator import run_scenario
 
     result = run_scenario(REPO / f"scenarios/rig/{stem}.toml", REPO / "config/benches/sim-generic-technosoft.toml",
                           out_root=tmp_path, rerun_mode="off")

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.scenario import load_scenario
+from bench.inputs.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 KNOWN_GAPS_FILE = ROOT / "tests" / "known_gaps.toml"
@@ -137,7 +137,7 @@ SEED_SAMPLE = range(1, 9)
 def test_seed_dependent_gaps_reproduce_their_seeds(tmp_path, scenario):
     """A small seed sample of each seed-dependent gap: seeds 1-8 fail exactly where the 20-seed campaign said
     (telemetry is deterministic per seed, so the recorded pass rates are reproduced run for run)."""
-    from bench.orchestrator import run_scenario
+    from bench.run.orchestrator import run_scenario
 
     entries = [e for e in gap_entries() if e["scenario"] == scenario and "failing_seeds" in e]
     for seed in SEED_SAMPLE:

@@ -33,7 +33,7 @@ def test_the_diagram_in_the_doc_is_the_code_now():
 def test_the_real_graph_sees_imports_and_keeps_the_layers():
     nodes, edges = graph.group_graph()
     assert {"contract", "clients", "inputs", "machinery", "outputs", "cli", "service", "sim_front"} <= set(nodes)
-    assert edges[("cli", "machinery")] and edges[("machinery", "outputs")]      # bench.cli, bench.orchestrator
+    assert edges[("cli", "machinery")] and edges[("machinery", "outputs")]      # bench.faces.cli, bench.run.orchestrator
     assert edges[("sim_front", "contract")]
     bench = {n for n, _, package, _ in graph.GROUPS if package == "bench"}
     sim = {n for n, _, package, _ in graph.GROUPS if package == "sim_backend"}

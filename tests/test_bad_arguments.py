@@ -134,7 +134,7 @@ def test_bad_argument_is_one_line_and_exit_2(argv, files, silent_port, dead_port
 
 
 def test_the_table_covers_every_command():
-    from bench.cli import cli
+    from bench.faces.cli import cli
 
     covered = {c[1][0] for c in CASES}
     assert set(cli.commands) - {"list"} <= covered               # list takes no argument to get wrong

@@ -16,7 +16,7 @@ from click.testing import CliRunner
 from hypothesis import HealthCheck, currently_in_test_context, event, given, settings
 from hypothesis import strategies as st
 
-from bench.cli import cli
+from bench.faces.cli import cli
 
 REPO = Path(__file__).resolve().parents[1]
 TOKENS = ['""', '"x"', "0", "-1", "-0.5", "1e9", "1e308", "1e400", "-1e400", "nan", "inf", "-inf", "true", "[]",

@@ -14,12 +14,12 @@ import pyarrow.parquet as pq
 import pytest
 from click.testing import CliRunner
 
-from bench.campaign import load_campaign, points, wilson_interval
-from bench.campaign_run import pass_rate_grid, run_campaign, write_results
-from bench.cli import cli
+from bench.faces.campaign import load_campaign, points, wilson_interval
+from bench.faces.campaign_run import pass_rate_grid, run_campaign, write_results
+from bench.faces.cli import cli
 from drivers.contract.errors import InputError
-from bench.orchestrator import run_scenario
-from bench.scenario import Injection, load_scenario
+from bench.run.orchestrator import run_scenario
+from bench.inputs.scenario import Injection, load_scenario
 
 REPO = Path(__file__).resolve().parents[1]
 RS_STEP = "scenarios/examples/pmsm-rs-step.toml"

@@ -17,8 +17,8 @@ import pytest
 
 ray = pytest.importorskip("ray", reason="ray is not installed (pip install -e \".[ray]\")")
 
-from bench.campaign import load_campaign, points  # noqa: E402
-from bench.campaign_run import run_campaign, write_results  # noqa: E402
+from bench.faces.campaign import load_campaign, points  # noqa: E402
+from bench.faces.campaign_run import run_campaign, write_results  # noqa: E402
 from tests.service_fixtures import free_port  # noqa: E402
 from tests.test_transports_agree import EDS, SCENARIO, _bench, _serve_pmsm  # noqa: E402
 

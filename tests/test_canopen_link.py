@@ -251,7 +251,7 @@ def test_live_signals_fall_back_to_scaled_integers_when_real32_exceeds_the_bus()
 
 
 def test_inprocess_service_opens_private_endpoints():
-    from bench.benchconfig import link_settings, load_bench_config
+    from bench.inputs.benchconfig import link_settings, load_bench_config
     from drivers.canopen.link import CanopenDriveLink
     from sim_backend.rig import start
     from tests.canopen_helpers import REPO

@@ -7,7 +7,7 @@ import pytest
 from canopen.objectdictionary import ODVariable
 
 from drivers.contract import extension, parameters
-from drivers.eds import read_eds
+from drivers.contract.eds import read_eds
 from drivers.contract.signals import SIGNAL_NAMES
 from sim_backend import od_gen
 from tests.canopen_helpers import REPO

@@ -15,7 +15,7 @@ import can
 import numpy as np
 import pytest
 
-from bench.criteria import time_axis
+from bench.inputs.criteria import time_axis
 from drivers.contract.errors import LinkError
 from drivers.api import LinkSettings
 from drivers.contract import objects as o
@@ -427,7 +427,7 @@ def test_drivebench_show_prints_the_sync_statistics():
 
     from rich.console import Console
 
-    from bench.cli import print_record
+    from bench.faces.cli import print_record
 
     out = io.StringIO()
     record = {"verdict": "pass", "criteria": [], "scenario": {"name": "x"},
@@ -445,7 +445,7 @@ def test_drivebench_show_prints_the_sync_statistics():
 ], ids=["csv-only", "event-tpdos-only", "boot-delay"])
 def test_the_rig_scenario_passes_on_a_drive_with_each_quirk(tmp_path, quirk, drive_line, expect):
     """The whole bench (drivebench run's path) on the simulated e35 with one vendor quirk: it runs and passes."""
-    from bench.orchestrator import run_scenario
+    from bench.run.orchestrator import run_scenario
 
     text = (REPO / "config/benches/sim-generic-e35.toml").read_text()
     text = text.replace("[simulator]\n", f"[simulator]\n{quirk}\n")

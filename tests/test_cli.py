@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-import bench.orchestrator
-from bench.cli import cli
+import bench.run.orchestrator
+from bench.faces.cli import cli
 from tests.fakes import FakeRig
 from tests.test_orchestrator import write_case
 
@@ -28,7 +28,7 @@ def fake_rig(monkeypatch):
         rigs.append(FakeRig())
         return rigs[-1].links()
 
-    monkeypatch.setattr(bench.orchestrator, "make_links", make_links)
+    monkeypatch.setattr(bench.run.orchestrator, "make_links", make_links)
     return rigs
 
 
@@ -197,12 +197,12 @@ def test_usage_error_exit_2():
 
 SIGTERM_CHILD = """
 import sys
-import bench.orchestrator
-from bench.cli import main
+import bench.run.orchestrator
+from bench.faces.cli import main
 from tests.fakes import FakeRig
 
 rig = FakeRig()
-bench.orchestrator.make_links = lambda cfg, base: rig.links()
+bench.run.orchestrator.make_links = lambda cfg, base: rig.links()
 code = main(sys.argv[1:])
 print("CALLS", ",".join(rig.names()), file=sys.stderr)
 sys.exit(code)

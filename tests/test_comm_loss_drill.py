@@ -203,7 +203,7 @@ def test_lockstep_is_refused_on_a_bench_config_without_services(tmp_path):
 @pytest.mark.parametrize("stops", [2, 0], ids=["one-tpdo", "every-tpdo"])
 def test_a_tpdo_that_stops_in_real_time_trips_feedback_lost_and_stops_the_run(tmp_path, stops):
     """Quirk: the drive's TPDO goes silent 1 s into the run (real time). Before: 3 s of NaN rows at 20 rad/s."""
-    from bench.orchestrator import run_scenario
+    from bench.run.orchestrator import run_scenario
 
     bench = bench_with(tmp_path, simulator=f"tpdo_stops_after_s = 1.0\ntpdo_stops = {stops}\n",
                        replace=('timing = "lockstep"', 'timing = "realtime"'))
@@ -219,7 +219,7 @@ def test_a_tpdo_that_stops_in_real_time_trips_feedback_lost_and_stops_the_run(tm
 
 
 def test_warning_events_are_recorded_and_shown(tmp_path):
-    from bench.cli import print_record
+    from bench.faces.cli import print_record
     from rich.console import Console
     from tests.fakes import FakeRig
     from tests.test_orchestrator import run
@@ -321,7 +321,7 @@ velocity_unit = "rpm"
 
 
 def test_probe_checklist_decodes_a_fault_and_sees_a_node_id_clash():
-    from bench.checklist import checklist
+    from bench.faces.checklist import checklist
     from drivers.canopen.probe import probe
     from sim_backend.rig import RigSpec, build
 
@@ -341,7 +341,7 @@ def test_probe_checklist_decodes_a_fault_and_sees_a_node_id_clash():
 def test_the_unit_cross_check_does_not_pass_on_missing_drive_speed():
     """The drive's speed NaN (its TPDO missing) while the shaft turns is no agreement: the check trips within three
     SYNC periods instead of letting the window run out on NaN and counting it as passed (before)."""
-    from bench.supervisor import UnitCheck
+    from bench.run.supervisor import UnitCheck
 
     check = UnitCheck()
     nan = float("nan")
@@ -379,8 +379,8 @@ def test_an_operator_stop_during_the_drill_never_enables_the_drive_for_the_run(t
 def test_a_passed_drill_holds_for_drill_valid_s_in_one_bench_process_and_says_so(tmp_path):
     """[bench] drill_valid_s: the second run of the same drive and settings in this process reuses the first one's
     proof (the record and the verdict line say when it was drilled); with 0 (a rig's default) every run drills."""
-    from bench.cli import print_record, make_console
-    from bench.orchestrator import run_scenario
+    from bench.faces.cli import print_record, make_console
+    from bench.run.orchestrator import run_scenario
 
     held = bench_with(tmp_path, replace=("drill_valid_s = 3600", "drill_valid_s = 600"))
     first = run_scenario(SCENARIO, held, out_root=tmp_path / "a", rerun_mode="off").record["comm_loss"]

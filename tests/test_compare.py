@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.benchconfig import BenchConfig, BenchSection
-from bench.compare import compare_runs
-from bench.criteria import evaluate, verdict
-from bench.recorder import RunRecorder
-from bench.scenario import load_scenario
+from bench.inputs.benchconfig import BenchConfig, BenchSection
+from bench.outputs.compare import compare_runs
+from bench.inputs.criteria import evaluate, verdict
+from bench.outputs.recorder import RunRecorder
+from bench.inputs.scenario import load_scenario
 from drivers.contract.signals import SIGNAL_NAMES
 
 REPO = Path(__file__).resolve().parents[1]

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from bench.benchconfig import BenchSection, load_bench_config, ServicesSection
-from bench.links import make_links
+from bench.inputs.benchconfig import BenchSection, load_bench_config, ServicesSection
+from bench.run.links import make_links
 from drivers.contract.errors import InputError
 from drivers.contract.simulator import SimulatorConfig, SimulatorServeConfig
 from drivers.reference import ReferenceConfig

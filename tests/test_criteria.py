@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from bench.criteria import KINDS, CriterionResult, CriterionSpec, evaluate, verdict, wrap_angle
+from bench.inputs.criteria import KINDS, CriterionResult, CriterionSpec, evaluate, verdict, wrap_angle
 
 T = np.arange(0, 10_001) * 1e-3          # 0..10 s at 1 kHz
 
@@ -208,7 +208,7 @@ def test_ripple_pp_and_std():
 
 
 def test_rise_time_percent_bounds_are_checked_at_load(tmp_path):
-    from bench.criteria import parse_criteria
+    from bench.inputs.criteria import parse_criteria
     from drivers.contract.checks import Problems
 
     p = Problems(tmp_path / "s.toml")

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.orchestrator import run_scenario
+from bench.run.orchestrator import run_scenario
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLES = sorted((REPO / "scenarios" / "examples").glob("*.toml"))

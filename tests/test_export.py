@@ -12,11 +12,11 @@ import numpy as np
 import pyarrow.csv as pacsv
 import pytest
 
-from bench.benchconfig import BenchConfig, BenchSection
-from bench.criteria import evaluate, verdict
-from bench.recorder import RunRecorder
-from bench.run_files import load_run
-from bench.scenario import load_scenario
+from bench.inputs.benchconfig import BenchConfig, BenchSection
+from bench.inputs.criteria import evaluate, verdict
+from bench.outputs.recorder import RunRecorder
+from bench.outputs.run_files import load_run
+from bench.inputs.scenario import load_scenario
 from drivers.contract.signals import SIGNAL_NAMES
 
 REPO = Path(__file__).resolve().parents[1]

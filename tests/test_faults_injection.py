@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from drivers.contract.errors import InputError
-from bench.scenario import load_scenario
+from bench.inputs.scenario import load_scenario
 from drivers.contract import parameters
 from drivers.contract.parameters import ParamKind
 from sim_backend.faults import FaultState
@@ -124,7 +124,7 @@ def test_fault_values_are_checked(tmp_path, name, value):
 
 def test_modbus_exception_mid_run_aborts_safely_with_the_exception_in_the_record(tmp_path):
     """The load machine refuses a setpoint beyond its rating (exception 3, illegal data value) at t = 0.6 s."""
-    from bench.run_files import load_run
+    from bench.outputs.run_files import load_run
     from sim_backend import faults
 
     bench = write_bench(tmp_path, "canopen")
@@ -172,7 +172,7 @@ def test_can_bus_state_and_error_frames_are_judged():
 def test_wire_faults_are_refused_before_the_run_by_a_bench_without_the_wrappers(tmp_path):
     """A bench whose rig has no frame wrappers (wire_faults = false) refuses a wire fault at validation, so
     `validate` and `run` agree and no run directory is made."""
-    from bench.orchestrator import run_scenario
+    from bench.run.orchestrator import run_scenario
 
     bench = write_bench(tmp_path, "canopen")
     bench.write_text(bench.read_text().replace("wire_faults = true", "wire_faults = false"))

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from click.testing import CliRunner
 
-from bench.cli import cli
+from bench.faces.cli import cli
 
 REPO = Path(__file__).resolve().parents[1]
 FIG08 = REPO / "scenarios/pmsm/fig08-20rads-rs-step.toml"
@@ -113,7 +113,7 @@ def test_a_disk_that_fills_up_mid_run_is_one_line_after_the_safe_stop(tmp_path):
         "import resource, signal, sys\n"
         "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
         "resource.setrlimit(resource.RLIMIT_FSIZE, (150_000, resource.RLIM_INFINITY))\n"
-        "from bench.cli import main\n"
+        "from bench.faces.cli import main\n"
         f"sys.exit(main(['run', {str(FIG08)!r}, '--out', {str(tmp_path / 'runs')!r}, '--rerun', 'off']))\n"
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO,
@@ -123,7 +123,7 @@ def test_a_disk_that_fills_up_mid_run_is_one_line_after_the_safe_stop(tmp_path):
     assert "Traceback" not in proc.stderr and len(lines) == 1, proc.stderr
     assert "--out: cannot write the run record" in lines[0] and "safe stop was done" in lines[0]
     run_dir = next((tmp_path / "runs").iterdir())
-    from bench.run_files import load_run
+    from bench.outputs.run_files import load_run
 
     record, columns, complete = load_run(run_dir)
     assert not complete and 0 < len(columns["t_s"])           # what reached the disk is recoverable

@@ -36,7 +36,7 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="module")
 def rig_runs(tmp_path_factory):
-    from bench.orchestrator import run_scenario
+    from bench.run.orchestrator import run_scenario
 
     out = tmp_path_factory.mktemp("instruments")
     return {rig: run_scenario(RIG_SCENARIO, REPO / f"config/benches/{rig}.toml", out_root=out / rig, rerun_mode="off")
@@ -130,7 +130,7 @@ def test_validate_refuses_plant_injections_and_dyno_modes_the_rig_lacks(tmp_path
     brake.write_text(RIG_SCENARIO.read_text().replace('kind = "torque"\nstart_s = 1.5',
                                                       'kind = "brake"\nstart_s = 1.5'))
     out = _cli("validate", str(brake), "--bench", str(REPO / "config/benches/sim-pmsm-instruments.toml"))
-    # the bench emulates the brake from the dyno encoder's speed (bench/load_emulation.py) and says so
+    # the bench emulates the brake from the dyno encoder's speed (bench/run/load_emulation.py) and says so
     assert out.returncode == 0, out.stderr
     assert "load[0] (brake): emulated by the bench on 'sim-pmsm-instruments'" in out.stdout, out.stdout
     # without a measured shaft speed it cannot: refused
@@ -152,7 +152,7 @@ def test_validate_says_position_error_is_not_measured_on_an_instruments_rig():
 
 def test_an_ordinary_simulated_bench_still_takes_rig_truth_from_the_drive():
     """Without [reference] (sim-pmsm, the fidelity suite) the drive's extension reports rig truth as before."""
-    from bench.benchconfig import load_bench_config, measurable_signals
+    from bench.inputs.benchconfig import load_bench_config, measurable_signals
 
     cfg = load_bench_config(REPO / "config/benches/sim-pmsm.toml")
     assert {"pos_err_elec_rad", "flux_true_wb", "speed_true_mech_rad_s"} <= measurable_signals(cfg)
@@ -163,7 +163,7 @@ def test_an_ordinary_simulated_bench_still_takes_rig_truth_from_the_drive():
 def test_same_seed_same_instrument_readings_through_the_bench(tmp_path):
     """Determinism holds through the instruments: two runs of the same scenario and seed record the same encoder and
     transducer readings bit for bit; another seed reads differently (jitter, offset)."""
-    from bench.orchestrator import run_scenario
+    from bench.run.orchestrator import run_scenario
 
     bench = REPO / "config/benches/sim-pmsm-instruments.toml"
     runs = [run_scenario(RIG_SCENARIO, bench, out_root=tmp_path / str(i), seed=seed, rerun_mode="off")

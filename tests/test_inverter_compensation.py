@@ -10,8 +10,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from bench.orchestrator import run_scenario
-from bench.prepared import prepare_run
+from bench.run.orchestrator import run_scenario
+from bench.inputs.prepared import prepare_run
 
 ROOT = Path(__file__).resolve().parents[1]
 SPIM_15RPM = ROOT / "scenarios/spim/fig08-low-speed-15rpm.toml"

@@ -1,5 +1,5 @@
 """Loads a torque-mode dynamometer lacks (viscous, brake), emulated by the bench from the measured shaft speed at the
-SYNC rate (bench/load_emulation.py): the laws, when the bench emulates, and on the PMSM instruments rig the emulated
+SYNC rate (bench/run/load_emulation.py): the laws, when the bench emulates, and on the PMSM instruments rig the emulated
 viscous load against the simulator dyno's native one, with the lag docs/scenarios.md states."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from bench.load_emulation import BRAKE_BAND_MECH_RAD_S, emulable, emulated_torque_nm, lag_bounds_s
+from bench.run.load_emulation import BRAKE_BAND_MECH_RAD_S, emulable, emulated_torque_nm, lag_bounds_s
 from drivers.contract.load_map import LoadMode
 
 REPO = Path(__file__).resolve().parents[1]
@@ -51,7 +51,7 @@ def _telemetry(run_dir: Path) -> dict[str, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def ramp_runs(tmp_path_factory):
-    from bench.orchestrator import run_scenario
+    from bench.run.orchestrator import run_scenario
 
     out = tmp_path_factory.mktemp("emulation")
     return {rig: run_scenario(RAMP, REPO / f"config/benches/{rig}.toml", out_root=out / rig, rerun_mode="off")
@@ -88,7 +88,7 @@ def test_emulated_brake_opposes_the_motion_through_a_reversal(tmp_path):
     """SPIM Fig. 7 in rig form: 4 N*m powder brake emulated on the SPIM instruments rig, +1500 -> -1500 r/min. The
     transducer reads +4 N*m while the shaft turns forward, -4 N*m backward, and never pushes the way the shaft turns
     (away from zero speed, where the transducer's J_dyno dw/dt of the reversal is under 0.5 N*m)."""
-    from bench.orchestrator import run_scenario
+    from bench.run.orchestrator import run_scenario
 
     result = run_scenario(REPO / "scenarios/spim-rig/fig07-reversal-1500rpm.toml", out_root=tmp_path, rerun_mode="off")
     assert result.verdict == "pass"

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from bench.orchestrator import run_scenario
-from bench.report import MUTANTS_DIR
+from bench.run.orchestrator import run_scenario
+from bench.outputs.report import MUTANTS_DIR
 from tests.mutants import ALL_MUTANTS, Mutant, _apply, build, mutant_kernel
 
 ROOT = Path(__file__).resolve().parents[1]

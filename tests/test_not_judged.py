@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.criteria import CriterionSpec, TimeAxis, evaluate, time_axis, verdict
+from bench.inputs.criteria import CriterionSpec, TimeAxis, evaluate, time_axis, verdict
 from tests.fakes import FakeRig
 from tests.test_orchestrator import run
 
@@ -72,7 +72,7 @@ def test_the_time_axis_checked_batch_by_batch_is_the_whole_axis_checked_at_once(
 
 def test_verdict_order():
     def r(status, gap=None):
-        from bench.criteria import CriterionResult
+        from bench.inputs.criteria import CriterionResult
         return CriterionResult("c", "k", "s", (0, 1), 1.0, 1.0, status == "pass", gap, "", status)
     assert verdict([r("pass"), r("not_judged")], aborted=False) == "incomplete"
     assert verdict([r("fail"), r("not_judged")], aborted=False) == "fail"
@@ -128,7 +128,7 @@ def _drop_rows(monkeypatch, link_cls, method="fetch_trace"):
 @pytest.mark.parametrize("bench", ["sim-pmsm.toml", "serial"])
 def test_a_run_with_gaps_never_passes_real_transports(tmp_path, monkeypatch, bench):
     """The in-process CANopen drive and the serial drive (over a pty), trace rows lost in transport."""
-    from bench.orchestrator import run_scenario
+    from bench.run.orchestrator import run_scenario
     from drivers.canopen.link import CanopenDriveLink
     from drivers.serial_link import SerialDriveLink
 

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from drivers.contract.errors import InputError
-from bench.orchestrator import LIVE_SIGNALS, run_scenario
-from bench.record_schema import RECORD_KEYS
-from bench.run_files import load_run
+from bench.run.orchestrator import LIVE_SIGNALS, run_scenario
+from bench.outputs.record_schema import RECORD_KEYS
+from bench.outputs.run_files import load_run
 from drivers.contract.errors import LinkError
 from tests.fakes import SAFE_STOP, FakeRig
 
@@ -172,7 +172,7 @@ def test_a_stuck_call_is_abandoned_and_the_supervisor_side_stops_the_rig(tmp_pat
     thread and the record is finished; the abandoned loop's later calls never reach the rig."""
     import time
 
-    from bench.orchestrator import STUCK_GRACE_S
+    from bench.run.orchestrator import STUCK_GRACE_S
 
     rig = FakeRig(hang_at_s=0.3)
     started = time.monotonic()
@@ -230,7 +230,7 @@ def test_plant_injection_refused_before_connecting(tmp_path):
 def test_rerun_file_written_with_signal_entities(tmp_path):
     rig = FakeRig()
     result = run(tmp_path, rig, rerun_mode="save")
-    from bench.rerun_view import rrd_entity_paths
+    from bench.outputs.rerun_view import rrd_entity_paths
 
     paths = rrd_entity_paths(result.run_dir / "run.rrd")
     recorded = set(result.record["trace_signals"])
@@ -317,7 +317,7 @@ def test_full_run_through_inprocess_canopen_is_deterministic(tmp_path):
     for name in a:
         x, y = a[name][:n][a["t_s"][:n] <= t_end], b[name][:n][b["t_s"][:n] <= t_end]
         assert np.array_equal(x, y, equal_nan=True), name
-    from bench.rerun_view import rrd_entity_paths
+    from bench.outputs.rerun_view import rrd_entity_paths
 
     assert {f"/{name}" for name in first.record["trace_signals"]} <= rrd_entity_paths(first.run_dir / "run.rrd")
     assert (first.run_dir / "summary.png").exists()

@@ -12,11 +12,11 @@ import pytest
 from click.testing import CliRunner
 
 import drivers.contract.toml_file
-from bench.campaign import load_campaign, points
-from bench.campaign_run import _as_dict, run_point
-from bench.cli import cli
+from bench.faces.campaign import load_campaign, points
+from bench.faces.campaign_run import _as_dict, run_point
+from bench.faces.cli import cli
 from drivers.contract.errors import InputError
-from bench.prepared import PreparedRun, prepare_run
+from bench.inputs.prepared import PreparedRun, prepare_run
 
 REPO = Path(__file__).resolve().parents[1]
 SCENARIO = REPO / "scenarios/pmsm/fig10-startup-position-error.toml"      # 2 s of drive time
@@ -83,22 +83,22 @@ def test_a_campaign_reads_its_file_and_each_scenario_once_for_all_its_points(tmp
 def test_the_progress_display_shows_the_scenario_the_run_runs(tmp_path, monkeypatch):
     """--bench replaces the scenario's own bench config: the progress bar used to read the scenario again without
     it, so a scenario whose own bench is missing validated and then failed to run."""
-    import bench.cli
+    import bench.faces.cli
 
     copy = tmp_path / "elsewhere.toml"
     copy.write_text(SCENARIO.read_text().replace('bench = "config/benches/sim-pmsm.toml"',
                                                  'bench = "config/benches/not-here.toml"'))
     assert "not-here" in copy.read_text()
     totals: list[float] = []
-    monkeypatch.setattr(bench.cli, "PROGRESS_MIN_DURATION_S", 0.0)
-    monkeypatch.setattr(type(bench.cli.err_console), "is_terminal", property(lambda self: True))
-    real = bench.cli._progress.__enter__
+    monkeypatch.setattr(bench.faces.cli, "PROGRESS_MIN_DURATION_S", 0.0)
+    monkeypatch.setattr(type(bench.faces.cli.err_console), "is_terminal", property(lambda self: True))
+    real = bench.faces.cli._progress.__enter__
 
     def enter(self):
         update = real(self)
         totals.append(self.bar.tasks[0].total)
         return update
-    monkeypatch.setattr(bench.cli._progress, "__enter__", enter)
+    monkeypatch.setattr(bench.faces.cli._progress, "__enter__", enter)
     result = CliRunner().invoke(cli, ["run", str(copy), "--bench", str(BENCH), "--rerun", "off",
                                       "--out", str(tmp_path / "runs"), "--json"])
     assert result.exit_code in (0, 1), result.output

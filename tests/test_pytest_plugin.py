@@ -13,20 +13,20 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 CHILD_TEST = """
-import bench.orchestrator
+import bench.run.orchestrator
 from tests.fakes import FakeRig
 from tests.test_orchestrator import write_case
 
 
 def test_uses_fixture(drivebench, tmp_path, monkeypatch):
-    monkeypatch.setattr(bench.orchestrator, "make_links", lambda cfg, base: FakeRig().links())
+    monkeypatch.setattr(bench.run.orchestrator, "make_links", lambda cfg, base: FakeRig().links())
     result = drivebench.run(write_case(tmp_path), rerun_mode="off")
     assert result.verdict == "pass"
     assert result.run_dir.parent == OUT
 
 
 def test_failing_run_shows_table(drivebench, tmp_path, monkeypatch):
-    monkeypatch.setattr(bench.orchestrator, "make_links", lambda cfg, base: FakeRig().links())
+    monkeypatch.setattr(bench.run.orchestrator, "make_links", lambda cfg, base: FakeRig().links())
     result = drivebench.run(write_case(tmp_path, limit=0.0, duration=0.75), rerun_mode="off")
     assert result.verdict == "pass"
 """

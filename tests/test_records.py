@@ -18,12 +18,12 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from bench.benchconfig import BenchConfig, BenchSection
-from bench.criteria import CriterionResult
+from bench.inputs.benchconfig import BenchConfig, BenchSection
+from bench.inputs.criteria import CriterionResult
 from drivers.contract.errors import InputError
-from bench.record_schema import JOURNAL
-from bench.recorder import RunRecorder
-from bench.run_files import load_run
+from bench.outputs.record_schema import JOURNAL
+from bench.outputs.recorder import RunRecorder
+from bench.outputs.run_files import load_run
 from drivers.contract.signals import SIGNAL_NAMES
 
 SCENARIO = SimpleNamespace(name="demo/run 1", path=Path("/x/demo.toml"), sha256="ab" * 32, duration_s=1.0)
@@ -132,7 +132,7 @@ def test_bad_appends_and_verdicts_are_refused(tmp_path):
 def test_journal_is_flushed_by_drive_time_too(tmp_path):
     """A simulator in lockstep runs many times faster than the wall clock: with a wall interval far away, rows are
     still on disk once they span flush_drive_s of drive time (what a SIGKILL can lose is bounded in drive time)."""
-    from bench.run_files import read_journal
+    from bench.outputs.run_files import read_journal
 
     rec = RunRecorder(tmp_path, SCENARIO, 1, BENCH, flush_interval_s=3600, flush_drive_s=0.25)
 
@@ -185,8 +185,8 @@ CHILD = textwrap.dedent("""
     from pathlib import Path
     from types import SimpleNamespace
     import numpy as np
-    from bench.benchconfig import BenchConfig, BenchSection
-    from bench.recorder import RunRecorder
+    from bench.inputs.benchconfig import BenchConfig, BenchSection
+    from bench.outputs.recorder import RunRecorder
     sc = SimpleNamespace(name="killed", path=Path("/x.toml"), sha256="00", duration_s=100.0)
     bench = BenchConfig(path="/b.toml", bench=BenchSection(name="b"), drive={})
     rec = RunRecorder(Path(sys.argv[1]), sc, 5, bench, flush_interval_s=0.1)
@@ -257,7 +257,7 @@ def test_the_heap_is_frozen_once_per_process_not_before_every_run():
     """freeze_long_lived freezes at a process's second run only: freezing before every run would keep each earlier
     run's cyclic garbage for good."""
     import gc
-    code = ("import gc, json, bench.memory as r\n"
+    code = ("import gc, json, bench.outputs.memory as r\n"
             "counts, keep = [], []\n"
             "for k in range(4):\n"
             "    r.freeze_long_lived()\n"

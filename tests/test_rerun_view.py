@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from bench.rerun_view import RerunStream, default_blueprint, rrd_entity_paths, viewer_reachable
+from bench.outputs.rerun_view import RerunStream, default_blueprint, rrd_entity_paths, viewer_reachable
 from drivers.contract.signals import SIGNAL_NAMES
 
 
@@ -114,7 +114,7 @@ def test_viewer_reachable_on_closed_port():
 
 
 def test_blueprint_shows_every_recorded_signal_once_and_the_flux_phasors():
-    from bench.rerun_view import PLOTS
+    from bench.outputs.rerun_view import PLOTS
 
     views = default_blueprint().root_container.contents
     shown = [entity for view in views[:-2] for entity in view.contents if not entity.startswith("/limits/")]

@@ -13,11 +13,11 @@ from pathlib import Path
 
 import pytest
 
-from bench.criteria import signals_of
-from bench.load_emulation import emulates_on
-from bench.orchestrator import run_scenario
-from bench.benchconfig import load_bench_config, measurable_signals
-from bench.scenario import load_scenario
+from bench.inputs.criteria import signals_of
+from bench.run.load_emulation import emulates_on
+from bench.run.orchestrator import run_scenario
+from bench.inputs.benchconfig import load_bench_config, measurable_signals
+from bench.inputs.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 RIG_FORM = sorted((ROOT / "scenarios").glob("*-rig/*.toml"))

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.run_files import load_run
+from bench.outputs.run_files import load_run
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from bench.orchestrator import run_scenario
-from bench.supervisor import SafeStop
+from bench.run.orchestrator import run_scenario
+from bench.run.supervisor import SafeStop
 from drivers.api import LoadFeedback
 from tests.fakes import SAFE_STOP, FakeRig
 from tests.test_orchestrator import write_case
@@ -88,9 +88,9 @@ def test_a_hanging_safe_stop_step_is_abandoned_and_the_others_still_run():
 
 CHILD = """
 import contextlib, json, sys
-import bench.orchestrator as orchestrator
+import bench.run.orchestrator as orchestrator
 import sim_backend.rig as rig_module
-from bench.cli import main
+from bench.faces.cli import main
 from sim_backend import faults
 
 built = []
@@ -196,7 +196,7 @@ def test_operator_abort_twice_runs_the_reaction_sequence_once(tmp_path, signals)
 def unit_check_run(k: float, noise=None, nan_at=(), period_s=0.01, ramp_s=0.5, target=20.0, check=None, samples=200):
     """The drive's own speed follows a ramp to `target`; the reference sensor sees k times it (a unit error of k).
     Returns (trip, the reference speed when it tripped, the check)."""
-    from bench.supervisor import UnitCheck
+    from bench.run.supervisor import UnitCheck
 
     check = check or UnitCheck()
     for n in range(1, samples):
@@ -258,7 +258,7 @@ def test_a_missing_speed_never_counts_as_agreement():
 def test_a_slow_first_motion_is_judged_until_the_shaft_has_travelled_far_enough():
     """A ramp to 20 rad/s in 2 s, with a real-time skew allowance of 20 ms: a 1.1 factor shows only after ~1.4 s; the
     check runs past its 1 s until the reference has travelled 20 rad, and trips."""
-    from bench.supervisor import UnitCheck
+    from bench.run.supervisor import UnitCheck
 
     trip, _, check = unit_check_run(1.1, ramp_s=2.0, check=UnitCheck(skew_s=0.02), samples=400)
     assert trip is not None and trip.reason == "unit_mismatch" and 1.2 < trip.t_s < 1.8

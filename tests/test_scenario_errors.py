@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from drivers.contract.errors import InputError
-from bench.scenario import load_scenario
+from bench.inputs.scenario import load_scenario
 from tests.scenario_fixtures import write_bench, write_scenario
 
 

@@ -8,7 +8,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from drivers.contract.errors import InputError
-from bench.scenario import load_scenario
+from bench.inputs.scenario import load_scenario
 from tests.scenario_fixtures import REPO, write_bench
 
 EXAMPLES = []

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from bench.benchconfig import load_bench_config
+from bench.inputs.benchconfig import load_bench_config
 from drivers.contract.errors import InputError
-from bench.scenario import GRAVITY_M_S2, default_max_duration_s, load_scenario
+from bench.inputs.scenario import GRAVITY_M_S2, default_max_duration_s, load_scenario
 from drivers.contract.load_map import LoadMode
 from tests.scenario_fixtures import REPO, write_bench, write_scenario
 
@@ -167,8 +167,8 @@ def test_bench_override(bench_dir, tmp_path_factory):
 def test_examples_are_valid(example, tmp_path):
     """Each example validates against the repo bench it names, and every criterion reads signals that bench
     measures (so the example can pass, not only parse)."""
-    from bench.benchconfig import measurable_signals
-    from bench.criteria import signals_of
+    from bench.inputs.benchconfig import measurable_signals
+    from bench.inputs.criteria import signals_of
 
     s = load_scenario(example)
     assert s.criteria and s.duration_s > 0 and s.bench.name.startswith("sim-")

@@ -4,8 +4,8 @@ from pathlib import Path
 
 import pytest
 
-from bench.benchconfig import load_bench_config
-from bench.links import make_links, started_services
+from bench.inputs.benchconfig import load_bench_config
+from bench.run.links import make_links, started_services
 from drivers.contract.load_map import LoadMode
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -250,7 +250,7 @@ def test_scenario_paths_outside_the_scenario_root_are_refused(api, path, tmp_pat
 
 def test_bad_scenarios_give_the_clis_lines(api):
     from drivers.contract.errors import InputError
-    from bench.orchestrator import prepare
+    from bench.run.orchestrator import prepare
 
     op = H(api.tokens.operator)
     with pytest.raises(InputError) as cli:

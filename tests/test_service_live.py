@@ -70,7 +70,7 @@ def _running(client, run_id: int, timeout_s: float = 90) -> None:
 
 
 def test_live_view_is_on_the_api_address_behind_the_token_and_each_stream_is_its_own_run(served, tmp_path):
-    from bench.rerun_view import rrd_recording
+    from bench.outputs.rerun_view import rrd_recording
 
     url, port, server, tokens, client = served
     live_id = client.request("POST", "/api/runs", {"scenario": LIVE, "rig": "sim-a"})["id"]
@@ -121,7 +121,7 @@ def test_live_view_is_on_the_api_address_behind_the_token_and_each_stream_is_its
 @pytest.mark.skipif(CHROMIUM is None, reason="no Chromium installed (Debian: apt-get install chromium)")
 def test_run_page_embeds_the_rerun_viewer_on_that_runs_recording_in_chromium(served, tmp_path):
     sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
-    from bench.rerun_view import rrd_recording
+    from bench.outputs.rerun_view import rrd_recording
     from bench.service.auth import COOKIE
 
     url, port, server, tokens, client = served

@@ -262,7 +262,7 @@ BAD_SERVE_OPTIONS = [
 def test_serve_numbers_out_of_range_give_one_line_and_exit_2(args, field, tmp_path):
     from click.testing import CliRunner
 
-    from bench.cli import cli
+    from bench.faces.cli import cli
 
     result = CliRunner().invoke(cli, ["serve", "--data", str(tmp_path / "data"), *args])
     lines = [line for line in result.output.splitlines() if line.strip()]

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import pytest
 
-from bench.criteria import signals_of
-from bench.orchestrator import run_scenario
-from bench.report import MUTANTS_DIR
-from bench.scenario import load_scenario
+from bench.inputs.criteria import signals_of
+from bench.run.orchestrator import run_scenario
+from bench.outputs.report import MUTANTS_DIR
+from bench.inputs.scenario import load_scenario
 from tests.mutants import SENSOR_MUTANTS, build, mutant_kernel
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -167,8 +167,8 @@ def test_the_simulator_imports_no_bench_module_and_of_drivers_only_the_contract(
 def test_a_bench_without_services_hands_its_own_settings_to_the_drive_link(tmp_path, transport):
     """A real rig has no [services]: its [bench] timing and fault_reset must still reach the link (before, they
     only travelled through a simulator starter and a rig silently ran lockstep while the record said realtime)."""
-    from bench.benchconfig import load_bench_config
-    from bench.links import make_links
+    from bench.inputs.benchconfig import load_bench_config
+    from bench.run.links import make_links
 
     drive = (f'transport = "canopen"\ninterface = "socketcand"\nchannel = "can0@127.0.0.1:29536"\nnode_id = 1\n'
              f'eds = "{REPO}/config/od/drivebench-pmsm.eds"\n' if transport == "canopen"

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from matplotlib.image import imread
 
-from bench.summary_plot import _band, events_of, write_summary_png
+from bench.outputs.summary_plot import _band, events_of, write_summary_png
 
 
 def _reddish_share(png: Path) -> float:

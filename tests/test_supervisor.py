@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import pytest
 
-from bench.supervisor import SafeStop, Supervisor, check_sample, check_status
+from bench.run.supervisor import SafeStop, Supervisor, check_sample, check_status
 from drivers.api import DriveStatus, LiveSample
 from tests.fakes import SAFE_STOP, FakeRig
 

@@ -228,7 +228,7 @@ def test_the_rig_scenario_passes_on_each_third_party_drive(tmp_path, bench):
     """Through the whole bench: the drive's velocity unit read (e35, rpm where its EDS says inc/s) or stated
     (technosoft in inc/s with a fixed mapping, cia402_slave in rpm with a fixed mapping), the reference sensor on
     the load machine, fault_reset = "never"; what was read and set is in the record."""
-    from bench.orchestrator import run_scenario
+    from bench.run.orchestrator import run_scenario
 
     result = run_scenario(REPO / "scenarios/rig/speed-step-20rads.toml", REPO / f"config/benches/{bench}.toml",
                           out_root=tmp_path, rerun_mode="off")
@@ -251,7 +251,7 @@ def test_a_wrong_unit_in_the_bench_config_trips_at_first_motion(tmp_path, drive_
     """technosoft has no 0x60A9: the bench config must state the unit. When it states the wrong one the drive's own
     speed, converted through it, disagrees with the reference sensor by a large factor at first motion, and the run
     trips and stops before the shaft goes anywhere dangerous (rpm taken for inc/s would be 13,000 rpm)."""
-    from bench.orchestrator import run_scenario
+    from bench.run.orchestrator import run_scenario
 
     bench = tmp_path / "bench.toml"
     text = (REPO / "config/benches/sim-generic-technosoft.toml").read_text()
@@ -467,7 +467,7 @@ def test_a_free_shaft_rig_runs_only_on_units_read_from_the_drive_or_confirmed(tm
     gear are stated (its EDS has no 0x60A9/0x608F/0x6091): refused before anything moves, one line naming
     units_confirmed; with units_confirmed the run goes on and the record says what was confirmed. e35 reports its
     unit and a 1:1 gear: nothing to confirm."""
-    from bench.orchestrator import run_scenario
+    from bench.run.orchestrator import run_scenario
 
     scenario = tmp_path / "free.toml"
     scenario.write_text(FREE_SHAFT_SCENARIO)

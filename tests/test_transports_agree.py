@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.orchestrator import run_scenario
-from bench.run_files import load_run
+from bench.run.orchestrator import run_scenario
+from bench.outputs.run_files import load_run
 from tests.test_sim_serve import _endpoints as read_endpoints, _serve as start_sim_serve
 
 REPO = Path(__file__).resolve().parents[1]

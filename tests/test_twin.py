@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from bench.cli import cli
-from bench.orchestrator import run_scenario
+from bench.faces.cli import cli
+from bench.run.orchestrator import run_scenario
 from sim_backend import twin as tw
 from sim_backend.twin_fit import PARAMS, fit
 

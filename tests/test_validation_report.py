@@ -1,4 +1,4 @@
-"""bench.report on synthetic run directories written by bench.recorder.RunRecorder: the table says what the runs say."""
+"""bench.outputs.report on synthetic run directories written by bench.outputs.recorder.RunRecorder: the table says what the runs say."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.benchconfig import BenchConfig, BenchSection
-from bench.criteria import evaluate, verdict
-from bench.recorder import RunRecorder
-from bench.report import criteria_comments, firmware_deviations, load_suites, main, write_report
-from bench.scenario import load_scenario
+from bench.inputs.benchconfig import BenchConfig, BenchSection
+from bench.inputs.criteria import evaluate, verdict
+from bench.outputs.recorder import RunRecorder
+from bench.outputs.report import criteria_comments, firmware_deviations, load_suites, main, write_report
+from bench.inputs.scenario import load_scenario
 from drivers.contract.signals import SIGNAL_NAMES
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -236,7 +236,7 @@ def test_the_package_holds_no_suite_text():
     found = {str(p.relative_to(ROOT)): t[:60] for p, src in package.items() for t in texts if t in src}
     assert found == {}
     for name in ("Rashed", "Jemli", "IRFOC", "ISFOC", "docs/campaigns.md", "tests/mutants.py"):
-        assert name not in (ROOT / "bench/report.py").read_text(), name
+        assert name not in (ROOT / "bench/outputs/report.py").read_text(), name
 
 
 def test_a_suites_file_says_the_words(tmp_path, capsys):

@@ -311,7 +311,7 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
 
     @app.get("/api/runs/{run_id}/export/{fmt}")
     def export_run_file(run_id: Id, fmt: str, who: Principal = Depends(viewer)):
-        from bench.export import FORMATS, export_run
+        from bench.outputs.export import FORMATS, export_run
 
         if fmt not in FORMATS:
             raise ApiError(404, f"run {run_id}: export {fmt!r}: one of {', '.join(FORMATS)}")

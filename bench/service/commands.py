@@ -185,7 +185,7 @@ def submit(scenarios, server, token_value, rig, tag, seed, wait, timeout_s, juni
     """Queue SCENARIOs on the bench service; with --wait, exit 0 if all passed, 1 if one failed or aborted,
     2 on bad input or an error. A local file is sent as its text; another path names a file under the service's
     scenario root."""
-    from bench.cli import criteria_table, make_console, verdict_exit_code
+    from bench.faces.cli import criteria_table, make_console, verdict_exit_code
     from bench.service.client import Client, ClientError, write_junit
 
     if not token_value:

@@ -293,8 +293,8 @@ class Service:
 
 def _stated_external(bench: str) -> str | None:
     """The rig page says plainly when the rig's comm-loss reaction is stated in its bench config, not drilled."""
-    from bench.benchconfig import load_bench_config
-    from bench.drill import stated_external
+    from bench.inputs.benchconfig import load_bench_config
+    from bench.run.drill import stated_external
     from drivers.contract.errors import InputError
 
     try:

@@ -1,5 +1,5 @@
 """`drivebench probe` of a rig from the service, for its operator's page: the drive's identity and the probe's
-checklist (bench/checklist.py), kept per rig in the database (table rig_probes; the page shows the newest).
+checklist (bench/faces/checklist.py), kept per rig in the database (table rig_probes; the page shows the newest).
 
 The probe runs as its own process (`python -m bench probe --bench BENCH --json`, reads only: no drill, no motion)
 under a manual lease of the rig named "probe", so on a real rig no run starts meanwhile and a rig that a run or a
@@ -36,7 +36,7 @@ class ProbeView:
     ok: bool
     identity: list[tuple[str, str]]       # (label, value) in IDENTITY_FIELDS order, those the drive gave
     node_id: int | None
-    checklist: list[dict]                 # bench.checklist.as_json items: item, status, detail, config_line
+    checklist: list[dict]                 # bench.faces.checklist.as_json items: item, status, detail, config_line
     error: str | None
 
 

@@ -75,7 +75,7 @@ def _rename(lines: list[str], path: Path, shown: str) -> list[str]:
 
 def validate(path: Path, bench: str, shown: str):
     """The CLI's validation (`drivebench validate --bench`); lines name the file as the client named it."""
-    from bench.orchestrator import prepare
+    from bench.run.orchestrator import prepare
 
     try:
         scenario, _ = prepare(path, bench)
@@ -89,7 +89,7 @@ def validate(path: Path, bench: str, shown: str):
 
 
 def _drive_kind(bench: str | Path | None) -> str | None:
-    from bench.benchconfig import drive_description, load_bench_config
+    from bench.inputs.benchconfig import drive_description, load_bench_config
 
     try:
         description = drive_description(load_bench_config(bench)) if bench else None
@@ -101,7 +101,7 @@ def _drive_kind(bench: str | Path | None) -> str | None:
 def _fitting_rigs(path: Path, shown: str, rigs: list[Rig], by_tag: bool):
     """Validate against each distinct bench config of the rigs; by tag, keep the rigs the scenario validates on
     and whose drive kind (pmsm, spim) is the one of the scenario's own bench config, when both are known."""
-    from bench.scenario import load_scenario
+    from bench.inputs.scenario import load_scenario
 
     if not by_tag:
         return validate(path, rigs[0].bench, shown), None

@@ -65,7 +65,7 @@ def rig_scenarios(scenario_root: Path, bench: str) -> list[str]:
 
 @functools.lru_cache(maxsize=32)
 def _validated(root: str, bench: str, bench_stamp: int, files: tuple[tuple[str, int], ...]) -> tuple[str, ...]:
-    from bench.orchestrator import prepare
+    from bench.run.orchestrator import prepare
 
     ok = []
     for path, _ in files:

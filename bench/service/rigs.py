@@ -17,9 +17,9 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from bench.benchconfig import load_bench_config
+from bench.inputs.benchconfig import load_bench_config
 from drivers.contract.checks import read_toml, resolve_path
-from bench.drill import stated_external
+from bench.run.drill import stated_external
 from drivers.contract.errors import InputError
 from drivers.contract.checks import find_repo_root, Problems
 
@@ -35,7 +35,7 @@ class RigConfig:
     simulated: bool
     max_concurrent: int
     description: str = field(default="")
-    comm_loss_unverified: str | None = None     # what the bench config states instead of the drill (bench.drill)
+    comm_loss_unverified: str | None = None     # what the bench config states instead of the drill (bench.run.drill)
 
 
 def load_rigs(path: str | Path) -> list[RigConfig]:

@@ -108,7 +108,7 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
 
     @app.get("/compare", response_class=HTMLResponse)
     def compare_page(request: Request, a: QueryId, b: QueryId):
-        from bench.compare import compare_runs
+        from bench.outputs.compare import compare_runs
 
         s = svc()
         dirs = [s.run_file(run_id, "record.json").parent for run_id in (a, b)]
@@ -280,8 +280,8 @@ class PlotCache:
 
 
 def _compare_png(dir_a: Path, dir_b: Path) -> bytes:
-    """bench.compare's overlay of two runs' signals on the drive clock; b"" when they share no measured signal."""
-    from bench.compare import write_plot
+    """bench.outputs.compare's overlay of two runs' signals on the drive clock; b"" when they share no measured signal."""
+    from bench.outputs.compare import write_plot
 
     with tempfile.TemporaryDirectory() as scratch:
         path = write_plot(dir_a, dir_b, Path(scratch) / "compare.png")

@@ -52,7 +52,7 @@ from drivers.canopen import drill as drills
 from drivers.contract.comm_loss import CommLossConfig
 from drivers.canopen.profile import DriveProfile, ProfileConfig, resolve
 from drivers.contract.errors import ContentError
-from drivers.eds import load_od
+from drivers.contract.eds import load_od
 from drivers.canopen.bus import frame_dispatch
 from drivers.canopen.sdo import SdoAccess, block_upload
 from drivers.canopen.sync import NativeSync, ReceiveClock, SyncProducer, SyncTimeline, has_native_cyclic

@@ -9,7 +9,7 @@
 - LinkError: a device or its transport failed (timeout, abort, CRC error, lost heartbeat, refused drill); the
   message says which.
 
-Subclasses exist only where code catches them specifically (bench.drill.DrillRefused).
+Subclasses exist only where code catches them specifically (bench.run.drill.DrillRefused).
 """
 
 from __future__ import annotations

@@ -24,7 +24,7 @@ from canopen.sdo import SdoAbortedError
 
 from drivers.contract import objects as o
 from drivers.contract.cia402 import State
-from drivers.eds import load_od
+from drivers.contract.eds import load_od
 from sim_backend.canopen.block_server import DriveLocalNode
 from sim_backend.canopen import generic
 from sim_backend.canopen.drive_objects import Cia402Objects, ExtensionObjects, error_register_for

@@ -153,8 +153,8 @@ def stated_external(cfg: Any) -> str | None:
 def drill_rig(live_cfg: Any, base_dir: Any, live_signals: tuple[str, ...]) -> dict[str, Any]:
     """`drivebench probe --drill`: connect as a run does (comm-loss armed, PDOs set for `live_signals`), drill, leave
     both off, close. The only probe step that writes to the drive and enables it (at zero velocity)."""
-    from bench.links import make_links
-    from bench.supervisor import SafeStop
+    from bench.run.links import make_links
+    from bench.run.supervisor import SafeStop
     from drivers.reference import ReferenceConfig
 
     drive, load = make_links(live_cfg, base_dir)

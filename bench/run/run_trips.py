@@ -6,10 +6,10 @@ from __future__ import annotations
 import time
 from datetime import datetime, timezone
 
-from bench.atomic_write import json_safe
-from bench.run_periods import STUCK_GRACE_S, SUPERVISE_POLL_S
-from bench.run_thread import LoopThread
-from bench.supervisor import check_status
+from bench.outputs.atomic_write import json_safe
+from bench.run.run_periods import STUCK_GRACE_S, SUPERVISE_POLL_S
+from bench.run.run_thread import LoopThread
+from bench.run.supervisor import check_status
 from drivers.contract.errors import LinkError
 
 

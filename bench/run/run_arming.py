@@ -6,11 +6,11 @@ from __future__ import annotations
 import json
 from dataclasses import asdict
 
-from bench.drill import (DRILL_SETTINGS, DrillRefused, proved_recently, refusal as drill_refusal, remember, run_drills,
+from bench.run.drill import (DRILL_SETTINGS, DrillRefused, proved_recently, refusal as drill_refusal, remember, run_drills,
                          unverified as drill_unverified)
 from drivers.contract.errors import InputError
-from bench.run_periods import FEEDBACK_LOST_PERIODS, LIVE_SIGNALS
-from bench.supervisor import FeedbackCheck, UnitCheck
+from bench.run.run_periods import FEEDBACK_LOST_PERIODS, LIVE_SIGNALS
+from bench.run.supervisor import FeedbackCheck, UnitCheck
 from drivers.api import UnitsProfile
 from drivers.contract.signals import SIGNAL_NAMES
 
@@ -79,7 +79,7 @@ class RunArming:
 
     def _comm_loss_drill(self) -> None:
         """Before the first motion: prove the drive and the load machine stop themselves when the bench dies
-        (bench.drill); refused when one does not, shown as unverified where the config states an external stop."""
+        (bench.run.drill); refused when one does not, shown as unverified where the config states an external stop."""
         # the drive and machine proved (identity, settings), not the endpoints a simulator's start hands out
         settings = {k: v for k, v in {**self.cfg.drive, **{f"load.{k}": v for k, v in self.cfg.load.items()}}.items()
                     if k.split(".")[-1] in DRILL_SETTINGS}

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
 
-from bench.rig_services import check_service
+from bench.inputs.rig_services import check_service
 from drivers.api import LinkSettings, TIMINGS
 from drivers.canopen.profile import check_section, config_keys
 from drivers.contract.checks import Problems, find_repo_root, read_toml
@@ -29,7 +29,7 @@ from drivers.contract.errors import ContentError
 from drivers.contract.load_map import read_load_map
 from drivers.contract.sections import Section, key
 from drivers.contract.simulator import SimulatorConfig
-from drivers.eds import DeviceDescription, read_eds
+from drivers.contract.eds import DeviceDescription, read_eds
 from drivers.reference import ReferenceConfig
 from drivers.sections import DriveSection, LoadSection
 from drivers.transports import DRIVE_TRANSPORTS, LOAD_TRANSPORTS

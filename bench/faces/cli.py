@@ -112,7 +112,7 @@ def print_record(console: Console, record: dict, run_dir: Path | str) -> None:
                                  record.get("criteria", [])))
     if record.get("abort_reason"):
         console.print(f"  reason: {record['abort_reason']}")
-    from bench.drill import UNVERIFIED, timings, unverified
+    from bench.run.drill import UNVERIFIED, timings, unverified
     comm_loss = record.get("comm_loss") if isinstance(record.get("comm_loss"), dict) else None
     note = unverified(comm_loss)
     if note:
@@ -165,8 +165,8 @@ def run(scenarios, bench_path, rerun_mode, rerun_url, out_root, seed, as_json) -
 
 
 def run_many(scenarios, bench_path, out_root, seed, rerun_mode, rerun_url, as_json) -> int:
-    from bench.orchestrator import run_scenario
-    from bench.prepared import prepare_run
+    from bench.run.orchestrator import run_scenario
+    from bench.inputs.prepared import prepare_run
     from bench.service.child import trip_reporter
 
     problems: list[str] = []
@@ -258,8 +258,8 @@ def _file_kind(raw: dict) -> str:
 
 def _validate_campaign(path: Path) -> int:
     """The campaign file and each of its scenarios on its own bench; the number of problem lines printed."""
-    from bench.campaign import axis_points, load_campaign
-    from bench.prepared import prepare_run
+    from bench.faces.campaign import axis_points, load_campaign
+    from bench.inputs.prepared import prepare_run
 
     camp = load_campaign(path)
     runs = len(camp.scenarios) * len(camp.seeds) * len(axis_points(camp))
@@ -282,11 +282,11 @@ def _validate_campaign(path: Path) -> int:
 def validate(files, bench_path) -> None:
     """Check scenario, campaign and bench config FILEs; one line per problem, exit 2 if any. For a scenario, also the
     criteria its bench cannot judge (signals it does not measure); for a campaign, each of its scenarios."""
-    from bench.benchconfig import load_bench_config
-    from bench.criteria import signals_of
-    from bench.load_emulation import emulates_on
-    from bench.prepared import prepare_run
-    from bench.scenario import read_scenario_source
+    from bench.inputs.benchconfig import load_bench_config
+    from bench.inputs.criteria import signals_of
+    from bench.run.load_emulation import emulates_on
+    from bench.inputs.prepared import prepare_run
+    from bench.inputs.scenario import read_scenario_source
 
     bad = False
     for name in files:
@@ -339,8 +339,8 @@ def probe(bench_path, scan, drill, as_json) -> None:
     with --drill, exit 1 when the drive or the load machine fails it."""
 
     def body() -> int:
-        from bench.benchconfig import load_bench_config
-        from bench.links import started_services
+        from bench.inputs.benchconfig import load_bench_config
+        from bench.run.links import started_services
 
         cfg = load_bench_config(bench_path, for_probe=not drill)
         drive = cfg.drive
@@ -354,7 +354,7 @@ def probe(bench_path, scan, drill, as_json) -> None:
                     report["nodes"] = scan_bus(section)
                 items = True
             else:
-                from bench.links import make_links
+                from bench.run.links import make_links
                 link, _ = make_links(live, find_repo_root(bench_path))
                 try:
                     identity = link.open()
@@ -365,12 +365,12 @@ def probe(bench_path, scan, drill, as_json) -> None:
                     link.close()
             refused = None
             if drill:
-                from bench.drill import drill_rig, refusal, timings, unverified
-                from bench.orchestrator import LIVE_SIGNALS
+                from bench.run.drill import drill_rig, refusal, timings, unverified
+                from bench.run.orchestrator import LIVE_SIGNALS
                 report["drill"] = drill_rig(live, find_repo_root(bench_path), LIVE_SIGNALS)
                 refused = refusal(report["drill"])
         if items:
-            from bench.checklist import as_json as items_json, checklist
+            from bench.faces.checklist import as_json as items_json, checklist
             items = checklist(report["drive"], cfg, report.get("drill"))
             report["checklist"] = items_json(items)
         if as_json:
@@ -414,7 +414,7 @@ def _first_comment(path: Path) -> str:
 @cli.command(name="list")
 def list_scenarios() -> None:
     """Scenarios under scenarios/ with their one-line descriptions."""
-    from bench.scenario import load_scenario
+    from bench.inputs.scenario import load_scenario
 
     root = _scenario_root()
     files = sorted(root.rglob("*.toml"))
@@ -441,7 +441,7 @@ def show(run_dir, as_json) -> None:
     """The verdict table of a run directory (also of a killed, incomplete run)."""
 
     def body() -> int:
-        from bench.run_files import load_run
+        from bench.outputs.run_files import load_run
 
         record, columns, complete = load_run(Path(run_dir))
         n = len(columns.get("t_s", ())) if columns else 0
@@ -474,9 +474,9 @@ def evaluate_cmd(run_dir, scenario_path, as_json) -> None:
     def body() -> int:
         import numpy as np
 
-        from bench.criteria import evaluate, time_axis, verdict
-        from bench.run_files import load_run
-        from bench.scenario import load_scenario
+        from bench.inputs.criteria import evaluate, time_axis, verdict
+        from bench.outputs.run_files import load_run
+        from bench.inputs.scenario import load_scenario
 
         record, columns, complete = load_run(Path(run_dir))
         path = scenario_path or (record.get("scenario") or {}).get("path")
@@ -521,7 +521,7 @@ def evaluate_cmd(run_dir, scenario_path, as_json) -> None:
                    "(config/report/paper-suites.toml makes docs/validation.md).")
 def report(run_dirs, out_md, suites) -> None:
     """Report over RUN_DIRs: every criterion with its limit, basis and measured value, a plot per run."""
-    from bench import report as report_module
+    from bench.outputs import report as report_module
 
     sys.exit(_guarded(lambda: int(report_module.main(list(run_dirs), out_md, suites))))
 
@@ -535,7 +535,7 @@ def report(run_dirs, out_md, suites) -> None:
 def export(run_dir, fmt, out) -> None:
     """A run's telemetry for other tools: the drive clock t_s as the master channel, one channel per measured
     signal with its unit, the record attached (mf4)."""
-    from bench.export import export_run
+    from bench.outputs.export import export_run
 
     def go() -> int:
         click.echo(f"wrote {export_run(run_dir, fmt, out)}")
@@ -553,7 +553,7 @@ def export(run_dir, fmt, out) -> None:
 def compare(run_a, run_b, plot_path, as_json) -> None:
     """Two runs side by side: what differs in what ran, each criterion in both with its delta, each signal's
     difference over the drive-clock span both cover."""
-    from bench.compare import compare_runs, write_plot
+    from bench.outputs.compare import compare_runs, write_plot
 
     def go() -> int:
         result = compare_runs(run_a, run_b)

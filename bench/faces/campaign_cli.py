@@ -28,9 +28,9 @@ def campaign(campaign_file: Path, workers: int, engine: str, address: str | None
     Exit 0 accepted, 1 not accepted (or a run errored), 2 bad input."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-    from bench.campaign import load_campaign
-    from bench.campaign_run import done_ids, run_campaign, write_results
-    from bench.cli import _fail
+    from bench.faces.campaign import load_campaign
+    from bench.faces.campaign_run import done_ids, run_campaign, write_results
+    from bench.faces.cli import _fail
 
     try:
         camp = load_campaign(campaign_file)
@@ -61,8 +61,8 @@ def campaign(campaign_file: Path, workers: int, engine: str, address: str | None
 
 def _dry_run(camp, out: Path) -> int:
     """One line per point and which a resume would skip; nothing written."""
-    from bench.campaign import points
-    from bench.campaign_run import done_ids
+    from bench.faces.campaign import points
+    from bench.faces.campaign_run import done_ids
 
     finished = done_ids(out) if out.is_dir() else {}
     todo = points(camp)

@@ -13,11 +13,11 @@ import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from bench.benchconfig import BenchConfig, drive_description, load_bench_config
-from bench.criteria import CriterionSpec, parse_criteria
+from bench.inputs.benchconfig import BenchConfig, drive_description, load_bench_config
+from bench.inputs.criteria import CriterionSpec, parse_criteria
 from drivers.contract.checks import Problems, find_repo_root, read_toml_with_bytes, resolve_path
 from drivers.contract.errors import InputError
-from bench.load_emulation import EMULABLE, emulable
+from bench.run.load_emulation import EMULABLE, emulable
 from drivers.contract import parameters
 from drivers.contract.load_map import LoadMode
 from drivers.contract.load_map import read_load_map

@@ -10,10 +10,10 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from bench.criteria import VERDICTS
+from bench.inputs.criteria import VERDICTS
 from drivers.contract.errors import InputError
-from bench.memory import RELEASING_POOL
-from bench.record_schema import JOURNAL, PARQUET, RECORD
+from bench.outputs.memory import RELEASING_POOL
+from bench.outputs.record_schema import JOURNAL, PARQUET, RECORD
 from drivers.contract.signals import SIGNAL_NAMES, TIME_COLUMN
 
 

@@ -1,4 +1,4 @@
-"""The recorder: writes one run directory as the run goes (layout and schema: bench/record_schema.py).
+"""The recorder: writes one run directory as the run goes (layout and schema: bench/outputs/record_schema.py).
 
 The recorder keeps at most one flush interval of rows in memory in the append-only journal; a background thread
 flushes it on time and keeps record.json current; finish() streams the journal into Parquet and writes junit.xml.
@@ -21,18 +21,18 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from bench.atomic_write import json_safe, write_text_atomic
-from bench.criteria import VERDICTS, CriterionResult
+from bench.outputs.atomic_write import json_safe, write_text_atomic
+from bench.inputs.criteria import VERDICTS, CriterionResult
 from drivers.contract.errors import InputError
-from bench.junit import write_junit
-from bench.memory import RELEASING_POOL, release_freed_memory
-from bench.provenance import software_identity, utc_now
-from bench.record_schema import JOURNAL, JUNIT, PARQUET, RECORD, RECORD_KEYS, RunRecord
-from bench.run_files import empty_schema, read_journal
+from bench.outputs.junit import write_junit
+from bench.outputs.memory import RELEASING_POOL, release_freed_memory
+from bench.outputs.provenance import software_identity, utc_now
+from bench.outputs.record_schema import JOURNAL, JUNIT, PARQUET, RECORD, RECORD_KEYS, RunRecord
+from bench.outputs.run_files import empty_schema, read_journal
 from drivers.contract.signals import SIGNAL_NAMES, TIME_COLUMN
 
 if TYPE_CHECKING:
-    from bench.benchconfig import BenchConfig
+    from bench.inputs.benchconfig import BenchConfig
 
 RECORD_WRITE_S = 0.25        # a note reaches record.json within this (the flusher writes it, not the caller)
 _ROW_GROUP_ROWS = 1 << 14    # rows per Parquet row group: ~2 MB of a full record held at once when it is written
@@ -115,7 +115,7 @@ class RunRecorder:
         """Into the record now; onto the disk by the flusher within flush_interval_s / 2 (the caller is the command
         thread: an fsync there paused a drive's request stream past a 300 ms comm-loss watchdog on a loaded host)."""
         if key not in RECORD_KEYS:
-            raise ValueError(f"note(): {key!r} is not a field of RunRecord (bench/record_schema.py)")
+            raise ValueError(f"note(): {key!r} is not a field of RunRecord (bench/outputs/record_schema.py)")
         with self._lock:
             self.record[key] = json_safe(value)
             self._record_dirty = True

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.criteria import CriterionResult, evaluate, incomplete_reason, time_axis, verdict as decide
+from bench.inputs.criteria import CriterionResult, evaluate, incomplete_reason, time_axis, verdict as decide
 
 
 @dataclass(frozen=True)

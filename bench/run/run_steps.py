@@ -7,8 +7,8 @@ from __future__ import annotations
 import time
 from datetime import datetime, timezone
 
-from bench.load_emulation import SPEED_SIGNAL
-from bench.run_periods import FETCH_PERIOD_S, LOAD_POLL_PERIOD_S, PROGRESS_PERIOD_S, STALL_TIMEOUT_S, STATUS_PERIOD_S
+from bench.run.load_emulation import SPEED_SIGNAL
+from bench.run.run_periods import FETCH_PERIOD_S, LOAD_POLL_PERIOD_S, PROGRESS_PERIOD_S, STALL_TIMEOUT_S, STATUS_PERIOD_S
 from drivers.contract.errors import LinkError
 from drivers.api import LiveSample
 from drivers.reference import values_from_load

@@ -34,7 +34,7 @@ class RunRecord(TypedDict, total=False):
     load_machine: str
     reference: dict[str, Any]
     instruments: dict[str, str]     # rig-truth signal -> the instrument it came from (or "not measured")
-    load_emulation: dict[str, Any]  # modes the bench emulated from the measured speed (bench/load_emulation.py)
+    load_emulation: dict[str, Any]  # modes the bench emulated from the measured speed (bench/run/load_emulation.py)
     rerun: dict[str, Any]
     data_source: str                # "trace" (the drive's recorder) or "pdo"
     trace_signals: list[str]
@@ -44,10 +44,10 @@ class RunRecord(TypedDict, total=False):
     unit_check: dict[str, Any]
     drive_clock_start_s: float
     injections_applied: list[dict[str, Any]]
-    overrides: dict[str, Any]       # a campaign point's axes: injections at 0 s on top of the file (bench/prepared.py)
+    overrides: dict[str, Any]       # a campaign point's axes: injections at 0 s on top of the file (bench/inputs/prepared.py)
     drive_settings: dict[str, Any]  # what the link configured and read from the drive (units, comm-loss reaction)
     load_settings: dict[str, Any]
-    comm_loss: dict[str, Any]       # the bench-death drill before motion (bench.drill): verified, drive, load
+    comm_loss: dict[str, Any]       # the bench-death drill before motion (bench.run.drill): verified, drive, load
     comm_loss_unverified: str       # one line where the config states an external stop chain instead
     drive_warnings: list[dict[str, Any]]   # statusword bit 7 changes: t_s, warning, utc
     sync: dict[str, Any]            # SYNC intervals at the bench (p50/p99/max ms, late, skipped), time base, placement

@@ -8,7 +8,7 @@ from typing import Sequence
 
 import numpy as np
 
-from bench.run_periods import MAX_DEFERRED_APPENDS, RERUN_MAX_RATE_HZ, STALL_TIMEOUT_S
+from bench.run.run_periods import MAX_DEFERRED_APPENDS, RERUN_MAX_RATE_HZ, STALL_TIMEOUT_S
 from drivers.api import LiveSample
 from drivers.reference import onto_rows
 from drivers.contract.signals import TIME_COLUMN

@@ -18,7 +18,7 @@ from xml.sax.saxutils import escape
 import numpy as np
 
 from drivers.contract.errors import InputError
-from bench.run_files import load_run
+from bench.outputs.run_files import load_run
 from drivers.contract.signals import SIGNALS
 
 FORMATS = ("mf4", "csv")

@@ -14,9 +14,9 @@ import importlib
 from pathlib import Path
 from typing import Any, ContextManager, Iterator, Mapping
 
-from bench.benchconfig import BenchConfig, link_settings
+from bench.inputs.benchconfig import BenchConfig, link_settings
 from drivers.contract.errors import InputError
-from bench.rig_services import registered_service
+from bench.inputs.rig_services import registered_service
 from drivers.transports import DRIVE_TRANSPORTS, LOAD_TRANSPORTS, Transport
 
 def import_object(spec: str, what: str) -> Any:

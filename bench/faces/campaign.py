@@ -39,7 +39,7 @@ from drivers.contract.errors import ContentError
 from drivers.contract.toml_file import read_toml_file
 
 if TYPE_CHECKING:
-    from bench.prepared import PreparedRun
+    from bench.inputs.prepared import PreparedRun
 
 SCHEMA_VERSION = 1
 RULES = ("wilson", "every_run")
@@ -235,7 +235,7 @@ def points(campaign: Campaign, out_dir: Path | None = None) -> list[Point]:
     """Every run of the campaign, in a fixed order. Each scenario is read and checked once (prepare_run); a point is
     that prepared run with its axes as typed overrides (injections at 0 s, checked like the file's own) and its
     seed. `out_dir` is not used (points once wrote derived scenario files there); kept for callers."""
-    from bench.prepared import prepare_run
+    from bench.inputs.prepared import prepare_run
 
     out = []
     for scenario in campaign.scenarios:

@@ -41,7 +41,7 @@ def emulable(mode: LoadMode, native: Iterable[LoadMode], speed_measured: bool) -
 
 
 def emulates_on(cfg, mode: LoadMode) -> bool:
-    """Whether a run on bench config `cfg` (bench.benchconfig.BenchConfig) emulates `mode`."""
+    """Whether a run on bench config `cfg` (bench.inputs.benchconfig.BenchConfig) emulates `mode`."""
     if not cfg.load or not cfg.load.get("map"):
         return False
     return emulable(mode, read_load_map(cfg.load["map"]).modes, cfg.reference_source == "load")

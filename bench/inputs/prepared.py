@@ -10,9 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from bench.benchconfig import BenchConfig, link_settings, measurable_signals
+from bench.inputs.benchconfig import BenchConfig, link_settings, measurable_signals
 from drivers.contract.errors import InputError
-from bench.scenario import Scenario, parse_scenario, read_scenario_source, with_injections
+from bench.inputs.scenario import Scenario, parse_scenario, read_scenario_source, with_injections
 from drivers.api import LinkSettings
 from drivers.reference import ReferenceConfig
 from drivers.contract.signals import SIGNAL_NAMES

@@ -42,8 +42,8 @@ class DriveBench:
 
     def run(self, scenario: str | Path, *, bench: str | Path | None = None, seed: int | None = None,
             rerun_mode: str | None = None, rerun_url: str | None = None):
-        """Run one scenario; returns bench.orchestrator.RunResult (run_dir, verdict, record, criteria)."""
-        from bench.orchestrator import run_scenario
+        """Run one scenario; returns bench.run.orchestrator.RunResult (run_dir, verdict, record, criteria)."""
+        from bench.run.orchestrator import run_scenario
 
         result = run_scenario(scenario, bench if bench is not None else self.bench, out_root=self.out_root,
                               seed=seed, rerun_mode=rerun_mode or self.rerun_mode, rerun_url=rerun_url)

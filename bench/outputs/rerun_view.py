@@ -233,7 +233,7 @@ class RerunStream:
         """Each criterion's result at its window's start and end, and its limit band on its signal's plot."""
         if self._rec is None:
             return
-        from bench.summary_plot import COLOURS, _band, _status
+        from bench.outputs.summary_plot import COLOURS, _band, _status
 
         try:
             rr = self._rr

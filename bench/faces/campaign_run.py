@@ -16,7 +16,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from bench.campaign import Acceptance, Campaign, Point, points, wilson_interval
+from bench.faces.campaign import Acceptance, Campaign, Point, points, wilson_interval
 
 RESULTS_JSONL = "results.jsonl"
 RESULTS_PARQUET = "results.parquet"
@@ -25,7 +25,7 @@ RESULTS_PARQUET = "results.parquet"
 def run_point(point: dict[str, Any], out_root: str) -> dict[str, Any]:
     """One point through the bench path of `drivebench run` (in a worker process). A row for results.parquet."""
     from drivers.contract.errors import InputError
-    from bench.orchestrator import run_scenario
+    from bench.run.orchestrator import run_scenario
     from drivers.contract.errors import LinkError
 
     started = time.perf_counter()

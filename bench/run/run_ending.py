@@ -6,12 +6,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from bench.criteria import TimeAxis, signals_of, time_axis
-from bench.memory import release_freed_memory
-from bench.record_schema import RunRecord
-from bench.run_periods import STALL_TIMEOUT_S
-from bench.summary_plot import BUCKETS as PLOT_BUCKETS, PLOT_SIGNALS, events_of, write_summary_png
-from bench.verdict import judge_run
+from bench.inputs.criteria import TimeAxis, signals_of, time_axis
+from bench.outputs.memory import release_freed_memory
+from bench.outputs.record_schema import RunRecord
+from bench.run.run_periods import STALL_TIMEOUT_S
+from bench.outputs.summary_plot import BUCKETS as PLOT_BUCKETS, PLOT_SIGNALS, events_of, write_summary_png
+from bench.run.verdict import judge_run
 from drivers.contract.errors import LinkError
 from drivers.contract.signals import TIME_COLUMN
 

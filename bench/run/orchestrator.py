@@ -16,27 +16,27 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from bench.benchconfig import BenchConfig
-from bench.drill import DrillRefused
+from bench.inputs.benchconfig import BenchConfig
+from bench.run.drill import DrillRefused
 from drivers.contract.errors import InputError
 from drivers.contract.checks import find_repo_root
-from bench.links import make_links, started_services
-from bench.load_emulation import SPEED_SIGNAL, LoadEmulation
-from bench.prepared import (DEFAULT_SEED, MAX_SEED, TRACE_SIGNALS, PreparedRun, prepare_run,  # noqa: F401
+from bench.run.links import make_links, started_services
+from bench.run.load_emulation import SPEED_SIGNAL, LoadEmulation
+from bench.inputs.prepared import (DEFAULT_SEED, MAX_SEED, TRACE_SIGNALS, PreparedRun, prepare_run,  # noqa: F401
                             trace_signals_for)
-from bench.memory import freeze_long_lived
-from bench.recorder import RunRecorder
-from bench.rerun_view import RerunStream
-from bench.run_arming import RunArming
-from bench.run_ending import RunEnding, RunResult
-from bench.run_journal import RunJournal, live_columns  # noqa: F401
-from bench.run_periods import FEEDBACK_LOST_MIN_S, FEEDBACK_LOST_PERIODS, LIVE_SIGNALS, STUCK_GRACE_S
-from bench.run_steps import RunSteps
-from bench.run_thread import LoopThread
-from bench.run_trips import RunTrips
-from bench.scenario import Scenario
-from bench.supervisor import SafeStop, Supervisor
-from bench.telemetry_worker import TelemetryWorker
+from bench.outputs.memory import freeze_long_lived
+from bench.outputs.recorder import RunRecorder
+from bench.outputs.rerun_view import RerunStream
+from bench.run.run_arming import RunArming
+from bench.run.run_ending import RunEnding, RunResult
+from bench.run.run_journal import RunJournal, live_columns  # noqa: F401
+from bench.run.run_periods import FEEDBACK_LOST_MIN_S, FEEDBACK_LOST_PERIODS, LIVE_SIGNALS, STUCK_GRACE_S
+from bench.run.run_steps import RunSteps
+from bench.run.run_thread import LoopThread
+from bench.run.run_trips import RunTrips
+from bench.inputs.scenario import Scenario
+from bench.run.supervisor import SafeStop, Supervisor
+from bench.run.telemetry_worker import TelemetryWorker
 from drivers.api import DriveIdentity, DriveLink, LiveSample, LoadLink
 from drivers.contract.errors import LinkError
 from drivers.contract.load_map import LoadMode

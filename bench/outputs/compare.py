@@ -10,8 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from bench.criteria import is_angle, wrap_angle
-from bench.run_files import load_run
+from bench.inputs.criteria import is_angle, wrap_angle
+from bench.outputs.run_files import load_run
 from drivers.contract.signals import SIGNALS
 
 IDENTITY: tuple[tuple[str, tuple[str, ...]], ...] = (
@@ -55,7 +55,7 @@ def compare_runs(run_a: str | Path, run_b: str | Path) -> dict[str, Any]:
 def _criterion_row(a: dict | None, b: dict | None) -> dict[str, Any]:
     any_ = a or b or {}
     va, vb = _finite((a or {}).get("value")), _finite((b or {}).get("value"))
-    from bench.report import unit_of        # records written before criteria carried their unit
+    from bench.outputs.report import unit_of        # records written before criteria carried their unit
 
     return {"name": any_.get("name"), "signal": any_.get("signal"), "unit": any_.get("unit") or unit_of(any_),
             "value_a": va, "value_b": vb, "delta": vb - va if va is not None and vb is not None else None,

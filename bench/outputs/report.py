@@ -23,7 +23,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from drivers.contract.errors import InputError
-from bench.run_files import load_run
+from bench.outputs.run_files import load_run
 
 OTHER = "other"
 
@@ -240,8 +240,8 @@ def claim_text(run: Run, criterion: dict) -> str:
 # -- plots ---------------------------------------------------------------------------------------------------
 
 def write_plot(run: Run, path: Path) -> Path | None:
-    """The run's verdict figure (bench.summary_plot: the same as its summary.png), criteria and markers included."""
-    from bench.summary_plot import events_of, write_summary_png
+    """The run's verdict figure (bench.outputs.summary_plot: the same as its summary.png), criteria and markers included."""
+    from bench.outputs.summary_plot import events_of, write_summary_png
 
     t = np.asarray(run.columns.get("t_s", np.zeros(0)), dtype=float)
     if len(t) < 2:

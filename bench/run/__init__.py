@@ -1,0 +1,1 @@
+"""The run machinery: links to the rig, the drill, the step loop, the supervisor, the safe stop, criteria and verdict."""
