@@ -1,5 +1,10 @@
-"""The run queue's worker: claims queued runs for free rigs, runs each in its own `drivebench run` process, keeps
-the run's lease alive while the process lives, indexes the record when it ends, and reconciles after a crash.
+"""The run queue's worker: claims queued runs for free rigs, runs each in its own run process (bench/service/worker.py,
+speaking bench/service/run_protocol.py), keeps the run's lease alive while the process lives, indexes the record its
+Finished message names when it ends, and reconciles after a crash.
+
+Warm run processes: up to `warm` workers are kept started ahead of need, their imports paid, at the simulated runs'
+CPU niceness; a simulated run takes one (one run per process: a crashing run takes only its own process with it) and
+the next tick starts its replacement. A real rig's run starts its worker at that moment at normal priority.
 
 One thread does all of it (one loop, no locks between schedulers). Each service instance holds a liveness lease of
 its own (bench/service/instances.py), renewed by this loop; it touches the runs it started, and takes over another
@@ -18,7 +23,6 @@ import collections
 import datetime as dt
 import json
 import os
-import shutil
 import signal
 import socket
 import subprocess
@@ -37,6 +41,8 @@ from bench.service import instances
 from bench.service.db import CriterionValue, Database, Instance, Lease, Rig, Run, RunCandidate, iso, now
 from bench.service.leases import active_leases, held_rigs
 from bench.service.events import EventHub
+from bench.service.run_protocol import (MAX_LINE_BYTES, Failed, Finished, Log, Progress, ProtocolError, RunRequest, Trip,
+                                        decode, encode)
 
 TICK_S = 0.2
 ABORT_KILL_AFTER_S = 60.0     # SIGTERM runs the safe stop; a run process still alive after this gets SIGKILL
@@ -44,7 +50,7 @@ STOP_WAIT_S = 30.0            # service shutdown: how long to wait for runs to f
 PROGRESS_DB_PERIOD_S = 1.0
 LOG_REPEAT_S = 30.0           # the same runner error is logged at most this often
 SWEEP_PERIOD_S = 1.0          # how often a live instance looks for runs of gone instances to take over
-NICE = shutil.which("nice")
+WORKER = ("-m", "bench.service.worker")
 VERDICT_STATE = {"pass": "pass", "fail": "fail", "incomplete": "fail", "aborted": "aborted", "error": "error"}
 
 
@@ -56,6 +62,11 @@ class RunnerSettings:
     host_id: str = field(default_factory=socket.gethostname)
     rerun_url: str | None = None      # the service's Rerun gRPC server, if it runs one
     nice: int = 10                    # simulated runs only: the API answers first
+    warm: int | None = None           # warm workers kept ready (None: max_parallel, at most 4; 0: every run starts cold)
+    worker: tuple[str, ...] = WORKER  # how the service's python starts a run process (tests: a misbehaving one)
+
+    def warm_workers(self) -> int:
+        return min(self.max_parallel, 4) if self.warm is None else self.warm
 
 
 @dataclass
@@ -71,11 +82,32 @@ class Child:
     progress_written: float | None = None
     last_progress_db: float = 0.0
     term_sent: float | None = None
-    reader: threading.Thread | None = None
+    readers: list[threading.Thread] = field(default_factory=list)
+    warm: bool = False
+    result: Finished | None = None          # the run process's Finished message
+    failure: str | None = None              # its Failed message
+    protocol_error: str | None = None       # a message it sent that the service refused (the run is stopped)
+    log_lock: threading.Lock = field(default_factory=threading.Lock)
+    log: object | None = None               # service.log, written by both readers
+
+
+@dataclass
+class Spare:
+    """A warm worker waiting for its run."""
+    proc: subprocess.Popen
+    started: float
+
+
+def _read_record(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
 
 
 def _record_of(out_dir: Path | None) -> tuple[Path | None, dict | None]:
-    """The run directory `drivebench run --out out_dir` made, and its record.json (None if it made none)."""
+    """What a run process that ended without a Finished message (killed, or its service gone) left in its own output
+    directory: the run directory and its record.json as far as it was written (None if it made none)."""
     if out_dir is None or not out_dir.is_dir():
         return None, None
     for record in sorted(out_dir.glob("*/record.json")):
@@ -151,6 +183,9 @@ class Runner:
         self.instance_id: int | None = None
         self.lease_until = 0.0            # this instance's lease as last renewed (epoch s)
         self.fenced: str | None = None     # why this instance no longer holds anything
+        self.spares: list[Spare] = []      # warm workers, oldest first
+        self.drill_proofs: tuple[dict, ...] = ()   # comm-loss drills passed in this instance's runs (bench.drill)
+        self.spawned = {"warm": 0, "cold": 0}
 
     # -- lifecycle ----------------------------------------------------------------------------------------
 
@@ -191,6 +226,7 @@ class Runner:
         self._wake.set()
         if self._thread is not None:
             self._thread.join(timeout=10)
+        self._close_spares()
         for child in self.children.values():
             if child.proc.poll() is None:
                 child.proc.send_signal(signal.SIGTERM)
@@ -288,14 +324,17 @@ class Runner:
             self.reconcile()
         if not self._stop.is_set() and not self.fenced:
             self._schedule()
+            self._fill_pool()
+        elif self.fenced:
+            self._close_spares()
         if self.on_tick:
             self.on_tick()
 
     def _reap(self) -> None:
         for run_id, child in list(self.children.items()):
             if child.proc.poll() is not None:
-                if child.reader is not None:
-                    child.reader.join(timeout=5)
+                for reader in child.readers:
+                    reader.join(timeout=5)
                 self._finish(child)
                 del self.children[run_id]
                 self._heartbeat()     # finishing a run reads its record: keep the lease renewed meanwhile
@@ -468,25 +507,79 @@ class Runner:
         except IntegrityError:
             return None
 
+    # -- run processes ------------------------------------------------------------------------------------
+
+    def _start_worker(self, nice: int) -> subprocess.Popen:
+        """A run process; from the runner's thread only (its parent-death signal follows the thread that forked)."""
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        env.pop("DRIVEBENCH_TOKEN", None)
+        command = [self.python, *self.settings.worker, "--parent", str(os.getpid()), "--nice", str(nice)]
+        return subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                cwd=self.root, env=env, start_new_session=True)
+
+    def _fill_pool(self) -> None:
+        """Replace warm workers that died (logged) and start one more per tick while the pool is short."""
+        for spare in [s for s in self.spares if s.proc.poll() is not None]:
+            self.spares.remove(spare)
+            tail = (spare.proc.stderr.read() or b"").decode("utf-8", "replace").strip().splitlines()[-1:]
+            spare.proc.stderr.close()
+            print(f"drivebench serve: warm worker {spare.proc.pid} exited with {spare.proc.returncode} before its "
+                  f"run{': ' + tail[0] if tail else ''}", file=sys.stderr)
+        if len(self.spares) < self.settings.warm_workers():
+            try:
+                self.spares.append(Spare(self._start_worker(self.settings.nice), time.monotonic()))
+            except OSError as exc:
+                print(f"drivebench serve: cannot start a warm worker: {exc}", file=sys.stderr)
+
+    def _close_spares(self) -> None:
+        """Warm workers leave at the end of their input (no run given)."""
+        for spare in self.spares:
+            try:
+                spare.proc.stdin.close()
+            except OSError:
+                pass
+        for spare in self.spares:
+            try:
+                spare.proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                spare.proc.kill()
+                spare.proc.wait(timeout=5)
+            for pipe in (spare.proc.stdout, spare.proc.stderr):
+                pipe.close()
+        self.spares.clear()
+
+    def _hand_over(self, request: RunRequest, simulated: bool) -> tuple[subprocess.Popen, bool]:
+        """A warm worker takes the run (a simulated rig's), else a new one; (process, warm)."""
+        data = encode(request)
+        while simulated and self.spares:
+            proc = self.spares.pop(0).proc
+            try:
+                proc.stdin.write(data)
+                proc.stdin.close()
+                self.spawned["warm"] += 1
+                return proc, True
+            except OSError:          # died meanwhile: reaped here, the next one is tried
+                proc.kill()
+                proc.wait(timeout=5)
+                for pipe in (proc.stdout, proc.stderr):
+                    pipe.close()
+        proc = self._start_worker(self.settings.nice if simulated else 0)
+        try:
+            proc.stdin.write(data)
+            proc.stdin.close()
+        except OSError:
+            pass                      # it died at once: reaped as a failed run
+        self.spawned["cold"] += 1
+        return proc, False
+
     def _spawn(self, run: Run, rig: Rig, lease_id: int) -> None:
         out_dir = self.settings.data_dir / "runs" / f"{run.id:06d}"
-        command = [self.python, "-m", "bench", "run", run.scenario_file, "--bench", rig.bench, "--out", str(out_dir),
-                   "--json"]
-        if self.settings.rerun_url:
-            command += ["--rerun", "connect", "--rerun-url", self.settings.rerun_url]
-        env = {**os.environ, "DRIVEBENCH_PROGRESS": "jsonl", "DRIVEBENCH_RECORDING_ID": f"run-{run.id}",
-               "DRIVEBENCH_PARENT_PID": str(os.getpid()), "PYTHONUNBUFFERED": "1"}
-        env.pop("DRIVEBENCH_TOKEN", None)
-        if rig.simulated and self.settings.nice and NICE is not None:
-            command = [NICE, "-n", str(self.settings.nice), *command]    # from exec on: imports are CPU-heavy too
-        if run.seed is not None:
-            command += ["--seed", str(run.seed)]
+        request = RunRequest(run_id=run.id, scenario_file=run.scenario_file, bench=rig.bench, out_dir=str(out_dir),
+                             seed=run.seed, rerun_url=self.settings.rerun_url, recording_id=f"run-{run.id}",
+                             drill_proofs=self.drill_proofs)
         try:
             out_dir.mkdir(parents=True, exist_ok=True)
-            stdout = open(out_dir / "stdout.jsonl", "wb")
-            proc = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=stdout, stderr=subprocess.PIPE,
-                                    cwd=self.root, env=env, start_new_session=True)
-            stdout.close()
+            proc, warm = self._hand_over(request, bool(rig.simulated))
         except OSError as exc:
             with self.db.session() as s:
                 row = s.get(Run, run.id)
@@ -494,48 +587,76 @@ class Runner:
                 s.execute(update(Lease).where(Lease.id == lease_id).values(released_ts=now(), released_by="runner"))
                 self.events.publish(run_event(row))
             return
-        child = Child(run.id, rig.name, proc, out_dir, lease_id, time.monotonic())
-        child.reader = threading.Thread(target=self._read_stderr, args=(child,), daemon=True,
-                                        name=f"run-{run.id}-stderr")
-        child.reader.start()
+        child = Child(run.id, rig.name, proc, out_dir, lease_id, time.monotonic(), warm=warm)
+        child.log = open(out_dir / "service.log", "ab")
+        child.readers = [threading.Thread(target=self._read_events, args=(child,), daemon=True,
+                                          name=f"run-{run.id}-events"),
+                         threading.Thread(target=self._read_log, args=(child,), daemon=True, name=f"run-{run.id}-log")]
+        for reader in child.readers:
+            reader.start()
         self.children[run.id] = child
         with self.db.session() as s:
             row = s.get(Run, run.id)
             row.pid, row.pid_start, row.run_dir = proc.pid, instances.process_start(proc.pid), str(out_dir)
             self.events.publish(run_event(row))
 
-    def _read_stderr(self, child: Child) -> None:
-        """Progress lines become events; trips become events and stay in service.log; the rest goes there too."""
-        with open(child.out_dir / "service.log", "ab") as log:
-            for raw in child.proc.stderr:
-                line = raw.decode("utf-8", "replace").rstrip("\n")
-                if line.startswith('{"progress_s"'):
-                    try:
-                        data = json.loads(line)
-                        child.progress_s = float(data["progress_s"])
-                        self.events.publish({"type": "progress", "id": child.run_id, "progress_s": child.progress_s,
-                                             "duration_s": data.get("duration_s")})
-                        continue
-                    except (ValueError, KeyError, TypeError):
-                        pass
-                if line.startswith('{"trip"'):
-                    try:
-                        trip = json.loads(line)["trip"]
-                        self.events.publish({"type": "trip", "id": child.run_id, "reason": str(trip["reason"]),
-                                             "t_s": trip.get("t_s"), "message": str(trip.get("message", ""))})
-                    except (ValueError, KeyError, TypeError):
-                        pass
-                log.write(raw)
-                log.flush()
-                if line.strip():
-                    child.tail.append(line)
+    def _write_log(self, child: Child, raw: bytes) -> None:
+        with child.log_lock:
+            child.log.write(raw)
+            child.log.flush()
+
+    def _read_events(self, child: Child) -> None:
+        """The run process's messages: progress and trips become events, its Finished or Failed is kept for _finish.
+        A message the service refuses (another protocol version, ...) stops the run (SIGTERM: safe stop)."""
+        for raw in iter(lambda: child.proc.stdout.readline(MAX_LINE_BYTES + 1), b""):
+            if child.protocol_error is not None:
+                continue                       # drained, not read: the run is being stopped
+            try:
+                message = decode(raw)
+            except ProtocolError as exc:
+                child.protocol_error = str(exc)
+                self._write_log(child, f"drivebench serve: {exc}; the run process is stopped\n".encode())
+                if child.proc.poll() is None and child.term_sent is None:
+                    child.proc.send_signal(signal.SIGTERM)
+                    child.term_sent = time.monotonic()
+                continue
+            if isinstance(message, Progress):
+                child.progress_s = message.t_s
+                self.events.publish({"type": "progress", "id": child.run_id, "progress_s": message.t_s,
+                                     "duration_s": message.duration_s})
+            elif isinstance(message, Trip):
+                self.events.publish({"type": "trip", "id": child.run_id, "reason": message.reason,
+                                     "t_s": message.t_s, "message": message.message})
+                self._write_log(child, raw)
+            elif isinstance(message, Log):
+                self._write_log(child, (message.line.rstrip("\n") + "\n").encode())
+            elif isinstance(message, Finished):
+                child.result = message
+            elif isinstance(message, Failed):
+                child.failure = message.reason
+        child.proc.stdout.close()
+
+    def _read_log(self, child: Child) -> None:
+        """The run process's stderr (and its own stdout): service.log, the last lines kept for an error's reason."""
+        for raw in child.proc.stderr:
+            self._write_log(child, raw)
+            line = raw.decode("utf-8", "replace").rstrip("\n")
+            if line.strip():
+                child.tail.append(line)
         child.proc.stderr.close()
 
     # -- finishing ----------------------------------------------------------------------------------------
 
     def _finish(self, child: Child, forced_reason: str | None = None) -> None:
         code = child.proc.poll()
-        run_dir, record = _record_of(child.out_dir)
+        if child.log is not None:
+            child.log.close()
+        if child.result is not None and child.protocol_error is None:
+            run_dir, record = Path(child.result.run_dir), _read_record(Path(child.result.record_path))
+            if child.result.drill_proofs:
+                self.drill_proofs = child.result.drill_proofs
+        else:
+            run_dir, record = _record_of(child.out_dir)
         t = now()
         with self.db.session() as s:
             run = s.get(Run, child.run_id)
@@ -551,6 +672,9 @@ class Runner:
                 run.aborted_by = run.abort_requested_by
                 run.reason = f"aborted by {run.abort_requested_by}" + (
                     f" ({record.get('abort_reason')})" if record and record.get("abort_reason") else "")
+            elif child.protocol_error is not None:
+                run.state, run.reason = "error", child.protocol_error + (
+                    f" (the run process was stopped; its record says: {verdict})" if verdict else "")
             elif forced_reason and verdict not in VERDICT_STATE:
                 run.state, run.reason = "aborted", forced_reason
             elif forced_reason:
@@ -564,7 +688,8 @@ class Runner:
                                                     + (" (its record is incomplete)" if record else ""))
             else:
                 run.state = "error"
-                run.reason = " | ".join(list(child.tail)[-3:]) or f"the run process exited with {code}"
+                run.reason = (" | ".join(list(child.tail)[-3:]) or child.failure
+                              or f"the run process exited with {code}")
             run.ended_ts = t
             if run.duration_s is None:
                 run.duration_s = t - (run.started_ts or t)
