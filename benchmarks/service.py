@@ -169,9 +169,10 @@ def throughput(work: Path, port: int, parallel: int, ttl: float, repeat: int, sc
             "makespan": makespan}
 
 
-def campaign_figure() -> float:
+def campaign_figure(scenario: str | None) -> float:
     """runs/min of benchmarks/campaign.py (two local workers), run here as a separate process."""
-    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "campaign.py"), "--no-ray"], cwd=ROOT,
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "campaign.py"), "--no-ray",
+                           *(["--scenario", scenario] if scenario else [])], cwd=ROOT,
                           capture_output=True, text=True, timeout=1800)
     line = next((l for l in done.stdout.splitlines() if l.startswith("RESULT ")), "")
     fields = dict(kv.split("=", 1) for kv in line.split()[1:])
@@ -188,14 +189,16 @@ def main() -> int:
     parser.add_argument("--no-cold", action="store_true", help="skip the cold-start service baseline")
     parser.add_argument("--no-campaign", action="store_true", help="skip benchmarks/campaign.py")
     parser.add_argument("--serial", action="store_true", help="also each scenario through drivebench run directly")
+    parser.add_argument("--scenario", help="submit this one scenario --repeat times instead of the suite (the "
+                                           "campaign benchmark's is scenarios/pmsm/fig08-20rads-rs-step.toml)")
     args = parser.parse_args()
     repeat = 10 if args.full else args.repeat
-    scenarios = suite()
+    scenarios = [(ROOT / args.scenario).resolve()] if args.scenario else suite()
     work = Path(tempfile.mkdtemp(prefix="drivebench-service-bench-"))
-    print(f"{len(scenarios)} suite scenarios x {repeat} = {len(scenarios) * repeat} runs, {args.parallel} run "
+    print(f"{len(scenarios)} scenario(s) x {repeat} = {len(scenarios) * repeat} runs, {args.parallel} run "
           f"processes at once, four simulated rigs; work dir {work}; load {load_average()}")
     walls = baseline(scenarios, work / "baseline") if args.serial else {}
-    campaign = float("nan") if args.no_campaign else campaign_figure()
+    campaign = float("nan") if args.no_campaign else campaign_figure(args.scenario)
     if not args.no_campaign:
         print(f"campaign: benchmarks/campaign.py --no-ray: {campaign:.1f} runs/min (load {load_average()})")
     cold = None if args.no_cold else throughput(work / "cold", args.port + 1, args.parallel, args.ttl, repeat,

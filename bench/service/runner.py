@@ -402,6 +402,7 @@ class Runner:
                 s.execute(update(Run).where(Run.id == c.run_id).values(progress_s=c.progress_s))
                 c.progress_written = c.progress_s
                 c.last_progress_db = t
+        self.events.changed()       # the API's cached reads of runs are stale now, not at every progress event
 
     # -- scheduling ---------------------------------------------------------------------------------------
 
@@ -623,7 +624,7 @@ class Runner:
             if isinstance(message, Progress):
                 child.progress_s = message.t_s
                 self.events.publish({"type": "progress", "id": child.run_id, "progress_s": message.t_s,
-                                     "duration_s": message.duration_s})
+                                     "duration_s": message.duration_s}, changed=False)   # the DB: _write_progress
             elif isinstance(message, Trip):
                 self.events.publish({"type": "trip", "id": child.run_id, "reason": message.reason,
                                      "t_s": message.t_s, "message": message.message})
