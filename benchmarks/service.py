@@ -3,7 +3,7 @@ simulated rigs of one `drivebench serve`, while a poller measures API latency; t
 and how soon a rig is free after its lease holder is SIGKILLed (a CI job holding a real rig, a run process).
 
 Baselines from the same run: the same submissions to a service whose every run starts a cold process
-(`serve --warm 0`, as before warm run processes), printed as the ratio warm/cold; `benchmarks/campaign.py --no-ray`
+(`serve --run-start cold`, as before warm run processes), printed as the ratio warm/cold; `benchmarks/campaign.py --no-ray`
 (the campaign figure, runs/min with two local workers); with --serial, each suite scenario once through
 `drivebench run` directly, one after the other (the ideal makespan: their sum times REPEAT divided by the parallel
 run processes). The machine's load average is printed with each figure (other work on the host moves them).
@@ -62,7 +62,7 @@ def load_average() -> str:
 
 
 def start_service(work: Path, port: int, parallel: int, ttl: float,
-                  warm: int | None = None) -> tuple[subprocess.Popen, dict[str, str]]:
+                  run_start: str = "forkserver") -> tuple[subprocess.Popen, dict[str, str]]:
     (work / "rigs.toml").write_text(rigs_toml())
     tokens = {}
     for role in ("operator", "viewer", "admin"):
@@ -73,7 +73,7 @@ def start_service(work: Path, port: int, parallel: int, ttl: float,
     log = open(work / "serve.log", "ab")
     proc = subprocess.Popen([sys.executable, "-m", "bench", "serve", "--data", str(work / "data"), "--port", str(port),
                              "--rigs", str(work / "rigs.toml"), "--max-parallel", str(parallel), "--lease-ttl",
-                             str(ttl), *([] if warm is None else ["--warm", str(warm)])], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+                             str(ttl), "--run-start", run_start], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     client = Client(f"http://127.0.0.1:{port}", tokens["viewer"], timeout_s=5)
     deadline = time.monotonic() + 60
     while True:
@@ -118,10 +118,10 @@ def p99(values: list[float]) -> float:
 
 
 def throughput(work: Path, port: int, parallel: int, ttl: float, repeat: int, scenarios: list[Path],
-               warm: int | None) -> dict:
+               run_start: str) -> dict:
     """The suite submitted `repeat` times to a fresh service; runs/min, API latency while they ran, lost and stuck."""
     work.mkdir(parents=True, exist_ok=True)
-    server, tokens = start_service(work, port, parallel, ttl, warm)
+    server, tokens = start_service(work, port, parallel, ttl, run_start)
     url = f"http://127.0.0.1:{port}"
     operator, viewer = Client(url, tokens["operator"]), Client(url, tokens["viewer"], timeout_s=5)
     watcher = Client(url, tokens["viewer"], timeout_s=60)      # the completion poll: not a latency probe
@@ -159,7 +159,7 @@ def throughput(work: Path, port: int, parallel: int, ttl: float, repeat: int, sc
         states[r["state"]] = states.get(r["state"], 0) + 1
     runs_per_min = (len(runs) - stuck) / (makespan / 60)
     api_p99 = p99(poller.latencies_ms)
-    kind = "cold (--warm 0)" if warm == 0 else "warm"
+    kind = "cold (--run-start cold)" if run_start == "cold" else "warm (forked from the fork server)"
     print(f"{kind}: submitted {len(ids)} runs in {submitted:.2f} s; all final after {makespan:.1f} s: {states}; "
           f"{runs_per_min:.2f} runs/min (load {load_average()})")
     print("  slowest: " + ", ".join(f"{ms:.0f} ms {path} at +{at - t0:.1f} s" for ms, path, at in poller.slowest))
@@ -202,9 +202,9 @@ def main() -> int:
     if not args.no_campaign:
         print(f"campaign: benchmarks/campaign.py --no-ray: {campaign:.1f} runs/min (load {load_average()})")
     cold = None if args.no_cold else throughput(work / "cold", args.port + 1, args.parallel, args.ttl, repeat,
-                                                 scenarios, warm=0)
+                                                 scenarios, "cold")
     (work / "warm").mkdir(exist_ok=True)
-    warm = throughput(work / "warm", args.port, args.parallel, args.ttl, repeat, scenarios, warm=None)
+    warm = throughput(work / "warm", args.port, args.parallel, args.ttl, repeat, scenarios, "forkserver")
     if cold:
         print(f"warm/cold: {warm['runs_per_min'] / cold['runs_per_min']:.2f}x runs/min; warm/campaign: "
               f"{warm['runs_per_min'] / campaign:.2f}")

@@ -49,6 +49,16 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
+def cpu_s(pid: int) -> float:
+    """User + system CPU time of the process and its threads [s] (its run processes are not counted)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def load_average() -> str:
+    return "/".join(f"{x:.1f}" for x in os.getloadavg())
+
+
 def timed(client: Client, path: str) -> float:
     t0 = time.perf_counter()
     client.request("GET", path)
@@ -187,13 +197,16 @@ def main() -> int:
         print(f"baseline (one client, two runs running): median {statistics.median(base):.1f} ms, "
               f"p99 {base_p99:.1f} ms")
 
+        cpu0 = cpu_s(proc.pid)
         latencies, errors = load(url, tokens["viewer"])
+        cpu_ms = (cpu_s(proc.pid) - cpu0) * 1000 / max(1, len(latencies))
         api_p99 = p99(latencies)
         rss = rss_mb(proc.pid)
         running = sum(r["state"] == "running" for r in viewer.request("GET", "/api/runs?state=running"))
         print(f"{CLIENTS} clients x {REQUESTS} requests: {len(latencies)} answered, {errors} errors, median "
               f"{statistics.median(latencies):.1f} ms, p99 {api_p99:.1f} ms (x{api_p99 / base_p99:.2f} baseline), "
-              f"max {max(latencies):.0f} ms; service RSS {rss:.0f} MB; runs running at the end: {running}")
+              f"max {max(latencies):.0f} ms; service RSS {rss:.0f} MB; service CPU {cpu_ms:.2f} ms per request "
+              f"(its runner and readers included); runs running at the end: {running}; load {load_average()}")
 
         health_max, statuses = plots_and_health(args.port, url, tokens["viewer"])
         print(f"100 concurrent trend.png (100 different plots): statuses {statuses}; /api/health slowest "
@@ -241,7 +254,7 @@ def main() -> int:
     log_lines = (work / "serve.log").read_text(errors="replace").count("\n")
     print(f"service log: {log_lines} lines ({work / 'serve.log'})")
     print(f"RESULT api_p99_ms={api_p99:.1f} api_p99_ratio={api_p99 / base_p99:.2f} api_errors={errors} "
-          f"rss_mb={rss:.0f} health_under_plots_max_ms={health_max:.0f} "
+          f"rss_mb={rss:.0f} cpu_ms_per_request={cpu_ms:.2f} load={load_average()} health_under_plots_max_ms={health_max:.0f} "
           f"body_rss_growth_mb={rss_after - rss_before:.1f} idle_health_ms={idle_ms:.0f} idle_ok={idle_ok} "
           f"log_lines={log_lines}")
     return 0 if errors == 0 and api_p99 <= 50 and idle_ok and rss_after - rss_before < 20 else 1

@@ -77,7 +77,7 @@ def test_a_run_process_refuses_a_request_of_another_version_on_its_protocol_pipe
     assert isinstance(failed, Failed) and "version 99 refused" in failed.reason and failed.exit_code == 2
 
 
-def test_a_warm_worker_without_a_run_leaves_quietly():
+def test_a_cold_run_process_without_a_run_leaves_quietly():
     proc = subprocess.run([sys.executable, "-m", "bench.service.worker", "--parent", str(os.getpid())],
                           input=b"", capture_output=True, timeout=120)
     assert proc.returncode == 0 and proc.stdout == b"", proc.stderr
@@ -99,7 +99,8 @@ time.sleep(60)
 
 def test_a_run_process_of_another_version_is_refused_and_its_run_failed_with_that_reason(tmp_path):
     with client_for(make_settings(tmp_path, lease_ttl_s=3.0)) as api:
-        api.service.runner.settings.worker = ("-c", OTHER_VERSION)      # a real rig's run starts its process now
+        api.service.runner.settings.run_start = "cold"                   # a new interpreter running this:
+        api.service.runner.settings.worker = ("-c", OTHER_VERSION)
         op = api.tokens.operator
         t0 = time.monotonic()
         run_id = api.post("/api/runs", json={"scenario": SHORT, "rig": "real-a"}, headers=H(op)).json()["id"]
@@ -111,27 +112,26 @@ def test_a_run_process_of_another_version_is_refused_and_its_run_failed_with_tha
         assert api.get("/api/rigs/real-a", headers=H(op)).json()["state"] == "free"
 
 
-def test_warm_workers_take_simulated_runs_and_a_sigkilled_one_ends_aborted(tmp_path):
-    with client_for(make_settings(tmp_path, lease_ttl_s=3.0, warm=2)) as api:
+def test_forked_run_processes_pass_carry_the_drill_and_a_sigkilled_one_ends_aborted(tmp_path):
+    with client_for(make_settings(tmp_path, lease_ttl_s=3.0)) as api:
         runner, op = api.service.runner, api.tokens.operator
-        wait_until(lambda: len(runner.spares) == 2, 60, 0.1, "two warm workers")
+        assert runner._forkserver_ready.wait(120), "the fork server's preload"
         first = api.post("/api/runs", json={"scenario": SHORT, "rig": "sim-a"}, headers=H(op)).json()["id"]
         run = wait_until(lambda: (r := api.get(f"/api/runs/{first}", headers=H(op)).json())["state"]
                          not in ("queued", "running") and r, 60, 0.1, "the first run")
         assert run["state"] == "pass" and run["verdict"] == "pass", run
-        assert runner.spawned["warm"] == 1 and runner.spawned["cold"] == 0
+        assert runner.spawned == {"forked": 1, "cold": 0}
         assert runner.drill_proofs, "the passed drill is kept for the next runs"
         second = api.post("/api/runs", json={"scenario": SHORT, "rig": "sim-a"}, headers=H(op)).json()["id"]
         run = wait_until(lambda: (r := api.get(f"/api/runs/{second}", headers=H(op)).json())["state"]
                          not in ("queued", "running") and r, 60, 0.1, "the second run")
         record = api.get(run["record_url"], headers=H(op)).json()
         assert run["state"] == "pass" and record["comm_loss"]["reused"]["age_s"] > 0, record["comm_loss"]
-        wait_until(lambda: len(runner.spares) == 2, 60, 0.1, "the pool refilled")
 
         killed = api.post("/api/runs", json={"scenario": LONG, "rig": "sim-a"}, headers=H(op)).json()["id"]
         pid = wait_until(lambda: runner.children.get(killed) and runner.children[killed].proc.pid, 30, 0.05,
                          "the run process")
-        assert runner.children[killed].warm
+        assert runner.children[killed].warm and runner.children[killed].proc.process.pid == pid
         wait_until(lambda: (api.get(f"/api/runs/{killed}", headers=H(op)).json()["progress_s"] or 0) > 0.2, 60, 0.1,
                    "the run to be under way")
         os.kill(pid, signal.SIGKILL)
@@ -139,6 +139,4 @@ def test_warm_workers_take_simulated_runs_and_a_sigkilled_one_ends_aborted(tmp_p
                          and r, 10, 0.1, "reaped")
         assert run["state"] == "aborted" and "signal 9" in run["reason"]
         assert api.get("/api/rigs/sim-a", headers=H(op)).json()["state"] == "free"
-        spares = [s.proc for s in runner.spares]
-    for proc in spares:                       # the service stopped: its warm workers left with it
-        assert proc.poll() is not None
+        assert runner.spawned == {"forked": 3, "cold": 0}

@@ -69,8 +69,8 @@ def _open_db(db_url: str | None, data_dir: str):
 @click.option("--lease-ttl", "lease_ttl_s", type=float, default=10.0, show_default=True,
               help="Seconds a run's lease lives unless the service extends it.")
 @click.option("--max-parallel", type=int, help="Run processes at once on this host [default: CPU count].")
-@click.option("--warm", type=int, help="Warm run processes kept started ahead of need (imports paid) for simulated "
-                                        "rigs; 0: every run starts cold [default: max-parallel, at most 4].")
+@click.option("--run-start", type=click.Choice(["forkserver", "cold"]), default="forkserver", show_default=True,
+              help="Run processes forked from a preloaded fork server (imports paid once), or each a new interpreter.")
 @click.option("--live/--no-live", default=False, show_default=True,
               help="Serve Rerun's gRPC server and web viewer (from the rerun-sdk wheel); runs stream to it.")
 @click.option("--live-grpc-port", type=int, default=9876, show_default=True)
@@ -80,7 +80,7 @@ def _open_db(db_url: str | None, data_dir: str):
 @click.option("--ssl-certfile", type=click.Path(exists=True, dir_okay=False, readable=True),
               help="TLS certificate chain (uvicorn).")
 @click.option("--host-id", help="Names this instance's runs when several share a database [default: host name].")
-def serve(db_url, data_dir, host, port, rigs_path, scenario_root, lease_ttl_s, max_parallel, warm, live, live_grpc_port,
+def serve(db_url, data_dir, host, port, rigs_path, scenario_root, lease_ttl_s, max_parallel, run_start, live, live_grpc_port,
           live_web_port, ssl_keyfile, ssl_certfile, host_id) -> None:
     """The bench service: HTTP API (OpenAPI at /openapi.json), run queue, leased rigs, web UI on HOST:PORT."""
     try:
@@ -91,12 +91,12 @@ def serve(db_url, data_dir, host, port, rigs_path, scenario_root, lease_ttl_s, m
     except ImportError as exc:
         _bad([f"drivebench serve: (install): {exc.name} is missing: pip install 'drivebench[service]'"])
     problems = serve_option_problems(port=port, lease_ttl_s=lease_ttl_s, max_parallel=max_parallel, host_id=host_id,
-                                     warm=warm, live_grpc_port=live_grpc_port, live_web_port=live_web_port)
+                                     live_grpc_port=live_grpc_port, live_web_port=live_web_port)
     if problems:
         _bad(problems)
     settings = ServiceSettings(data_dir=Path(data_dir), db_url=db_url, rigs_path=Path(rigs_path) if rigs_path else None,
                                scenario_root=Path(scenario_root) if scenario_root else None, lease_ttl_s=lease_ttl_s,
-                               max_parallel=max_parallel, warm=warm, host_id=host_id)
+                               max_parallel=max_parallel, run_start=run_start, host_id=host_id)
     if live:
         from bench.service.live import start_live
         settings.live_grpc_url, settings.live_viewer_url = start_live(live_grpc_port, live_web_port)

@@ -26,11 +26,10 @@ MEDIA = {".json": "application/json", ".png": "image/png", ".rrd": "application/
 MAX_LEASE_TTL_S = 3600.0
 MIN_LEASE_TTL_S = 1.0        # renewed every TTL/3 by a loop that ticks every 0.2 s
 MAX_PARALLEL = 256
-MAX_WARM = 64
 
 
 def serve_option_problems(port: int | None = None, lease_ttl_s: float | None = None, max_parallel: int | None = None,
-                          host_id: str | None = None, warm: int | None = None, **ports: int | None) -> list[str]:
+                          host_id: str | None = None, **ports: int | None) -> list[str]:
     """`drivebench serve`'s numbers and names, checked before anything starts: one line each."""
     problems = []
     for name, value in {"port": port, **ports}.items():
@@ -42,8 +41,6 @@ def serve_option_problems(port: int | None = None, lease_ttl_s: float | None = N
                         f"got {lease_ttl_s}")
     if max_parallel is not None and not 1 <= max_parallel <= MAX_PARALLEL:
         problems.append(f"serve: --max-parallel: must be an integer in 1..{MAX_PARALLEL}, got {max_parallel}")
-    if warm is not None and not 0 <= warm <= MAX_WARM:
-        problems.append(f"serve: --warm: must be an integer in 0..{MAX_WARM}, got {warm}")
     if host_id is not None and not (0 < len(host_id) <= 200 and host_id.isprintable() and host_id.strip() == host_id):
         problems.append(f"serve: --host-id: must be 1-200 printable characters without surrounding spaces, "
                         f"got {host_id!r}")
@@ -58,7 +55,7 @@ class ServiceSettings:
     scenario_root: Path | None = None
     lease_ttl_s: float = 10.0
     max_parallel: int | None = None
-    warm: int | None = None             # warm run processes kept ready (None: the runner's default; 0: cold starts)
+    run_start: str = "forkserver"       # run processes forked warm from a preloaded server, or "cold"
     host_id: str | None = None
     run_queue: bool = True              # False: API only (tests of the API without run processes)
     live_grpc_url: str | None = None    # the Rerun gRPC server runs connect to
@@ -67,7 +64,9 @@ class ServiceSettings:
 
     def resolved(self) -> "ServiceSettings":
         problems = serve_option_problems(lease_ttl_s=self.lease_ttl_s, max_parallel=self.max_parallel,
-                                         host_id=self.host_id, warm=self.warm)
+                                         host_id=self.host_id)
+        if self.run_start not in ("forkserver", "cold"):
+            problems.append(f"serve: --run-start: must be forkserver or cold, got {self.run_start!r}")
         if problems:
             raise InputError(problems)
         root = find_repo_root()
@@ -90,7 +89,7 @@ class Service:
         self.events = EventHub()
         self.sync_rigs()
         runner_settings = RunnerSettings(data_dir=self.settings.data_dir, lease_ttl_s=self.settings.lease_ttl_s,
-                                         rerun_url=self.settings.live_grpc_url, warm=self.settings.warm)
+                                         rerun_url=self.settings.live_grpc_url, run_start=self.settings.run_start)
         if self.settings.max_parallel:
             runner_settings.max_parallel = self.settings.max_parallel
         if self.settings.host_id:

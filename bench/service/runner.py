@@ -2,9 +2,9 @@
 speaking bench/service/run_protocol.py), keeps the run's lease alive while the process lives, indexes the record its
 Finished message names when it ends, and reconciles after a crash.
 
-Warm run processes: up to `warm` workers are kept started ahead of need, their imports paid, at the simulated runs'
-CPU niceness; a simulated run takes one (one run per process: a crashing run takes only its own process with it) and
-the next tick starts its replacement. A real rig's run starts its worker at that moment at normal priority.
+Warm run processes: each run process is forked from the service's fork server (multiprocessing's forkserver,
+preloaded once with what `drivebench run` imports), so a run pays no imports; one run per process, so a crashing run
+takes only its own process with it. `run_start = "cold"`: each run starts its own interpreter (the baseline).
 
 One thread does all of it (one loop, no locks between schedulers). Each service instance holds a liveness lease of
 its own (bench/service/instances.py), renewed by this loop; it touches the runs it started, and takes over another
@@ -62,11 +62,8 @@ class RunnerSettings:
     host_id: str = field(default_factory=socket.gethostname)
     rerun_url: str | None = None      # the service's Rerun gRPC server, if it runs one
     nice: int = 10                    # simulated runs only: the API answers first
-    warm: int | None = None           # warm workers kept ready (None: max_parallel, at most 4; 0: every run starts cold)
-    worker: tuple[str, ...] = WORKER  # how the service's python starts a run process (tests: a misbehaving one)
-
-    def warm_workers(self) -> int:
-        return min(self.max_parallel, 4) if self.warm is None else self.warm
+    run_start: str = "forkserver"     # "forkserver": forked warm from a preloaded server; "cold": a new interpreter
+    worker: tuple[str, ...] = WORKER  # how the service's python starts a cold run process (tests: a misbehaving one)
 
 
 @dataclass
@@ -91,11 +88,36 @@ class Child:
     log: object | None = None               # service.log, written by both readers
 
 
-@dataclass
-class Spare:
-    """A warm worker waiting for its run."""
-    proc: subprocess.Popen
-    started: float
+class ForkedProcess:
+    """A run process forked by the fork server, with the part of Popen's surface the runner uses."""
+
+    def __init__(self, process, stdout, stderr):
+        self.process = process
+        self.pid: int = process.pid
+        self.stdout, self.stderr = stdout, stderr
+
+    @property
+    def returncode(self) -> int | None:
+        return self.process.exitcode
+
+    def poll(self) -> int | None:
+        return self.process.exitcode        # negative: the signal that ended it, as Popen says
+
+    def send_signal(self, sig: int) -> None:
+        if self.poll() is None:
+            try:
+                os.kill(self.pid, sig)
+            except ProcessLookupError:
+                pass
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
+
+    def wait(self, timeout: float | None = None) -> int:
+        self.process.join(timeout)
+        if self.process.exitcode is None:
+            raise subprocess.TimeoutExpired(f"run process {self.pid}", timeout)
+        return self.process.exitcode
 
 
 def _read_record(path: Path) -> dict | None:
@@ -183,9 +205,10 @@ class Runner:
         self.instance_id: int | None = None
         self.lease_until = 0.0            # this instance's lease as last renewed (epoch s)
         self.fenced: str | None = None     # why this instance no longer holds anything
-        self.spares: list[Spare] = []      # warm workers, oldest first
         self.drill_proofs: tuple[dict, ...] = ()   # comm-loss drills passed in this instance's runs (bench.drill)
-        self.spawned = {"warm": 0, "cold": 0}
+        self.spawned = {"forked": 0, "cold": 0}
+        self._forkserver = None                    # multiprocessing's forkserver context, started with the runner
+        self._forkserver_ready = threading.Event()  # its preload done: forking no longer waits for imports
 
     # -- lifecycle ----------------------------------------------------------------------------------------
 
@@ -214,6 +237,8 @@ class Runner:
     def start(self) -> None:
         self.register()
         self.reconcile()
+        if self.settings.run_start == "forkserver":
+            self._start_forkserver()
         self._thread = threading.Thread(target=self._loop, name="drivebench-runner", daemon=True)
         self._thread.start()
 
@@ -226,7 +251,6 @@ class Runner:
         self._wake.set()
         if self._thread is not None:
             self._thread.join(timeout=10)
-        self._close_spares()
         for child in self.children.values():
             if child.proc.poll() is None:
                 child.proc.send_signal(signal.SIGTERM)
@@ -324,9 +348,6 @@ class Runner:
             self.reconcile()
         if not self._stop.is_set() and not self.fenced:
             self._schedule()
-            self._fill_pool()
-        elif self.fenced:
-            self._close_spares()
         if self.on_tick:
             self.on_tick()
 
@@ -336,6 +357,8 @@ class Runner:
                 for reader in child.readers:
                     reader.join(timeout=5)
                 self._finish(child)
+                if isinstance(child.proc, ForkedProcess):
+                    child.proc.process.close()
                 del self.children[run_id]
                 self._heartbeat()     # finishing a run reads its record: keep the lease renewed meanwhile
 
@@ -518,53 +541,64 @@ class Runner:
         return subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 cwd=self.root, env=env, start_new_session=True)
 
-    def _fill_pool(self) -> None:
-        """Replace warm workers that died (logged) and start one more per tick while the pool is short."""
-        for spare in [s for s in self.spares if s.proc.poll() is not None]:
-            self.spares.remove(spare)
-            tail = (spare.proc.stderr.read() or b"").decode("utf-8", "replace").strip().splitlines()[-1:]
-            spare.proc.stderr.close()
-            print(f"drivebench serve: warm worker {spare.proc.pid} exited with {spare.proc.returncode} before its "
-                  f"run{': ' + tail[0] if tail else ''}", file=sys.stderr)
-        if len(self.spares) < self.settings.warm_workers():
-            try:
-                self.spares.append(Spare(self._start_worker(self.settings.nice), time.monotonic()))
-            except OSError as exc:
-                print(f"drivebench serve: cannot start a warm worker: {exc}", file=sys.stderr)
+    def _start_forkserver(self) -> None:
+        """The fork server, preloaded in the background: until it has imported everything, runs start cold (a fork
+        request would wait for those imports on the runner's thread, and its leases with it)."""
+        import multiprocessing
+        import multiprocessing.forkserver
 
-    def _close_spares(self) -> None:
-        """Warm workers leave at the end of their input (no run given)."""
-        for spare in self.spares:
-            try:
-                spare.proc.stdin.close()
-            except OSError:
-                pass
-        for spare in self.spares:
-            try:
-                spare.proc.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                spare.proc.kill()
-                spare.proc.wait(timeout=5)
-            for pipe in (spare.proc.stdout, spare.proc.stderr):
-                pipe.close()
-        self.spares.clear()
+        from bench.service import worker
 
-    def _hand_over(self, request: RunRequest, simulated: bool) -> tuple[subprocess.Popen, bool]:
-        """A warm worker takes the run (a simulated rig's), else a new one; (process, warm)."""
+        context = multiprocessing.get_context("forkserver")
+        context.set_forkserver_preload(worker.preload_modules())
+        multiprocessing.forkserver.ensure_running()
+        self._forkserver = context
+
+        def wait_for_preload() -> None:
+            try:
+                probe = context.Process(target=worker.ready, name="drivebench-forkserver-probe")
+                probe.start()
+                probe.join(300)
+                if probe.exitcode == 0:
+                    self._forkserver_ready.set()
+                else:
+                    print(f"drivebench serve: the fork server did not start (exit {probe.exitcode}); runs start cold",
+                          file=sys.stderr)
+            except Exception as exc:
+                print(f"drivebench serve: the fork server did not start: {exc}; runs start cold", file=sys.stderr)
+
+        threading.Thread(target=wait_for_preload, daemon=True, name="drivebench-forkserver").start()
+
+    def _fork(self, data: bytes, nice: int) -> ForkedProcess:
+        """A run process forked from the fork server, the request and the two pipes handed over with it."""
+        from multiprocessing.connection import Connection
+
+        from bench.service import worker
+
+        events_r, events_w = os.pipe()
+        log_r, log_w = os.pipe()
+        events, log = Connection(events_w), Connection(log_w)
+        try:
+            process = self._forkserver.Process(target=worker.forked, args=(data, events, log, nice, os.getpid()),
+                                               name="drivebench-run")
+            process.start()
+        except BaseException:
+            os.close(events_r)
+            os.close(log_r)
+            raise
+        finally:
+            events.close()
+            log.close()
+        return ForkedProcess(process, os.fdopen(events_r, "rb"), os.fdopen(log_r, "rb"))
+
+    def _hand_over(self, request: RunRequest, simulated: bool) -> tuple[subprocess.Popen | ForkedProcess, bool]:
+        """The run's process, forked warm or started cold; (process, warm)."""
         data = encode(request)
-        while simulated and self.spares:
-            proc = self.spares.pop(0).proc
-            try:
-                proc.stdin.write(data)
-                proc.stdin.close()
-                self.spawned["warm"] += 1
-                return proc, True
-            except OSError:          # died meanwhile: reaped here, the next one is tried
-                proc.kill()
-                proc.wait(timeout=5)
-                for pipe in (proc.stdout, proc.stderr):
-                    pipe.close()
-        proc = self._start_worker(self.settings.nice if simulated else 0)
+        nice = self.settings.nice if simulated else 0
+        if self.settings.run_start == "forkserver" and self._forkserver_ready.is_set():
+            self.spawned["forked"] += 1
+            return self._fork(data, nice), True
+        proc = self._start_worker(nice)
         try:
             proc.stdin.write(data)
             proc.stdin.close()

@@ -1,18 +1,24 @@
 """A run process of the service: `python -m bench.service.worker --parent PID [--nice N]`.
 
-Started ahead of need (a warm worker, docs/service.md "Warm run processes"): it lowers its CPU priority, pays the
-imports of `drivebench run` and of the run services the installed packages register, then waits for one
-`RunRequest` on stdin (bench/service/run_protocol.py), runs it exactly as `drivebench run` would, reports on its
-stdout (the protocol's pipe: the run's own stdout is pointed at stderr, the run's service.log) and exits. One run per
-process: a crashing run takes only its own process with it. End of input before a request: exit 0 (pool shrunk).
+Two ways to start one (docs/service.md, "Warm run processes"): forked from the service's fork server, which paid
+the imports of `drivebench run` and of the run services the installed packages register once (`forked`, the
+default), or cold, as its own interpreter that pays them itself (`python -m bench.service.worker --parent PID`,
+`serve --run-start cold`). Either way it lowers its CPU priority if told, takes one `RunRequest`
+(bench/service/run_protocol.py), runs it exactly as `drivebench run` would, reports on its protocol pipe (nothing
+else writes there: the run's own stdout goes to its log, the run's service.log) and exits. One run per process: a
+crashing run takes only its own process with it.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import select
+import signal
 import sys
 import threading
+from multiprocessing.connection import Connection
+from typing import Callable
 
 from bench.service import child
 from bench.service.run_protocol import MAX_LINE_BYTES, Failed, Message, ProtocolError, RunRequest, decode, encode
@@ -57,19 +63,8 @@ def run_args(request: RunRequest) -> list[str]:
     return args
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.service.worker")
-    parser.add_argument("--parent", type=int, required=True, help="the service's pid: die with it")
-    parser.add_argument("--nice", type=int, default=0, help="added to this process's CPU niceness first")
-    opts = parser.parse_args(argv)
-    if opts.nice:
-        os.nice(opts.nice)
-    child.die_with(opts.parent)
-    send = _channel()
-    warm()
-    line = sys.stdin.buffer.readline(MAX_LINE_BYTES + 1)
-    if not line:
-        return 0
+def serve(line: bytes, send: Callable[[Message], None]) -> int:
+    """Run the request `line` carries, reporting through `send`; the exit code of `drivebench run`."""
     try:
         request = decode(line)
         if not isinstance(request, RunRequest):
@@ -88,6 +83,81 @@ def main(argv: list[str] | None = None) -> int:
     if not child.finished:
         send(Failed(reason=f"drivebench run made no record (exit {code})", exit_code=code))
     return code
+
+
+def main(argv: list[str] | None = None) -> int:
+    """A cold run process (`serve --run-start cold`): started for its run, pays its imports, then runs it."""
+    parser = argparse.ArgumentParser(prog="python -m bench.service.worker")
+    parser.add_argument("--parent", type=int, required=True, help="the service's pid: die with it")
+    parser.add_argument("--nice", type=int, default=0, help="added to this process's CPU niceness first")
+    opts = parser.parse_args(argv)
+    if opts.nice:
+        os.nice(opts.nice)
+    child.die_with(opts.parent)
+    send = _channel()
+    warm()
+    line = sys.stdin.buffer.readline(MAX_LINE_BYTES + 1)
+    if not line:
+        return 0
+    return serve(line, send)
+
+
+def _follow(service_pid: int) -> None:
+    """SIGTERM (the run's safe stop) to this process when the service ends, however it ends: the fork server is
+    this process's parent, so the parent-death signal alone would wait for the fork server."""
+    from multiprocessing import forkserver
+
+    server = forkserver._forkserver     # every forked child holds the server's "alive" pipe: let it go, so that the
+    if server._forkserver_alive_fd is not None:     # fork server leaves with the service, not with the last run
+        os.close(server._forkserver_alive_fd)
+        server._forkserver_alive_fd = None
+    child.die_with(os.getppid())
+    try:
+        watched = os.pidfd_open(service_pid)
+    except ProcessLookupError:
+        os.kill(os.getpid(), signal.SIGTERM)
+        return
+
+    def wait() -> None:
+        select.select([watched], [], [])
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=wait, daemon=True, name="drivebench-follow-service").start()
+
+
+def forked(line: bytes, events: "Connection", log: "Connection", nice: int, service_pid: int) -> None:
+    """A warm run process: forked by the service's fork server (multiprocessing, preloaded with `preload_modules`),
+    with the protocol pipe `events` and the log pipe `log` handed over by descriptor."""
+    if nice:
+        os.nice(nice)
+    _follow(service_pid)
+    os.dup2(log.fileno(), 1)
+    os.dup2(log.fileno(), 2)
+    log.close()
+    stream = os.fdopen(os.dup(events.fileno()), "wb", buffering=0)
+    events.close()
+    lock = threading.Lock()
+
+    def send(message: Message) -> None:
+        with lock:
+            try:
+                stream.write(encode(message))
+            except OSError:
+                pass
+
+    sys.exit(serve(line, send))
+
+
+def ready() -> None:
+    """Forked once at the service's start: returns when the fork server has imported everything."""
+
+
+def preload_modules() -> list[str]:
+    """What the fork server imports once for every run it forks (as `warm` does for a cold run process)."""
+    from importlib.metadata import entry_points
+
+    return ["bench.cli", "bench.orchestrator", "bench.service.worker",
+            *sorted({entry.module for entry in entry_points(group="drivebench.services")})]
 
 
 if __name__ == "__main__":
