@@ -24,7 +24,7 @@ from bench.service import child
 from bench.service.run_protocol import MAX_LINE_BYTES, Failed, Message, ProtocolError, RunRequest, decode, encode
 
 
-def _channel() -> "callable":
+def _channel() -> Callable[[Message], None]:
     """The protocol pipe (the original stdout), and stdout pointed at stderr for everything else."""
     events = os.fdopen(os.dup(1), "wb", buffering=0)
     os.dup2(2, 1)
@@ -125,7 +125,7 @@ def _follow(service_pid: int) -> None:
     threading.Thread(target=wait, daemon=True, name="drivebench-follow-service").start()
 
 
-def forked(line: bytes, events: "Connection", log: "Connection", nice: int, service_pid: int) -> None:
+def forked(line: bytes, events: Connection, log: Connection, nice: int, service_pid: int) -> None:
     """A warm run process: forked by the service's fork server (multiprocessing, preloaded with `preload_modules`),
     with the protocol pipe `events` and the log pipe `log` handed over by descriptor."""
     if nice:
