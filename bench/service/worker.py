@@ -128,6 +128,7 @@ def _follow(service_pid: int) -> None:
 def forked(line: bytes, events: Connection, log: Connection, nice: int, service_pid: int) -> None:
     """A warm run process: forked by the service's fork server (multiprocessing, preloaded with `preload_modules`),
     with the protocol pipe `events` and the log pipe `log` handed over by descriptor."""
+    os.setsid()             # as a cold run process: a Ctrl-C at the service's terminal is the service's to handle
     if nice:
         os.nice(nice)
     _follow(service_pid)
