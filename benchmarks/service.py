@@ -2,12 +2,15 @@
 simulated rigs of one `drivebench serve`, while a poller measures API latency; then submit-to-start on an idle rig
 and how soon a rig is free after its lease holder is SIGKILLed (a CI job holding a real rig, a run process).
 
-Baseline from the same run: each suite scenario once through `drivebench run` directly, one after the other; the
-ideal makespan is their sum times REPEAT divided by the parallel run processes, and the service's makespan is
-printed as a ratio of it.
-Last line: `RESULT runs=... lost=... stuck=... runs_per_min=... api_p99_ms=... submit_to_start_ms=...
-lease_free_s=...`.
-Usage: python benchmarks/service.py [--repeat 1] [--full (= --repeat 10: 100 runs)] [--parallel 2] [--ttl 2]
+Baselines from the same run: the same submissions to a service whose every run starts a cold process
+(`serve --run-start cold`, as before warm run processes), printed as the ratio warm/cold; `benchmarks/campaign.py --no-ray`
+(the campaign figure, runs/min with two local workers); with --serial, each suite scenario once through
+`drivebench run` directly, one after the other (the ideal makespan: their sum times REPEAT divided by the parallel
+run processes). The machine's load average is printed with each figure (other work on the host moves them).
+Last line: `RESULT runs=... lost=... stuck=... runs_per_min=... cold_runs_per_min=... warm_vs_cold=...
+campaign_runs_per_min=... api_p99_ms=... submit_to_start_ms=... lease_free_s=... load=...`.
+Usage: python benchmarks/service.py [--repeat 1] [--full (= --repeat 10: 200 runs)] [--parallel 2] [--ttl 2]
+                                    [--no-cold] [--no-campaign] [--serial]
 """
 
 from __future__ import annotations
@@ -54,7 +57,12 @@ def baseline(scenarios: list[Path], out: Path) -> dict[str, float]:
     return walls
 
 
-def start_service(work: Path, port: int, parallel: int, ttl: float) -> tuple[subprocess.Popen, dict[str, str]]:
+def load_average() -> str:
+    return "/".join(f"{x:.1f}" for x in os.getloadavg())
+
+
+def start_service(work: Path, port: int, parallel: int, ttl: float,
+                  run_start: str = "forkserver") -> tuple[subprocess.Popen, dict[str, str]]:
     (work / "rigs.toml").write_text(rigs_toml())
     tokens = {}
     for role in ("operator", "viewer", "admin"):
@@ -65,7 +73,7 @@ def start_service(work: Path, port: int, parallel: int, ttl: float) -> tuple[sub
     log = open(work / "serve.log", "ab")
     proc = subprocess.Popen([sys.executable, "-m", "bench", "serve", "--data", str(work / "data"), "--port", str(port),
                              "--rigs", str(work / "rigs.toml"), "--max-parallel", str(parallel), "--lease-ttl",
-                             str(ttl)], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+                             str(ttl), "--run-start", run_start], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     client = Client(f"http://127.0.0.1:{port}", tokens["viewer"], timeout_s=5)
     deadline = time.monotonic() + 60
     while True:
@@ -109,25 +117,14 @@ def p99(values: list[float]) -> float:
     return statistics.quantiles(values, n=100)[98] if len(values) >= 100 else max(values, default=float("nan"))
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeat", type=int, default=1, help="suite submissions (10 = the issue's 100 runs)")
-    parser.add_argument("--full", action="store_true", help="--repeat 10")
-    parser.add_argument("--parallel", type=int, default=os.cpu_count() or 2, help="run processes at once")
-    parser.add_argument("--ttl", type=float, default=2.0, help="lease TTL of the service [s]")
-    parser.add_argument("--port", type=int, default=8790)
-    parser.add_argument("--no-baseline", action="store_true")
-    args = parser.parse_args()
-    repeat = 10 if args.full else args.repeat
-    scenarios = suite()
-    work = Path(tempfile.mkdtemp(prefix="drivebench-service-bench-"))
-    print(f"{len(scenarios)} suite scenarios x {repeat} = {len(scenarios) * repeat} runs, {args.parallel} run "
-          f"processes at once, four simulated rigs; work dir {work}")
-    walls = {} if args.no_baseline else baseline(scenarios, work / "baseline")
-
-    server, tokens = start_service(work, args.port, args.parallel, args.ttl)
-    url = f"http://127.0.0.1:{args.port}"
+def throughput(work: Path, port: int, parallel: int, ttl: float, repeat: int, scenarios: list[Path],
+               run_start: str) -> dict:
+    """The suite submitted `repeat` times to a fresh service; runs/min, API latency while they ran, lost and stuck."""
+    work.mkdir(parents=True, exist_ok=True)
+    server, tokens = start_service(work, port, parallel, ttl, run_start)
+    url = f"http://127.0.0.1:{port}"
     operator, viewer = Client(url, tokens["operator"]), Client(url, tokens["viewer"], timeout_s=5)
+    watcher = Client(url, tokens["viewer"], timeout_s=60)      # the completion poll: not a latency probe
     poller = Poller(viewer)
     try:
         poller.start()
@@ -141,7 +138,7 @@ def main() -> int:
         timeout = 600 + 120 * len(ids)
         runs = {}
         while time.monotonic() - t0 < timeout:
-            listed = viewer.request("GET", "/api/runs?limit=1000")
+            listed = watcher.request("GET", "/api/runs?limit=1000")
             runs = {r["id"]: r for r in listed if r["id"] in ids}
             if len(runs) == len(ids) and all(r["state"] in FINAL for r in runs.values()):
                 break
@@ -149,24 +146,80 @@ def main() -> int:
         makespan = time.monotonic() - t0
         poller.stop.set()
         poller.join(timeout=10)
-        lost = len(set(ids) - set(runs))
-        stuck = sum(r["state"] not in FINAL for r in runs.values())
-        states = {}
-        for r in runs.values():
-            states[r["state"]] = states.get(r["state"], 0) + 1
-        finished = len(runs) - stuck
-        runs_per_min = finished / (makespan / 60)
-        print(f"submitted {len(ids)} runs in {submitted:.2f} s; all final after {makespan:.1f} s: {states}; "
-              f"{runs_per_min:.2f} runs/min")
-        api_p99 = p99(poller.latencies_ms)
-        print("  slowest: " + ", ".join(f"{ms:.0f} ms {path} at +{at - t0:.1f} s" for ms, path, at in poller.slowest))
-        print(f"API under load: {len(poller.latencies_ms)} requests, median "
-              f"{statistics.median(poller.latencies_ms):.1f} ms, p99 {api_p99:.1f} ms, {poller.errors} errors")
-        if walls:
-            ideal = sum(walls.values()) * repeat / args.parallel
-            print(f"baseline: the suite through drivebench run directly, {sum(walls.values()):.1f} s serial; "
-                  f"ideal makespan {ideal:.1f} s on {args.parallel} processes; service/ideal = {makespan / ideal:.2f}")
+    finally:
+        server.send_signal(signal.SIGTERM)
+        try:
+            server.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            server.kill()
+    lost = len(set(ids) - set(runs))
+    stuck = sum(r["state"] not in FINAL for r in runs.values())
+    states: dict[str, int] = {}
+    for r in runs.values():
+        states[r["state"]] = states.get(r["state"], 0) + 1
+    runs_per_min = (len(runs) - stuck) / (makespan / 60)
+    api_p99 = p99(poller.latencies_ms)
+    kind = "cold (--run-start cold)" if run_start == "cold" else "warm (forked from the fork server)"
+    print(f"{kind}: submitted {len(ids)} runs in {submitted:.2f} s; all final after {makespan:.1f} s: {states}; "
+          f"{runs_per_min:.2f} runs/min (load {load_average()})")
+    print("  slowest: " + ", ".join(f"{ms:.0f} ms {path} at +{at - t0:.1f} s" for ms, path, at in poller.slowest))
+    print(f"  API under load: {len(poller.latencies_ms)} requests, median "
+          f"{statistics.median(poller.latencies_ms):.1f} ms, p99 {api_p99:.1f} ms, {poller.errors} errors")
+    return {"runs": len(ids), "lost": lost, "stuck": stuck, "runs_per_min": runs_per_min, "api_p99": api_p99,
+            "makespan": makespan}
 
+
+def campaign_figure(scenario: str | None) -> float:
+    """runs/min of benchmarks/campaign.py (two local workers), run here as a separate process."""
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "campaign.py"), "--no-ray",
+                           *(["--scenario", scenario] if scenario else [])], cwd=ROOT,
+                          capture_output=True, text=True, timeout=1800)
+    line = next((l for l in done.stdout.splitlines() if l.startswith("RESULT ")), "")
+    fields = dict(kv.split("=", 1) for kv in line.split()[1:])
+    return float(fields.get("runs_per_min", "nan"))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeat", type=int, default=1, help="suite submissions (10 = 200 runs)")
+    parser.add_argument("--full", action="store_true", help="--repeat 10")
+    parser.add_argument("--parallel", type=int, default=os.cpu_count() or 2, help="run processes at once")
+    parser.add_argument("--ttl", type=float, default=2.0, help="lease TTL of the service [s]")
+    parser.add_argument("--port", type=int, default=8790)
+    parser.add_argument("--no-cold", action="store_true", help="skip the cold-start service baseline")
+    parser.add_argument("--no-campaign", action="store_true", help="skip benchmarks/campaign.py")
+    parser.add_argument("--serial", action="store_true", help="also each scenario through drivebench run directly")
+    parser.add_argument("--scenario", help="submit this one scenario --repeat times instead of the suite (the "
+                                           "campaign benchmark's is scenarios/pmsm/fig08-20rads-rs-step.toml)")
+    args = parser.parse_args()
+    repeat = 10 if args.full else args.repeat
+    scenarios = [(ROOT / args.scenario).resolve()] if args.scenario else suite()
+    work = Path(tempfile.mkdtemp(prefix="drivebench-service-bench-"))
+    print(f"{len(scenarios)} scenario(s) x {repeat} = {len(scenarios) * repeat} runs, {args.parallel} run "
+          f"processes at once, four simulated rigs; work dir {work}; load {load_average()}")
+    walls = baseline(scenarios, work / "baseline") if args.serial else {}
+    campaign = float("nan") if args.no_campaign else campaign_figure(args.scenario)
+    if not args.no_campaign:
+        print(f"campaign: benchmarks/campaign.py --no-ray: {campaign:.1f} runs/min (load {load_average()})")
+    cold = None if args.no_cold else throughput(work / "cold", args.port + 1, args.parallel, args.ttl, repeat,
+                                                 scenarios, "cold")
+    (work / "warm").mkdir(exist_ok=True)
+    warm = throughput(work / "warm", args.port, args.parallel, args.ttl, repeat, scenarios, "forkserver")
+    if cold:
+        print(f"warm/cold: {warm['runs_per_min'] / cold['runs_per_min']:.2f}x runs/min; warm/campaign: "
+              f"{warm['runs_per_min'] / campaign:.2f}")
+    if walls:
+        ideal = sum(walls.values()) * repeat / args.parallel
+        print(f"serial: the suite through drivebench run directly, {sum(walls.values()):.1f} s; ideal makespan "
+              f"{ideal:.1f} s on {args.parallel} processes; service/ideal = {warm['makespan'] / ideal:.2f}")
+    lost, stuck, runs_per_min, api_p99 = warm["lost"], warm["stuck"], warm["runs_per_min"], warm["api_p99"]
+    if cold:
+        lost, stuck = lost + cold["lost"], stuck + cold["stuck"]
+
+    server, tokens = start_service(work / "warm", args.port, args.parallel, args.ttl)
+    url = f"http://127.0.0.1:{args.port}"
+    operator, viewer = Client(url, tokens["operator"]), Client(url, tokens["viewer"], timeout_s=5)
+    try:
         # submit-to-start on an idle rig (server-side times: submitted_utc -> started_utc)
         import datetime as dt
 
@@ -219,9 +272,14 @@ while True:
             server.wait(timeout=60)
         except subprocess.TimeoutExpired:
             server.kill()
-    print(f"RESULT runs={len(ids)} lost={lost} stuck={stuck} runs_per_min={runs_per_min:.2f} "
-          f"api_p99_ms={api_p99:.1f} submit_to_start_ms={submit_to_start:.0f} lease_free_s={lease_free:.2f}")
-    ok = lost == 0 and stuck == 0 and api_p99 <= 50 and submit_to_start <= 1000 and lease_free <= args.ttl + 1
+    cold_rpm = cold["runs_per_min"] if cold else float("nan")
+    print(f"RESULT runs={warm['runs'] + (cold['runs'] if cold else 0)} lost={lost} stuck={stuck} "
+          f"runs_per_min={runs_per_min:.2f} cold_runs_per_min={cold_rpm:.2f} "
+          f"warm_vs_cold={runs_per_min / cold_rpm:.2f} campaign_runs_per_min={campaign:.1f} "
+          f"api_p99_ms={api_p99:.1f} submit_to_start_ms={submit_to_start:.0f} lease_free_s={lease_free:.2f} "
+          f"load={load_average()}")
+    ok = (lost == 0 and stuck == 0 and runs_per_min >= 100 and api_p99 <= 25 and submit_to_start <= 1000
+          and lease_free <= args.ttl + 1)
     return 0 if ok else 1
 
 

@@ -49,6 +49,16 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
+def cpu_s(pid: int) -> float:
+    """User + system CPU time of the process and its threads [s] (its run processes are not counted)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def load_average() -> str:
+    return "/".join(f"{x:.1f}" for x in os.getloadavg())
+
+
 def timed(client: Client, path: str) -> float:
     t0 = time.perf_counter()
     client.request("GET", path)
@@ -81,7 +91,9 @@ def start(work: Path, port: int) -> tuple[subprocess.Popen, dict[str, str]]:
             time.sleep(0.2)
 
 
-def _client_process(url: str, token: str, k: int, gate, out) -> None:
+def _client_process(url: str, token: str, k: int, gate, out, nice: int) -> None:
+    if nice:
+        os.nice(nice)      # --client-nice: the clients stand back as remote ones would (they share the 2 cores here)
     c = Client(url, token, timeout_s=10)
     latencies, errors = [], 0
     gate.wait()
@@ -93,13 +105,13 @@ def _client_process(url: str, token: str, k: int, gate, out) -> None:
     out.put((latencies, errors))
 
 
-def load(url: str, token: str) -> tuple[list[float], int]:
+def load(url: str, token: str, nice: int = 0) -> tuple[list[float], int]:
     """CLIENTS client processes (a lab's browsers and CI jobs are not threads of one Python process: 50 threads
     sharing one interpreter lock measured the client as much as the service), all released at once."""
     import multiprocessing as mp
 
     gate, out = mp.Barrier(CLIENTS), mp.Queue()
-    procs = [mp.Process(target=_client_process, args=(url, token, k, gate, out)) for k in range(CLIENTS)]
+    procs = [mp.Process(target=_client_process, args=(url, token, k, gate, out, nice)) for k in range(CLIENTS)]
     for p in procs:
         p.start()
     latencies: list[float] = []
@@ -169,6 +181,8 @@ def big_body(port: int, token: str, size: int = 100 * 1024 * 1024) -> int:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--port", type=int, default=8791)
+    parser.add_argument("--client-nice", type=int, default=0,
+                        help="the 50 client processes' niceness (19: as if they ran elsewhere; default 0: as before)")
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="drivebench-service-abuse-"))
     url = f"http://127.0.0.1:{args.port}"
@@ -187,13 +201,16 @@ def main() -> int:
         print(f"baseline (one client, two runs running): median {statistics.median(base):.1f} ms, "
               f"p99 {base_p99:.1f} ms")
 
-        latencies, errors = load(url, tokens["viewer"])
+        cpu0 = cpu_s(proc.pid)
+        latencies, errors = load(url, tokens["viewer"], args.client_nice)
+        cpu_ms = (cpu_s(proc.pid) - cpu0) * 1000 / max(1, len(latencies))
         api_p99 = p99(latencies)
         rss = rss_mb(proc.pid)
         running = sum(r["state"] == "running" for r in viewer.request("GET", "/api/runs?state=running"))
-        print(f"{CLIENTS} clients x {REQUESTS} requests: {len(latencies)} answered, {errors} errors, median "
+        print(f"{CLIENTS} clients (nice {args.client_nice}) x {REQUESTS} requests: {len(latencies)} answered, {errors} errors, median "
               f"{statistics.median(latencies):.1f} ms, p99 {api_p99:.1f} ms (x{api_p99 / base_p99:.2f} baseline), "
-              f"max {max(latencies):.0f} ms; service RSS {rss:.0f} MB; runs running at the end: {running}")
+              f"max {max(latencies):.0f} ms; service RSS {rss:.0f} MB; service CPU {cpu_ms:.2f} ms per request "
+              f"(its runner and readers included); runs running at the end: {running}; load {load_average()}")
 
         health_max, statuses = plots_and_health(args.port, url, tokens["viewer"])
         print(f"100 concurrent trend.png (100 different plots): statuses {statuses}; /api/health slowest "
@@ -241,7 +258,7 @@ def main() -> int:
     log_lines = (work / "serve.log").read_text(errors="replace").count("\n")
     print(f"service log: {log_lines} lines ({work / 'serve.log'})")
     print(f"RESULT api_p99_ms={api_p99:.1f} api_p99_ratio={api_p99 / base_p99:.2f} api_errors={errors} "
-          f"rss_mb={rss:.0f} health_under_plots_max_ms={health_max:.0f} "
+          f"rss_mb={rss:.0f} client_nice={args.client_nice} cpu_ms_per_request={cpu_ms:.2f} load={load_average()} health_under_plots_max_ms={health_max:.0f} "
           f"body_rss_growth_mb={rss_after - rss_before:.1f} idle_health_ms={idle_ms:.0f} idle_ok={idle_ok} "
           f"log_lines={log_lines}")
     return 0 if errors == 0 and api_p99 <= 50 and idle_ok and rss_after - rss_before < 20 else 1

@@ -22,7 +22,7 @@ from tests.service_fixtures import (SHORT, free_port, make_settings, make_tokens
 
 CHROMIUM = next((p for p in (os.environ.get("DRIVEBENCH_CHROMIUM"), shutil.which("chromium"),
                              shutil.which("chromium-browser"), shutil.which("google-chrome")) if p), None)
-LIVE = "live.toml"            # five minutes of drive time: watched while it runs, then aborted
+LIVE = "live.toml"            # fifty minutes of drive time: watched while it runs, then aborted
 SCREENSHOTS = Path(os.environ.get("DRIVEBENCH_SCREENSHOTS", "/tmp"))
 
 

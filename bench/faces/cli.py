@@ -159,15 +159,13 @@ def run(scenarios, bench_path, rerun_mode, rerun_url, out_root, seed, as_json) -
         rerun_url = scenarios.pop(0)
     if not scenarios:
         raise click.UsageError("no SCENARIO given")
-    from bench.service.child import apply_service_settings
-    apply_service_settings()
     sys.exit(run_many(scenarios, bench_path, out_root, seed, rerun_mode, rerun_url, as_json))
 
 
 def run_many(scenarios, bench_path, out_root, seed, rerun_mode, rerun_url, as_json) -> int:
     from bench.run.orchestrator import run_scenario
     from bench.inputs.prepared import prepare_run
-    from bench.service.child import trip_reporter
+    from bench.service.child import result_reporter, trip_reporter
 
     problems: list[str] = []
     prepared = []
@@ -198,6 +196,8 @@ def run_many(scenarios, bench_path, out_root, seed, rerun_mode, rerun_url, as_js
             verdicts.append("error")
             continue
         verdicts.append(result.verdict)
+        if (report := result_reporter()) is not None:     # a run started by `drivebench serve`
+            report(result.run_dir, result.verdict, result.record)
         if as_json:
             click.echo(json.dumps(result.record, default=str))
         print_record(out, result.record, result.run_dir)

@@ -10,10 +10,11 @@ bench config states an external stop chain is run and shown as unverified comm-l
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from datetime import datetime, timezone
-from typing import Any
+from typing import Any, Iterable
 
 from drivers.contract.errors import LinkError
 from drivers.contract.comm_loss import EXTERNAL_HINT
@@ -100,15 +101,20 @@ def unverified(summary: dict[str, Any] | None) -> str | None:
 
 DRILL_SETTINGS = ("comm_loss", "external_stop", "consumer_time_ms", "abort_option", "error_behaviour", "bench_node_id",
                   "drill_margin_ms", "map", "unit_id", "node_id", "transport")
-_PROVED: dict[tuple, tuple[float, str, dict[str, Any]]] = {}     # key -> (monotonic, utc, summary) of a passed drill
+_PROVED: dict[str, tuple[float, str, dict[str, Any]]] = {}   # key -> (monotonic, utc, summary) of a passed drill
+
+
+def _key(key: tuple) -> str:
+    return json.dumps(key, default=str)
 
 
 def proved_recently(key: tuple, valid_s: float) -> dict[str, Any] | None:
     """A drill of this drive and load machine (same bench config, identity and comm-loss settings) that passed in
-    this process less than `valid_s` ago ([bench] drill_valid_s; 0: never), as a record section saying so."""
-    if valid_s <= 0 or key not in _PROVED:
+    this process (or was handed to it by the service that started it, `adopt_proofs`) less than `valid_s` ago
+    ([bench] drill_valid_s; 0: never), as a record section saying so."""
+    if valid_s <= 0 or _key(key) not in _PROVED:
         return None
-    at, utc, summary = _PROVED[key]
+    at, utc, summary = _PROVED[_key(key)]
     age = time.monotonic() - at
     if age >= valid_s:
         return None
@@ -117,7 +123,28 @@ def proved_recently(key: tuple, valid_s: float) -> dict[str, Any] | None:
 
 def remember(key: tuple, summary: dict[str, Any]) -> None:
     if summary.get("verified") and refusal(summary) is None:
-        _PROVED[key] = (time.monotonic(), datetime.now(timezone.utc).isoformat(timespec="milliseconds"), summary)
+        _PROVED[_key(key)] = (time.monotonic(), datetime.now(timezone.utc).isoformat(timespec="milliseconds"), summary)
+
+
+def export_proofs() -> list[dict[str, Any]]:
+    """The passed drills of this process, for the service to hand to its next run processes (one bench process in
+    the sense of drill_valid_s: the service's run processes on this machine; CLOCK_MONOTONIC is machine-wide)."""
+    return [{"key": key, "monotonic_s": at, "drilled_utc": utc, "summary": summary}
+            for key, (at, utc, summary) in _PROVED.items()]
+
+
+def adopt_proofs(proofs: Iterable[dict[str, Any]]) -> None:
+    """Proofs from `export_proofs` of an earlier run process; a failed or refused drill is never adopted, and each
+    still holds only while drill_valid_s of its own drill time has not passed."""
+    for proof in proofs:
+        try:
+            key, at, utc, summary = proof["key"], float(proof["monotonic_s"]), str(proof["drilled_utc"]), proof["summary"]
+        except (KeyError, TypeError, ValueError):
+            continue
+        if (isinstance(key, str) and isinstance(summary, dict) and summary.get("verified")
+                and refusal(summary) is None and at <= time.monotonic()):
+            if key not in _PROVED or _PROVED[key][0] < at:
+                _PROVED[key] = (at, utc, summary)
 
 
 def timings(summary: dict[str, Any] | None) -> str | None:

@@ -1,38 +1,49 @@
-"""What a run process started by the service does for it (stdlib only: imported by `drivebench run`).
+"""What `drivebench run` reports to the service that started it (stdlib only: imported by `drivebench run`).
 
-DRIVEBENCH_PARENT_PID: die with the service. Linux delivers SIGTERM when the service goes (also by SIGKILL), and
-SIGTERM is the run's one safe-stop path, so an orphaned run stops the drive and closes its record.
-DRIVEBENCH_PROGRESS=jsonl: progress as `{"progress_s": t, "duration_s": T}` lines on stderr, and each trip as it
-happens as `{"trip": {"reason", "t_s", "message", ...}}`.
+A run process of the service (bench/service/worker.py) attaches its event channel here; `drivebench run` asks for
+reporters, which are None when no service started the run (a plain `drivebench run` reports nothing).
+The messages are those of bench/service/run_protocol.py.
 """
 
 from __future__ import annotations
 
 import ctypes
-import json
 import os
 import signal
 import sys
 import time
-from typing import Callable
+from pathlib import Path
+from typing import Any, Callable
+
+from bench.service.run_protocol import Finished, Message, Progress, Trip
 
 PR_SET_PDEATHSIG = 1
 PROGRESS_MIN_INTERVAL_S = 0.25
 
+_send: Callable[[Message], None] | None = None
+finished = False          # a Finished message was sent
 
-def apply_service_settings() -> None:
-    parent = os.environ.get("DRIVEBENCH_PARENT_PID")
-    if parent and sys.platform.startswith("linux"):
+
+def attach(send: Callable[[Message], None] | None) -> None:
+    global _send, finished
+    _send, finished = send, False
+
+
+def die_with(parent_pid: int) -> None:
+    """Linux delivers SIGTERM when the service goes (also by SIGKILL), and SIGTERM is the run's one safe-stop path,
+    so an orphaned run stops the drive and closes its record."""
+    if sys.platform.startswith("linux"):
         try:
             ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
         except (OSError, AttributeError):
             pass
-        if os.getppid() != int(parent):     # the service died before prctl took effect
-            os.kill(os.getpid(), signal.SIGTERM)
+    if os.getppid() != parent_pid:      # the service died before prctl took effect
+        os.kill(os.getpid(), signal.SIGTERM)
 
 
 def progress_reporter() -> Callable[[float, float], None] | None:
-    if os.environ.get("DRIVEBENCH_PROGRESS") != "jsonl":
+    send = _send
+    if send is None:
         return None
     last = [0.0]
 
@@ -40,16 +51,36 @@ def progress_reporter() -> Callable[[float, float], None] | None:
         wall = time.monotonic()
         if wall - last[0] >= PROGRESS_MIN_INTERVAL_S or t_s >= total:
             last[0] = wall
-            print(json.dumps({"progress_s": round(t_s, 3), "duration_s": total}), file=sys.stderr, flush=True)
+            send(Progress(t_s=round(float(t_s), 3), duration_s=float(total)))
 
     return report
 
 
 def trip_reporter() -> Callable[[dict], None] | None:
-    if os.environ.get("DRIVEBENCH_PROGRESS") != "jsonl":
+    send = _send
+    if send is None:
         return None
 
     def report(trip: dict) -> None:
-        print(json.dumps({"trip": trip}), file=sys.stderr, flush=True)
+        t_s = trip.get("t_s")
+        send(Trip(reason=str(trip.get("reason")), t_s=float(t_s) if isinstance(t_s, (int, float)) else None,
+                  message=str(trip.get("message", ""))))
+
+    return report
+
+
+def result_reporter() -> Callable[[Path, str, dict[str, Any]], None] | None:
+    send = _send
+    if send is None:
+        return None
+
+    def report(run_dir: Path, verdict: str, record: dict[str, Any]) -> None:
+        global finished
+        from bench.run.drill import export_proofs
+
+        reason = record.get("abort_reason")
+        send(Finished(run_dir=str(run_dir), record_path=str(Path(run_dir) / "record.json"), verdict=str(verdict),
+                      abort_reason=str(reason) if reason else None, drill_proofs=tuple(export_proofs())))
+        finished = True
 
     return report

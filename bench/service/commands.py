@@ -70,6 +70,8 @@ def _open_db(db_url: str | None, data_dir: str):
 @click.option("--lease-ttl", "lease_ttl_s", type=float, default=10.0, show_default=True,
               help="Seconds a run's lease lives unless the service extends it.")
 @click.option("--max-parallel", type=int, help="Run processes at once on this host [default: CPU count].")
+@click.option("--run-start", type=click.Choice(["forkserver", "cold"]), default="forkserver", show_default=True,
+              help="Run processes forked from a preloaded fork server (imports paid once), or each a new interpreter.")
 @click.option("--live/--no-live", default=False, show_default=True,
               help="Runs write their run.rrd every 0.5 s, so the run page's embedded Rerun viewer follows them "
                    "closely (without: every 5 s). The viewer is served on this address behind the token either way.")
@@ -80,7 +82,7 @@ def _open_db(db_url: str | None, data_dir: str):
 @click.option("--ssl-certfile", type=click.Path(exists=True, dir_okay=False, readable=True),
               help="TLS certificate chain (uvicorn).")
 @click.option("--host-id", help="Names this instance's runs when several share a database [default: host name].")
-def serve(db_url, data_dir, host, port, rigs_path, scenario_root, lease_ttl_s, max_parallel, live, live_grpc_port,
+def serve(db_url, data_dir, host, port, rigs_path, scenario_root, lease_ttl_s, max_parallel, run_start, live, live_grpc_port,
           live_web_port, ssl_keyfile, ssl_certfile, host_id) -> None:
     """The bench service: HTTP API (OpenAPI at /openapi.json), run queue, leased rigs, web UI on HOST:PORT."""
     try:
@@ -96,7 +98,7 @@ def serve(db_url, data_dir, host, port, rigs_path, scenario_root, lease_ttl_s, m
         _bad(problems)
     settings = ServiceSettings(data_dir=Path(data_dir), db_url=db_url, rigs_path=Path(rigs_path) if rigs_path else None,
                                scenario_root=Path(scenario_root) if scenario_root else None, lease_ttl_s=lease_ttl_s,
-                               max_parallel=max_parallel, host_id=host_id)
+                               max_parallel=max_parallel, run_start=run_start, host_id=host_id)
     if live_grpc_port is not None or live_web_port is not None:
         click.echo("drivebench serve: --live-grpc-port/--live-web-port are ignored: the live view is served on "
                    "--host/--port behind the token (docs/service.md, Live view)", err=True)

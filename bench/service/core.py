@@ -56,6 +56,7 @@ class ServiceSettings:
     scenario_root: Path | None = None
     lease_ttl_s: float = 10.0
     max_parallel: int | None = None
+    run_start: str = "forkserver"       # run processes forked warm from a preloaded server, or "cold"
     host_id: str | None = None
     run_queue: bool = True              # False: API only (tests of the API without run processes)
     live: bool = False                  # `serve --live`: runs write their run.rrd at the live view's cadence
@@ -64,6 +65,8 @@ class ServiceSettings:
     def resolved(self) -> "ServiceSettings":
         problems = serve_option_problems(lease_ttl_s=self.lease_ttl_s, max_parallel=self.max_parallel,
                                          host_id=self.host_id)
+        if self.run_start not in ("forkserver", "cold"):
+            problems.append(f"serve: --run-start: must be forkserver or cold, got {self.run_start!r}")
         if problems:
             raise InputError(problems)
         root = find_repo_root()
@@ -85,7 +88,8 @@ class Service:
         self.tokens = TokenCache(self.db)
         self.events = EventHub()
         self.sync_rigs()
-        runner_settings = RunnerSettings(data_dir=self.settings.data_dir, lease_ttl_s=self.settings.lease_ttl_s)
+        runner_settings = RunnerSettings(data_dir=self.settings.data_dir, lease_ttl_s=self.settings.lease_ttl_s,
+                                         run_start=self.settings.run_start)
         if self.settings.max_parallel:
             runner_settings.max_parallel = self.settings.max_parallel
         if self.settings.host_id:

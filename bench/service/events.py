@@ -32,9 +32,11 @@ class EventHub:
         with self._lock:
             self._subscribers.discard(queue)
 
-    def publish(self, event: dict) -> None:
-        """Thread-safe; a no-op before the loop is bound or after it closed."""
-        self.changed()
+    def publish(self, event: dict, changed: bool = True) -> None:
+        """Thread-safe; a no-op before the loop is bound or after it closed. changed=False: the event tells
+        subscribers something the database does not hold yet (a progress tick), so cached reads stay valid."""
+        if changed:
+            self.changed()
         loop = self._loop
         if loop is None or loop.is_closed():
             return

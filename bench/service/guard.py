@@ -81,8 +81,11 @@ class BodyLimitMiddleware:
 
 class ReadCache:
     """GET answers of the viewer-level JSON API (rigs, runs, leases, trend) kept for READ_CACHE_S unless something
-    changed meanwhile (a run event, any API or form write): fifty clients reading the same lists cost one database
-    read, not fifty (1.5-1.8 ms of CPU each). It sits inside the auth middleware: only a valid token gets an answer."""
+    changed meanwhile (a run's state or its progress written to the database, any API or form write): fifty clients
+    reading the same lists cost one database read, not fifty (1.5-1.8 ms of CPU each). A read already under way for
+    the same URL and generation is waited for, not repeated (after a change, fifty misses at once queued fifty
+    database reads on the worker threads: the p99 of benchmarks/service_abuse.py). It sits inside the auth
+    middleware: only a valid token gets an answer."""
 
     PREFIXES = ("/api/rigs", "/api/runs", "/api/leases", "/api/trend")
 
@@ -90,11 +93,17 @@ class ReadCache:
         self.app = app
         self.generation = generation          # () -> int; changes invalidate
         self._answers: dict[str, tuple[float, int, int, list, bytes]] = {}
+        self._reading: dict[tuple[str, int], asyncio.Future] = {}
 
     def _cacheable(self, scope) -> bool:
         path = scope["path"]
         return (scope["method"] == "GET" and path.startswith(self.PREFIXES) and "/files/" not in path
                 and not path.endswith("/lease"))
+
+    @staticmethod
+    async def _send_answer(send, answer: tuple[int, list, bytes]) -> None:
+        await send({"type": "http.response.start", "status": answer[0], "headers": answer[1]})
+        await send({"type": "http.response.body", "body": answer[2]})
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
@@ -109,8 +118,14 @@ class ReadCache:
         now, generation = time.monotonic(), self.generation()
         hit = self._answers.get(key)
         if hit is not None and now - hit[0] < READ_CACHE_S and hit[1] == generation:
-            await send({"type": "http.response.start", "status": hit[2], "headers": hit[3]})
-            return await send({"type": "http.response.body", "body": hit[4]})
+            return await self._send_answer(send, hit[2:])
+        reading = self._reading.get((key, generation))
+        if reading is not None:
+            answer = await asyncio.shield(reading)
+            if answer is not None:
+                return await self._send_answer(send, answer)
+        future = asyncio.get_running_loop().create_future()
+        self._reading[(key, generation)] = future
         start: dict = {}
         chunks: list[bytes] = []
         whole = True
@@ -124,11 +139,17 @@ class ReadCache:
                 whole = whole and not message.get("more_body", False)
             await send(message)
 
-        await self.app(scope, receive, capture)
-        if start.get("status") == 200 and whole and len(chunks) == 1:
-            if len(self._answers) > READ_CACHE_ENTRIES:
-                self._answers.clear()
-            self._answers[key] = (now, generation, 200, list(start.get("headers", [])), chunks[0])
+        answer = None
+        try:
+            await self.app(scope, receive, capture)
+            if start.get("status") == 200 and whole and len(chunks) == 1:
+                answer = (200, list(start.get("headers", [])), chunks[0])
+                if len(self._answers) > READ_CACHE_ENTRIES:
+                    self._answers.clear()
+                self._answers[key] = (now, generation, *answer)
+        finally:
+            self._reading.pop((key, generation), None)
+            future.set_result(answer)      # waiters without an answer (an error, a cancelled read) read themselves
 
 
 class GuardedH11Protocol(H11Protocol):

@@ -1,5 +1,10 @@
-"""The run queue's worker: claims queued runs for free rigs, runs each in its own `drivebench run` process, keeps
-the run's lease alive while the process lives, indexes the record when it ends, and reconciles after a crash.
+"""The run queue's worker: claims queued runs for free rigs, runs each in its own run process (bench/service/worker.py,
+speaking bench/service/run_protocol.py), keeps the run's lease alive while the process lives, indexes the record its
+Finished message names when it ends, and reconciles after a crash.
+
+Warm run processes: each run process is forked from the service's fork server (multiprocessing's forkserver,
+preloaded once with what `drivebench run` imports), so a run pays no imports; one run per process, so a crashing run
+takes only its own process with it. `run_start = "cold"`: each run starts its own interpreter (the baseline).
 
 One thread does all of it (one loop, no locks between schedulers). Each service instance holds a liveness lease of
 its own (bench/service/instances.py), renewed by this loop; it touches the runs it started, and takes over another
@@ -18,7 +23,6 @@ import collections
 import datetime as dt
 import json
 import os
-import shutil
 import signal
 import socket
 import subprocess
@@ -38,6 +42,8 @@ from bench.service.db import CriterionValue, Database, Instance, Lease, Rig, Run
 from bench.service.leases import active_leases, held_rigs
 from bench.service.live import recording_name
 from bench.service.events import EventHub
+from bench.service.run_protocol import (MAX_LINE_BYTES, Failed, Finished, Log, Progress, ProtocolError, RunRequest, Trip,
+                                        decode, encode)
 
 TICK_S = 0.2
 ABORT_KILL_AFTER_S = 60.0     # SIGTERM runs the safe stop; a run process still alive after this gets SIGKILL
@@ -45,7 +51,7 @@ STOP_WAIT_S = 30.0            # service shutdown: how long to wait for runs to f
 PROGRESS_DB_PERIOD_S = 1.0
 LOG_REPEAT_S = 30.0           # the same runner error is logged at most this often
 SWEEP_PERIOD_S = 1.0          # how often a live instance looks for runs of gone instances to take over
-NICE = shutil.which("nice")
+WORKER = ("-m", "bench.service.worker")
 VERDICT_STATE = {"pass": "pass", "fail": "fail", "incomplete": "fail", "aborted": "aborted", "error": "error"}
 
 
@@ -55,8 +61,9 @@ class RunnerSettings:
     lease_ttl_s: float = 10.0
     max_parallel: int = max(1, os.cpu_count() or 1)
     host_id: str = field(default_factory=socket.gethostname)
-    rerun_url: str | None = None      # the service's Rerun gRPC server, if it runs one
     nice: int = 10                    # simulated runs only: the API answers first
+    run_start: str = "forkserver"     # "forkserver": forked warm from a preloaded server; "cold": a new interpreter
+    worker: tuple[str, ...] = WORKER  # how the service's python starts a cold run process (tests: a misbehaving one)
 
 
 @dataclass
@@ -72,11 +79,66 @@ class Child:
     progress_written: float | None = None
     last_progress_db: float = 0.0
     term_sent: float | None = None
-    reader: threading.Thread | None = None
+    readers: list[threading.Thread] = field(default_factory=list)
+    warm: bool = False
+    result: Finished | None = None          # the run process's Finished message
+    failure: str | None = None              # its Failed message
+    protocol_error: str | None = None       # a message it sent that the service refused (the run is stopped)
+    log_lock: threading.Lock = field(default_factory=threading.Lock)
+    log: object | None = None               # service.log, written by both readers
+
+
+class ForkedProcess:
+    """A run process forked by the fork server, with the part of Popen's surface the runner uses."""
+
+    def __init__(self, process, stdout, stderr):
+        self.process = process
+        self.pid: int = process.pid
+        self.stdout, self.stderr = stdout, stderr
+
+    @property
+    def returncode(self) -> int | None:
+        return self.process.exitcode
+
+    def poll(self) -> int | None:
+        return self.process.exitcode        # negative: the signal that ended it, as Popen says
+
+    def send_signal(self, sig: int) -> None:
+        if self.poll() is None:
+            try:
+                os.kill(self.pid, sig)
+            except ProcessLookupError:
+                pass
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
+
+    def wait(self, timeout: float | None = None) -> int:
+        self.process.join(timeout)
+        if self.process.exitcode is None:
+            raise subprocess.TimeoutExpired(f"run process {self.pid}", timeout)
+        return self.process.exitcode
+
+
+def _rerun_interval_s() -> float | None:
+    """How often a run writes its run.rrd: `serve --live` sets it in this process's environment."""
+    value = os.environ.get("DRIVEBENCH_RERUN_INTERVAL_S")
+    try:
+        return float(value) if value else None
+    except ValueError:
+        return None
+
+
+def _read_record(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
 
 
 def _record_of(out_dir: Path | None) -> tuple[Path | None, dict | None]:
-    """The run directory `drivebench run --out out_dir` made, and its record.json (None if it made none)."""
+    """What a run process that ended without a Finished message (killed, or its service gone) left in its own output
+    directory: the run directory and its record.json as far as it was written (None if it made none)."""
     if out_dir is None or not out_dir.is_dir():
         return None, None
     for record in sorted(out_dir.glob("*/record.json")):
@@ -152,6 +214,10 @@ class Runner:
         self.instance_id: int | None = None
         self.lease_until = 0.0            # this instance's lease as last renewed (epoch s)
         self.fenced: str | None = None     # why this instance no longer holds anything
+        self.drill_proofs: tuple[dict, ...] = ()   # comm-loss drills passed in this instance's runs (bench.run.drill)
+        self.spawned = {"forked": 0, "cold": 0}
+        self._forkserver = None                    # multiprocessing's forkserver context, started with the runner
+        self._forkserver_ready = threading.Event()  # its preload done: forking no longer waits for imports
 
     # -- lifecycle ----------------------------------------------------------------------------------------
 
@@ -180,6 +246,8 @@ class Runner:
     def start(self) -> None:
         self.register()
         self.reconcile()
+        if self.settings.run_start == "forkserver":
+            self._start_forkserver()
         self._thread = threading.Thread(target=self._loop, name="drivebench-runner", daemon=True)
         self._thread.start()
 
@@ -295,9 +363,11 @@ class Runner:
     def _reap(self) -> None:
         for run_id, child in list(self.children.items()):
             if child.proc.poll() is not None:
-                if child.reader is not None:
-                    child.reader.join(timeout=5)
+                for reader in child.readers:
+                    reader.join(timeout=5)
                 self._finish(child)
+                if isinstance(child.proc, ForkedProcess):
+                    child.proc.process.close()
                 del self.children[run_id]
                 self._heartbeat()     # finishing a run reads its record: keep the lease renewed meanwhile
 
@@ -364,6 +434,7 @@ class Runner:
                 s.execute(update(Run).where(Run.id == c.run_id).values(progress_s=c.progress_s))
                 c.progress_written = c.progress_s
                 c.last_progress_db = t
+        self.events.changed()       # the API's cached reads of runs are stale now, not at every progress event
 
     # -- scheduling ---------------------------------------------------------------------------------------
 
@@ -469,26 +540,91 @@ class Runner:
         except IntegrityError:
             return None
 
+    # -- run processes ------------------------------------------------------------------------------------
+
+    def _start_worker(self, nice: int) -> subprocess.Popen:
+        """A run process; from the runner's thread only (its parent-death signal follows the thread that forked)."""
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        env.pop("DRIVEBENCH_TOKEN", None)
+        command = [self.python, *self.settings.worker, "--parent", str(os.getpid()), "--nice", str(nice)]
+        return subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                cwd=self.root, env=env, start_new_session=True)
+
+    def _start_forkserver(self) -> None:
+        """The fork server, preloaded in the background: until it has imported everything, runs start cold (a fork
+        request would wait for those imports on the runner's thread, and its leases with it)."""
+        import multiprocessing
+        import multiprocessing.forkserver
+
+        from bench.service import worker
+
+        context = multiprocessing.get_context("forkserver")
+        context.set_forkserver_preload(worker.preload_modules())
+        multiprocessing.forkserver.ensure_running()
+        self._forkserver = context
+
+        def wait_for_preload() -> None:
+            try:
+                probe = context.Process(target=worker.ready, name="drivebench-forkserver-probe")
+                probe.start()
+                probe.join(300)
+                if probe.exitcode == 0:
+                    self._forkserver_ready.set()
+                else:
+                    print(f"drivebench serve: the fork server did not start (exit {probe.exitcode}); runs start cold",
+                          file=sys.stderr)
+            except Exception as exc:
+                print(f"drivebench serve: the fork server did not start: {exc}; runs start cold", file=sys.stderr)
+
+        threading.Thread(target=wait_for_preload, daemon=True, name="drivebench-forkserver").start()
+
+    def _fork(self, data: bytes, nice: int) -> ForkedProcess:
+        """A run process forked from the fork server, the request and the two pipes handed over with it."""
+        from multiprocessing.connection import Connection
+
+        from bench.service import worker
+
+        events_r, events_w = os.pipe()
+        log_r, log_w = os.pipe()
+        events, log = Connection(events_w), Connection(log_w)
+        try:
+            process = self._forkserver.Process(target=worker.forked, args=(data, events, log, nice, os.getpid()),
+                                               name="drivebench-run")
+            process.start()
+        except BaseException:
+            os.close(events_r)
+            os.close(log_r)
+            raise
+        finally:
+            events.close()
+            log.close()
+        return ForkedProcess(process, os.fdopen(events_r, "rb"), os.fdopen(log_r, "rb"))
+
+    def _hand_over(self, request: RunRequest, simulated: bool) -> tuple[subprocess.Popen | ForkedProcess, bool]:
+        """The run's process, forked warm or started cold; (process, warm)."""
+        data = encode(request)
+        nice = self.settings.nice if simulated else 0
+        if self.settings.run_start == "forkserver" and self._forkserver_ready.is_set():
+            self.spawned["forked"] += 1
+            return self._fork(data, nice), True
+        proc = self._start_worker(nice)
+        try:
+            proc.stdin.write(data)
+            proc.stdin.close()
+        except OSError:
+            pass                      # it died at once: reaped as a failed run
+        self.spawned["cold"] += 1
+        return proc, False
+
     def _spawn(self, run: Run, rig: Rig, lease_id: int) -> None:
         out_dir = self.settings.data_dir / "runs" / f"{run.id:06d}"
-        command = [self.python, "-m", "bench", "run", run.scenario_file, "--bench", rig.bench, "--out", str(out_dir),
-                   "--json"]
-        if self.settings.rerun_url:
-            command += ["--rerun", "connect", "--rerun-url", self.settings.rerun_url]
-        env = {**os.environ, "DRIVEBENCH_PROGRESS": "jsonl", "DRIVEBENCH_RECORDING_ID": f"run-{run.id}",
-               "DRIVEBENCH_RECORDING_NAME": recording_name(run.id, run.scenario_name or run.scenario),
-               "DRIVEBENCH_PARENT_PID": str(os.getpid()), "PYTHONUNBUFFERED": "1"}
-        env.pop("DRIVEBENCH_TOKEN", None)
-        if rig.simulated and self.settings.nice and NICE is not None:
-            command = [NICE, "-n", str(self.settings.nice), *command]    # from exec on: imports are CPU-heavy too
-        if run.seed is not None:
-            command += ["--seed", str(run.seed)]
+        request = RunRequest(run_id=run.id, scenario_file=run.scenario_file, bench=rig.bench, out_dir=str(out_dir),
+                             seed=run.seed, recording_id=f"run-{run.id}",
+                             recording_name=recording_name(run.id, run.scenario_name or run.scenario),
+                             rerun_interval_s=_rerun_interval_s(), drill_proofs=self.drill_proofs)
         try:
             out_dir.mkdir(parents=True, exist_ok=True)
-            stdout = open(out_dir / "stdout.jsonl", "wb")
-            proc = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=stdout, stderr=subprocess.PIPE,
-                                    cwd=self.root, env=env, start_new_session=True)
-            stdout.close()
+            proc, warm = self._hand_over(request, bool(rig.simulated))
         except OSError as exc:
             with self.db.session() as s:
                 row = s.get(Run, run.id)
@@ -496,48 +632,76 @@ class Runner:
                 s.execute(update(Lease).where(Lease.id == lease_id).values(released_ts=now(), released_by="runner"))
                 self.events.publish(run_event(row))
             return
-        child = Child(run.id, rig.name, proc, out_dir, lease_id, time.monotonic())
-        child.reader = threading.Thread(target=self._read_stderr, args=(child,), daemon=True,
-                                        name=f"run-{run.id}-stderr")
-        child.reader.start()
+        child = Child(run.id, rig.name, proc, out_dir, lease_id, time.monotonic(), warm=warm)
+        child.log = open(out_dir / "service.log", "ab")
+        child.readers = [threading.Thread(target=self._read_events, args=(child,), daemon=True,
+                                          name=f"run-{run.id}-events"),
+                         threading.Thread(target=self._read_log, args=(child,), daemon=True, name=f"run-{run.id}-log")]
+        for reader in child.readers:
+            reader.start()
         self.children[run.id] = child
         with self.db.session() as s:
             row = s.get(Run, run.id)
             row.pid, row.pid_start, row.run_dir = proc.pid, instances.process_start(proc.pid), str(out_dir)
             self.events.publish(run_event(row))
 
-    def _read_stderr(self, child: Child) -> None:
-        """Progress lines become events; trips become events and stay in service.log; the rest goes there too."""
-        with open(child.out_dir / "service.log", "ab") as log:
-            for raw in child.proc.stderr:
-                line = raw.decode("utf-8", "replace").rstrip("\n")
-                if line.startswith('{"progress_s"'):
-                    try:
-                        data = json.loads(line)
-                        child.progress_s = float(data["progress_s"])
-                        self.events.publish({"type": "progress", "id": child.run_id, "progress_s": child.progress_s,
-                                             "duration_s": data.get("duration_s")})
-                        continue
-                    except (ValueError, KeyError, TypeError):
-                        pass
-                if line.startswith('{"trip"'):
-                    try:
-                        trip = json.loads(line)["trip"]
-                        self.events.publish({"type": "trip", "id": child.run_id, "reason": str(trip["reason"]),
-                                             "t_s": trip.get("t_s"), "message": str(trip.get("message", ""))})
-                    except (ValueError, KeyError, TypeError):
-                        pass
-                log.write(raw)
-                log.flush()
-                if line.strip():
-                    child.tail.append(line)
+    def _write_log(self, child: Child, raw: bytes) -> None:
+        with child.log_lock:
+            child.log.write(raw)
+            child.log.flush()
+
+    def _read_events(self, child: Child) -> None:
+        """The run process's messages: progress and trips become events, its Finished or Failed is kept for _finish.
+        A message the service refuses (another protocol version, ...) stops the run (SIGTERM: safe stop)."""
+        for raw in iter(lambda: child.proc.stdout.readline(MAX_LINE_BYTES + 1), b""):
+            if child.protocol_error is not None:
+                continue                       # drained, not read: the run is being stopped
+            try:
+                message = decode(raw)
+            except ProtocolError as exc:
+                child.protocol_error = str(exc)
+                self._write_log(child, f"drivebench serve: {exc}; the run process is stopped\n".encode())
+                if child.proc.poll() is None and child.term_sent is None:
+                    child.proc.send_signal(signal.SIGTERM)
+                    child.term_sent = time.monotonic()
+                continue
+            if isinstance(message, Progress):
+                child.progress_s = message.t_s
+                self.events.publish({"type": "progress", "id": child.run_id, "progress_s": message.t_s,
+                                     "duration_s": message.duration_s}, changed=False)   # the DB: _write_progress
+            elif isinstance(message, Trip):
+                self.events.publish({"type": "trip", "id": child.run_id, "reason": message.reason,
+                                     "t_s": message.t_s, "message": message.message})
+                self._write_log(child, raw)
+            elif isinstance(message, Log):
+                self._write_log(child, (message.line.rstrip("\n") + "\n").encode())
+            elif isinstance(message, Finished):
+                child.result = message
+            elif isinstance(message, Failed):
+                child.failure = message.reason
+        child.proc.stdout.close()
+
+    def _read_log(self, child: Child) -> None:
+        """The run process's stderr (and its own stdout): service.log, the last lines kept for an error's reason."""
+        for raw in child.proc.stderr:
+            self._write_log(child, raw)
+            line = raw.decode("utf-8", "replace").rstrip("\n")
+            if line.strip():
+                child.tail.append(line)
         child.proc.stderr.close()
 
     # -- finishing ----------------------------------------------------------------------------------------
 
     def _finish(self, child: Child, forced_reason: str | None = None) -> None:
         code = child.proc.poll()
-        run_dir, record = _record_of(child.out_dir)
+        if child.log is not None:
+            child.log.close()
+        if child.result is not None and child.protocol_error is None:
+            run_dir, record = Path(child.result.run_dir), _read_record(Path(child.result.record_path))
+            if child.result.drill_proofs:
+                self.drill_proofs = child.result.drill_proofs
+        else:
+            run_dir, record = _record_of(child.out_dir)
         t = now()
         with self.db.session() as s:
             run = s.get(Run, child.run_id)
@@ -553,6 +717,9 @@ class Runner:
                 run.aborted_by = run.abort_requested_by
                 run.reason = f"aborted by {run.abort_requested_by}" + (
                     f" ({record.get('abort_reason')})" if record and record.get("abort_reason") else "")
+            elif child.protocol_error is not None:
+                run.state, run.reason = "error", child.protocol_error + (
+                    f" (the run process was stopped; its record says: {verdict})" if verdict else "")
             elif forced_reason and verdict not in VERDICT_STATE:
                 run.state, run.reason = "aborted", forced_reason
             elif forced_reason:
@@ -566,7 +733,8 @@ class Runner:
                                                     + (" (its record is incomplete)" if record else ""))
             else:
                 run.state = "error"
-                run.reason = " | ".join(list(child.tail)[-3:]) or f"the run process exited with {code}"
+                run.reason = (" | ".join(list(child.tail)[-3:]) or child.failure
+                              or f"the run process exited with {code}")
             run.ended_ts = t
             if run.duration_s is None:
                 run.duration_s = t - (run.started_ts or t)
