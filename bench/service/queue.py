@@ -15,8 +15,8 @@ from bench.service.auth import Principal
 from bench.service.db import Database, Rig, Run, RunCandidate, iso
 from bench.service.errors import ApiError, bad_input
 from bench.service.leases import active_leases, blocking_holder
+from bench.service.limits import MAX_SCENARIO_CHARS
 
-MAX_SCENARIO_BYTES = 256 * 1024
 
 
 @dataclass
@@ -56,8 +56,8 @@ def resolve_scenario_path(value: str, root: Path) -> Path:
 
 def store_inline(text: str, data_dir: Path) -> Path:
     raw = text.encode("utf-8")
-    if len(raw) > MAX_SCENARIO_BYTES:
-        raise bad_input([f"request: scenario_toml: larger than {MAX_SCENARIO_BYTES} bytes"])
+    if len(raw) > MAX_SCENARIO_CHARS:
+        raise bad_input([f"request: scenario_toml: larger than {MAX_SCENARIO_CHARS} bytes"])
     folder = data_dir / "scenarios"
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"inline-{hashlib.sha256(raw).hexdigest()[:20]}.toml"
