@@ -19,6 +19,8 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+CHROMIUM = next((p for p in (os.environ.get("DRIVEBENCH_CHROMIUM"), shutil.which("chromium"),
+                             shutil.which("chromium-browser"), shutil.which("google-chrome")) if p), None)
 SCENARIOS = REPO / "tests" / "data" / "service"
 SHORT = "short.toml"
 LONG = "long.toml"
@@ -132,6 +134,31 @@ def serve_process(tmp_path: Path, port: int, *extra: str, db_url: str | None = N
 
     wait_until(up, 30, 0.1, "drivebench serve to answer /api/health")
     return proc
+
+
+@dataclass
+class Served:
+    """A `drivebench serve` subprocess on a fresh database with a token of every role."""
+    url: str
+    port: int
+    process: subprocess.Popen
+    tokens: "Tokens"
+
+
+@contextlib.contextmanager
+def served_service(tmp_path: Path, *extra: str):
+    """`drivebench serve *extra` on tmp_path's rigs and database, stopped (SIGTERM) when the block ends."""
+    from bench.service.core import Service
+
+    service = Service(make_settings(tmp_path))
+    tokens = make_tokens(service.db)
+    service.db.dispose()
+    port = free_port()
+    server = serve_process(tmp_path, port, *extra)
+    try:
+        yield Served(f"http://127.0.0.1:{port}", port, server, tokens)
+    finally:
+        stop_process(server)
 
 
 def stop_process(proc: subprocess.Popen) -> None:

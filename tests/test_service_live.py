@@ -6,7 +6,6 @@ sockets, on the served bytes, and in a real browser (Chromium through Playwright
 from __future__ import annotations
 
 import os
-import shutil
 import time
 import urllib.error
 import urllib.request
@@ -17,11 +16,8 @@ import pytest
 pytest.importorskip("fastapi", reason="the [service] extra is not installed")
 psutil = pytest.importorskip("psutil")
 
-from tests.service_fixtures import (SHORT, free_port, make_settings, make_tokens,  # noqa: E402
-                                    serve_process, stop_process, wait_until)
+from tests.service_fixtures import (CHROMIUM, served_service, SHORT, wait_until)
 
-CHROMIUM = next((p for p in (os.environ.get("DRIVEBENCH_CHROMIUM"), shutil.which("chromium"),
-                             shutil.which("chromium-browser"), shutil.which("google-chrome")) if p), None)
 LIVE = "live.toml"            # fifty minutes of drive time: watched while it runs, then aborted
 SCREENSHOTS = Path(os.environ.get("DRIVEBENCH_SCREENSHOTS", "/tmp"))
 
@@ -29,17 +25,9 @@ SCREENSHOTS = Path(os.environ.get("DRIVEBENCH_SCREENSHOTS", "/tmp"))
 @pytest.fixture
 def served(tmp_path):
     from bench.service.client import Client
-    from bench.service.core import Service
 
-    service = Service(make_settings(tmp_path))
-    tokens = make_tokens(service.db)
-    service.db.dispose()
-    port = free_port()
-    server = serve_process(tmp_path, port, "--live")
-    try:
-        yield f"http://127.0.0.1:{port}", port, server, tokens, Client(f"http://127.0.0.1:{port}", tokens.operator)
-    finally:
-        stop_process(server)
+    with served_service(tmp_path, "--live") as service:
+        yield service.url, service.port, service.process, service.tokens, Client(service.url, service.tokens.operator)
 
 
 def _get(url: str, token: str | None, limit: int | None = None, timeout_s: float = 60) -> tuple[int, bytes]:

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -16,28 +15,17 @@ import pytest
 
 pytest.importorskip("fastapi", reason="the [service] extra is not installed")
 
-from tests.service_fixtures import REPO, free_port, make_settings, make_tokens, serve_process, stop_process  # noqa: E402
+from tests.service_fixtures import CHROMIUM, REPO, served_service  # noqa: E402
 
-CHROMIUM = next((p for p in (os.environ.get("DRIVEBENCH_CHROMIUM"), shutil.which("chromium"),
-                             shutil.which("chromium-browser"), shutil.which("google-chrome")) if p), None)
 SCREENSHOTS = Path(os.environ.get("DRIVEBENCH_SCREENSHOTS", "/tmp"))
 
 
 @pytest.fixture
 def served(tmp_path):
     from bench.service.client import Client
-    from bench.service.core import Service
 
-    service = Service(make_settings(tmp_path))
-    tokens = make_tokens(service.db)
-    service.db.dispose()
-    port = free_port()
-    server = serve_process(tmp_path, port)
-    try:
-        url = f"http://127.0.0.1:{port}"
-        yield url, tokens, Client(url, tokens.operator)
-    finally:
-        stop_process(server)
+    with served_service(tmp_path) as service:
+        yield service.url, service.tokens, Client(service.url, service.tokens.operator)
 
 
 def test_a_held_real_rig_is_not_probed_and_a_viewer_cannot_probe(served):

@@ -5,7 +5,6 @@ run, reserve and release a rig, filter the history, plot a criterion's trend."""
 from __future__ import annotations
 
 import os
-import shutil
 import time
 
 import pytest
@@ -13,28 +12,16 @@ import pytest
 pytest.importorskip("fastapi", reason="the [service] extra is not installed")
 sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install playwright)")
 
-from tests.service_fixtures import (LONG, SHORT, free_port, make_settings, make_tokens, serve_process,  # noqa: E402
-                                    stop_process, wait_until)
+from tests.service_fixtures import (CHROMIUM, served_service, LONG, SHORT, wait_until)
 
-CHROMIUM = next((p for p in (os.environ.get("DRIVEBENCH_CHROMIUM"), shutil.which("chromium"),
-                             shutil.which("chromium-browser"), shutil.which("google-chrome")) if p), None)
 pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no Chromium installed (Debian: apt-get install chromium)")
 TIMEOUT_MS = 60_000
 
 
 @pytest.fixture
 def served(tmp_path):
-    from bench.service.core import Service
-
-    service = Service(make_settings(tmp_path))
-    tokens = make_tokens(service.db)
-    service.db.dispose()
-    port = free_port()
-    server = serve_process(tmp_path, port, "--lease-ttl", "3")
-    try:
-        yield f"http://127.0.0.1:{port}", tokens
-    finally:
-        stop_process(server)
+    with served_service(tmp_path, "--lease-ttl", "3") as service:
+        yield service.url, service.tokens
 
 
 @pytest.fixture
