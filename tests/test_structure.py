@@ -204,3 +204,21 @@ def test_layers_import_only_downwards():
     edges = {(_layer(m), _layer(d)) for m, deps in GRAPH_WITH_TYPES.items() for d in deps if _layer(m) != _layer(d)}
     assert edges <= allowed, sorted(edges - allowed)
     assert {("bench", "contract"), ("sim_backend", "contract"), ("drivers", "contract")} <= edges
+
+
+BENCH_FLOORS = ("bench.inputs", "bench.outputs", "bench.run", "bench.faces", "bench.service")   # bottom to top
+
+
+def _floor(module: str) -> int | None:
+    return next((i for i, prefix in enumerate(BENCH_FLOORS) if module == prefix or module.startswith(prefix + ".")),
+                None)
+
+
+def test_bench_groups_import_only_downwards_but_for_the_stated_exceptions():
+    """inputs <- outputs <- run machinery <- faces (CLI, campaigns) <- the HTTP service: the CLI installs the
+    service's reporters through bench.faces.run_hooks, it does not import the service (docs/architecture.md)."""
+    stated = {("bench.inputs.scenario", "bench.run.load_emulation")}     # the emulable load modes, checked at parse
+    upward = {(m, d) for m, deps in GRAPH_WITH_TYPES.items() for d in deps
+              if _floor(m) is not None and _floor(d) is not None and _floor(d) > _floor(m)}
+    assert upward - stated == set(), sorted(upward - stated)
+    assert ("bench.faces.cli", "bench.service.child") not in upward

@@ -20,6 +20,7 @@ import click
 from rich.console import Console
 from rich.table import Table
 
+from bench.faces import run_hooks
 from drivers.contract.checks import find_repo_root
 from drivers.contract.errors import InputError, LinkError
 from drivers.contract.exits import EXIT_ERROR, EXIT_FAIL, EXIT_PASS
@@ -165,7 +166,6 @@ def run(scenarios, bench_path, rerun_mode, rerun_url, out_root, seed, as_json) -
 def run_many(scenarios, bench_path, out_root, seed, rerun_mode, rerun_url, as_json) -> int:
     from bench.run.orchestrator import run_scenario
     from bench.inputs.prepared import prepare_run
-    from bench.service.child import result_reporter, trip_reporter
 
     problems: list[str] = []
     prepared = []
@@ -181,12 +181,13 @@ def run_many(scenarios, bench_path, out_root, seed, rerun_mode, rerun_url, as_js
 
     out = _out_console(as_json)
     verdicts: list[str] = []
+    hooks = run_hooks.installed                             # a run process of `drivebench serve`, else None
     for path, run in prepared:
         try:
             with _progress(run) as progress:
                 result = run_scenario(run, out_root=out_root, rerun_mode=rerun_mode, rerun_url=rerun_url,
                                       progress=progress, warn=lambda line: click.echo(line, err=True),
-                                      on_trip=trip_reporter())
+                                      on_trip=hooks.trip_reporter() if hooks else None)
         except (InputError, FileNotFoundError, tomllib.TOMLDecodeError, LinkError, OSError) as exc:
             _fail(exc)
             verdicts.append("error")
@@ -196,7 +197,7 @@ def run_many(scenarios, bench_path, out_root, seed, rerun_mode, rerun_url, as_js
             verdicts.append("error")
             continue
         verdicts.append(result.verdict)
-        if (report := result_reporter()) is not None:     # a run started by `drivebench serve`
+        if hooks is not None and (report := hooks.result_reporter()) is not None:
             report(result.run_dir, result.verdict, result.record)
         if as_json:
             click.echo(json.dumps(result.record, default=str))
@@ -221,10 +222,9 @@ class _progress:
         self.task = None
 
     def __enter__(self):
-        from bench.service.child import progress_reporter
-
-        if (service_progress := progress_reporter()) is not None:   # a run started by `drivebench serve`
-            return service_progress
+        hooks = run_hooks.installed
+        if hooks is not None and (service_progress := hooks.progress_reporter()) is not None:
+            return service_progress                         # a run process of `drivebench serve`
         duration = self.prepared.scenario.duration_s
         if duration < PROGRESS_MIN_DURATION_S or not err_console.is_terminal:
             return None

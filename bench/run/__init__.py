@@ -1,1 +1,1 @@
-"""The run machinery: links to the rig, the drill, the step loop, the supervisor, the safe stop, criteria and verdict."""
+"""The run machinery: links to the rig, the drill, the step loop, the supervisor, the safe stop and the verdict."""

@@ -1,7 +1,7 @@
-"""What `drivebench run` reports to the service that started it (stdlib only: imported by `drivebench run`).
+"""What `drivebench run` reports to the service that started it.
 
-A run process of the service (bench/service/worker.py) attaches its event channel here; `drivebench run` asks for
-reporters, which are None when no service started the run (a plain `drivebench run` reports nothing).
+A run process of the service (bench/service/worker.py) attaches its event channel here, which installs this module
+as the CLI's reporters (bench.faces.run_hooks); a plain `drivebench run` has none installed and reports nothing.
 The messages are those of bench/service/run_protocol.py.
 """
 
@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from bench.faces import run_hooks
 from bench.service.run_protocol import Finished, Message, Progress, Trip
 
 PR_SET_PDEATHSIG = 1
@@ -27,6 +28,7 @@ finished = False          # a Finished message was sent
 def attach(send: Callable[[Message], None] | None) -> None:
     global _send, finished
     _send, finished = send, False
+    run_hooks.install(sys.modules[__name__] if send is not None else None)
 
 
 def die_with(parent_pid: int) -> None:
