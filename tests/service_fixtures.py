@@ -136,6 +136,13 @@ def serve_process(tmp_path: Path, port: int, *extra: str, db_url: str | None = N
     return proc
 
 
+def shot(page, name: str) -> None:
+    """A full-page screenshot where DRIVEBENCH_SCREENSHOTS names a directory (to look at, not to assert on)."""
+    folder = os.environ.get("DRIVEBENCH_SCREENSHOTS")
+    if folder:
+        page.screenshot(path=os.path.join(folder, f"{name}.png"), full_page=True)
+
+
 @dataclass
 class Served:
     """A `drivebench serve` subprocess on a fresh database with a token of every role."""

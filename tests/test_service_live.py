@@ -1,25 +1,23 @@
 """The live view per run (`drivebench serve --live`): no Rerun port at all — the service serves the Rerun web viewer
 (from the rerun-sdk wheel) and each run's followed run.rrd on its own address, behind its token; the run page embeds
 the viewer on that run's recording only, named `run-ID · scenario` as the page names it. Checked on the listening
-sockets, on the served bytes, and in a real browser (Chromium through Playwright, screenshots under /tmp)."""
+sockets, on the served bytes, and in a real browser (Chromium through Playwright; screenshots where
+DRIVEBENCH_SCREENSHOTS names a folder)."""
 
 from __future__ import annotations
 
-import os
 import time
 import urllib.error
 import urllib.request
-from pathlib import Path
 
 import pytest
 
 pytest.importorskip("fastapi", reason="the [service] extra is not installed")
 psutil = pytest.importorskip("psutil")
 
-from tests.service_fixtures import (CHROMIUM, served_service, SHORT, wait_until)
+from tests.service_fixtures import (CHROMIUM, served_service, shot, SHORT, wait_until)
 
 LIVE = "live.toml"            # fifty minutes of drive time: watched while it runs, then aborted
-SCREENSHOTS = Path(os.environ.get("DRIVEBENCH_SCREENSHOTS", "/tmp"))
 
 
 @pytest.fixture
@@ -137,7 +135,7 @@ def test_run_page_embeds_the_rerun_viewer_on_that_runs_recording_in_chromium(ser
             viewer.locator("canvas#the_canvas_id.visible").wait_for(state="visible")
             wait_until(lambda: recordings, 60, 0.2, "the viewer to fetch the recording")
             time.sleep(5)                                   # let it draw what has streamed so far
-            page.screenshot(path=str(SCREENSHOTS / "drivebench-live-running-run.png"), full_page=True)
+            shot(page, "drivebench-live-running-run")
             assert recordings == [(f"{url}/live/runs/{live_id}/recording.rrd", 200)], recordings
             assert client.request("GET", f"/api/runs/{live_id}")["state"] == "running"     # it was watched live
             assert viewer.locator("#center_text.visible").count() == 0     # no "Rerun has crashed" panel
@@ -155,7 +153,7 @@ def test_run_page_embeds_the_rerun_viewer_on_that_runs_recording_in_chromium(ser
             assert rrd_recording(tmp_path / "shown.rrd") == (f"run-{done_id}", shown)   # the data under that name
             viewer.locator("canvas#the_canvas_id.visible").wait_for(state="visible")
             time.sleep(8)
-            page.screenshot(path=str(SCREENSHOTS / "drivebench-live-finished-run.png"), full_page=True)
+            shot(page, "drivebench-live-finished-run")
             assert [u for u, _ in recordings] == [f"{url}/live/runs/{done_id}/recording.rrd"], recordings
         finally:
             browser.close()

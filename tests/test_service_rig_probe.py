@@ -1,23 +1,20 @@
 """The rig page's drive identity and last probe as a checklist: an operator probes a rig from the page (the service
 runs `drivebench probe --json` under a lease of the rig and keeps the result in its database), the page shows the
-identity and the checklist, in real Chromium (screenshot under /tmp); a held real rig is not probed under its
-holder; a viewer cannot probe."""
+identity and the checklist, in real Chromium (a screenshot where DRIVEBENCH_SCREENSHOTS names a folder); a held
+real rig is not probed under its holder; a viewer cannot probe."""
 
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
 pytest.importorskip("fastapi", reason="the [service] extra is not installed")
 
-from tests.service_fixtures import CHROMIUM, REPO, served_service  # noqa: E402
+from tests.service_fixtures import CHROMIUM, REPO, served_service, shot  # noqa: E402
 
-SCREENSHOTS = Path(os.environ.get("DRIVEBENCH_SCREENSHOTS", "/tmp"))
 
 
 @pytest.fixture
@@ -69,7 +66,7 @@ def test_rig_page_shows_the_drive_identity_and_the_last_probe_as_a_checklist_in_
             assert "drivebench simulated PMSM drive" in identity and "0x00DB0001" in identity
             assert "by olga" in page.locator("#probe-when").inner_text()
             page.locator("#drive").scroll_into_view_if_needed()
-            page.screenshot(path=str(SCREENSHOTS / "drivebench-rig-probe.png"), full_page=True)
+            shot(page, "drivebench-rig-probe")
             shown = [(rows.nth(i).locator("td").nth(1).inner_text(), rows.nth(i).locator("td").nth(0).inner_text())
                      for i in range(1, rows.count())]
         finally:

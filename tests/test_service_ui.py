@@ -4,7 +4,6 @@ run, reserve and release a rig, filter the history, plot a criterion's trend."""
 
 from __future__ import annotations
 
-import os
 import time
 
 import pytest
@@ -12,7 +11,7 @@ import pytest
 pytest.importorskip("fastapi", reason="the [service] extra is not installed")
 sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install playwright)")
 
-from tests.service_fixtures import (CHROMIUM, served_service, LONG, SHORT, wait_until)
+from tests.service_fixtures import (CHROMIUM, served_service, shot, LONG, SHORT, wait_until)
 
 pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no Chromium installed (Debian: apt-get install chromium)")
 TIMEOUT_MS = 60_000
@@ -35,13 +34,6 @@ def page():
             yield context.new_page()
         finally:
             browser.close()
-
-
-def shot(page, name: str) -> None:
-    """A full-page screenshot where DRIVEBENCH_SCREENSHOTS names a directory (to look at, not to assert on)."""
-    folder = os.environ.get("DRIVEBENCH_SCREENSHOTS")
-    if folder:
-        page.screenshot(path=os.path.join(folder, f"{name}.png"), full_page=True)
 
 
 def _api(url: str, token: str, method: str, path: str, body: dict | None = None) -> dict:
