@@ -51,6 +51,8 @@ def login(page, url, token):
     assert page.url.endswith("/login")                         # no cookie: the login page
     page.fill("#token", "dbt_wrong")
     page.click("button[type=submit]")
+    page.wait_for_url("**/login?failed=1")
+    page.locator("#login-failed").wait_for(state="visible")    # is_visible() does not wait for the new page
     assert page.locator("#login-failed").is_visible()
     page.fill("#token", token)
     page.click("button[type=submit]")
