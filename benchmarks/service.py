@@ -113,6 +113,15 @@ class Poller(threading.Thread):
             i += 1
 
 
+def stop_service(server: subprocess.Popen) -> None:
+    """SIGTERM (the service stops its runs safely), then SIGKILL after a minute."""
+    server.send_signal(signal.SIGTERM)
+    try:
+        server.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        server.kill()
+
+
 def p99(values: list[float]) -> float:
     return statistics.quantiles(values, n=100)[98] if len(values) >= 100 else max(values, default=float("nan"))
 
@@ -147,11 +156,7 @@ def throughput(work: Path, port: int, parallel: int, ttl: float, repeat: int, sc
         poller.stop.set()
         poller.join(timeout=10)
     finally:
-        server.send_signal(signal.SIGTERM)
-        try:
-            server.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            server.kill()
+        stop_service(server)
     lost = len(set(ids) - set(runs))
     stuck = sum(r["state"] not in FINAL for r in runs.values())
     states: dict[str, int] = {}
@@ -267,11 +272,7 @@ while True:
               f"run process {free_run:.2f} s")
         lease_free = max(free_ci, free_run)
     finally:
-        server.send_signal(signal.SIGTERM)
-        try:
-            server.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            server.kill()
+        stop_service(server)
     cold_rpm = cold["runs_per_min"] if cold else float("nan")
     print(f"RESULT runs={warm['runs'] + (cold['runs'] if cold else 0)} lost={lost} stuck={stuck} "
           f"runs_per_min={runs_per_min:.2f} cold_runs_per_min={cold_rpm:.2f} "

@@ -226,23 +226,18 @@ def _drive(problems: Problems, drive: dict | None, root: Path) -> DriveSection |
         return {}
     section = cls.read(drive, problems, root=root)
     keys: dict[str, Any] = {}
+    description = None
+    if section is not None and section.eds:
+        try:
+            description = _read_eds_cached(section.eds, *_stamp(section.eds))
+        except (ContentError, OSError) as exc:
+            problems.add("drive.eds", f"{drive.get('eds')}: {exc}")
     if drive["transport"] == "canopen":
         keys, key_problems = config_keys(drive)
-        eds = section.eds if section is not None else None
-        if eds:
-            try:
-                description = _read_eds_cached(eds, *_stamp(eds))
-            except (ContentError, OSError) as exc:
-                problems.add("drive.eds", f"{drive.get('eds')}: {exc}")
-            else:
-                key_problems += check_section(drive, description.has, description.drivebench_kind is not None)
+        if description is not None:
+            key_problems += check_section(drive, description.has, description.drivebench_kind is not None)
     else:
         keys, key_problems = check_keys(drive)
-        if section is not None and section.eds:
-            try:
-                _read_eds_cached(section.eds, *_stamp(section.eds))
-            except (ContentError, OSError) as exc:
-                problems.add("drive.eds", f"{drive.get('eds')}: {exc}")
     for field_, reason in key_problems:
         problems.add(field_, reason)
     if section is None:
