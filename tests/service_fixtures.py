@@ -136,6 +136,29 @@ def serve_process(tmp_path: Path, port: int, *extra: str, db_url: str | None = N
     return proc
 
 
+@contextlib.contextmanager
+def chromium_page(*, timeout_ms: int, viewport: dict | None = None, cookie: tuple[str, str] | None = None,
+                  webgl: bool = False):
+    """A page of a fresh headless Chromium (Playwright, the system browser), closed with the block. cookie: (service
+    URL, token) logs the page in through the service's cookie; webgl: software WebGL (the Rerun viewer needs it)
+    instead of no GPU at all."""
+    from playwright import sync_api
+
+    args = ["--no-sandbox", "--disable-dev-shm-usage", "--enable-unsafe-swiftshader" if webgl else "--disable-gpu"]
+    with sync_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=args)
+        try:
+            context = browser.new_context(viewport=viewport) if viewport else browser.new_context()
+            context.set_default_timeout(timeout_ms)
+            if cookie is not None:
+                from bench.service.auth import COOKIE
+
+                context.add_cookies([{"name": COOKIE, "value": cookie[1], "url": cookie[0]}])
+            yield context.new_page()
+        finally:
+            browser.close()
+
+
 def shot(page, name: str) -> None:
     """A full-page screenshot where DRIVEBENCH_SCREENSHOTS names a directory (to look at, not to assert on)."""
     folder = os.environ.get("DRIVEBENCH_SCREENSHOTS")

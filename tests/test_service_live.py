@@ -15,7 +15,7 @@ import pytest
 pytest.importorskip("fastapi", reason="the [service] extra is not installed")
 psutil = pytest.importorskip("psutil")
 
-from tests.service_fixtures import (CHROMIUM, served_service, shot, SHORT, wait_until)
+from tests.service_fixtures import (CHROMIUM, chromium_page, served_service, shot, SHORT, wait_until)
 
 LIVE = "live.toml"            # fifty minutes of drive time: watched while it runs, then aborted
 
@@ -106,57 +106,48 @@ def test_live_view_is_on_the_api_address_behind_the_token_and_each_stream_is_its
 
 @pytest.mark.skipif(CHROMIUM is None, reason="no Chromium installed (Debian: apt-get install chromium)")
 def test_run_page_embeds_the_rerun_viewer_on_that_runs_recording_in_chromium(served, tmp_path):
-    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
+    pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
     from bench.outputs.rerun_view import rrd_recording
-    from bench.service.auth import COOKIE
 
     url, port, server, tokens, client = served
     done_id = client.request("POST", "/api/runs", {"scenario": SHORT, "rig": "sim-a"})["id"]
     assert client.wait([done_id], 120, poll_s=0.2)[done_id]["state"] == "pass"
     live_id = client.request("POST", "/api/runs", {"scenario": LIVE, "rig": "sim-a"})["id"]
     _running(client, live_id)
-    with sync_api.sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, headless=True,
-                                    args=["--no-sandbox", "--disable-dev-shm-usage", "--enable-unsafe-swiftshader"])
-        try:
-            context = browser.new_context(viewport={"width": 1400, "height": 1200})
-            context.set_default_timeout(120_000)
-            context.add_cookies([{"name": COOKIE, "value": tokens.viewer, "url": url}])
-            page = context.new_page()
-            recordings: list[tuple[str, int]] = []
-            page.on("response", lambda r: recordings.append((r.url, r.status)) if "/live/runs/" in r.url else None)
+    with chromium_page(timeout_ms=120_000, viewport={"width": 1400, "height": 1200}, cookie=(url, tokens.viewer),
+                      webgl=True) as page:
+        recordings: list[tuple[str, int]] = []
+        page.on("response", lambda r: recordings.append((r.url, r.status)) if "/live/runs/" in r.url else None)
 
-            # the running run: its page's "live view" opens the viewer on its recording, under the name the page shows
-            page.goto(f"{url}/runs/{live_id}")
-            assert page.locator("#recording-name").inner_text() == f"run-{live_id} · service-live"
-            assert page.locator("#live-viewer").get_attribute("src") is None     # closed: nothing loaded yet
-            page.click("#open-live")
-            viewer = page.frame_locator("#live-viewer")
-            viewer.locator("canvas#the_canvas_id.visible").wait_for(state="visible")
-            wait_until(lambda: recordings, 60, 0.2, "the viewer to fetch the recording")
-            time.sleep(5)                                   # let it draw what has streamed so far
-            shot(page, "drivebench-live-running-run")
-            assert recordings == [(f"{url}/live/runs/{live_id}/recording.rrd", 200)], recordings
-            assert client.request("GET", f"/api/runs/{live_id}")["state"] == "running"     # it was watched live
-            assert viewer.locator("#center_text.visible").count() == 0     # no "Rerun has crashed" panel
+        # the running run: its page's "live view" opens the viewer on its recording, under the name the page shows
+        page.goto(f"{url}/runs/{live_id}")
+        assert page.locator("#recording-name").inner_text() == f"run-{live_id} · service-live"
+        assert page.locator("#live-viewer").get_attribute("src") is None     # closed: nothing loaded yet
+        page.click("#open-live")
+        viewer = page.frame_locator("#live-viewer")
+        viewer.locator("canvas#the_canvas_id.visible").wait_for(state="visible")
+        wait_until(lambda: recordings, 60, 0.2, "the viewer to fetch the recording")
+        time.sleep(5)                                   # let it draw what has streamed so far
+        shot(page, "drivebench-live-running-run")
+        assert recordings == [(f"{url}/live/runs/{live_id}/recording.rrd", 200)], recordings
+        assert client.request("GET", f"/api/runs/{live_id}")["state"] == "running"     # it was watched live
+        assert viewer.locator("#center_text.visible").count() == 0     # no "Rerun has crashed" panel
 
-            # a finished run's page: the viewer opens on click, on that run's recording and no other
-            recordings.clear()
-            with page.expect_response(lambda r: r.url.endswith(f"/live/runs/{done_id}/recording.rrd")) as got:
-                page.goto(f"{url}/runs/{done_id}")
-                assert page.locator("#live-viewer").get_attribute("src") is None     # closed: nothing loaded
-                page.click("#live-view summary")
-            body = got.value.body()
-            shown = page.locator("#recording-name").inner_text()
-            assert shown == f"run-{done_id} · service-short"
-            (tmp_path / "shown.rrd").write_bytes(body)
-            assert rrd_recording(tmp_path / "shown.rrd") == (f"run-{done_id}", shown)   # the data under that name
-            viewer.locator("canvas#the_canvas_id.visible").wait_for(state="visible")
-            time.sleep(8)
-            shot(page, "drivebench-live-finished-run")
-            assert [u for u, _ in recordings] == [f"{url}/live/runs/{done_id}/recording.rrd"], recordings
-        finally:
-            browser.close()
+        # a finished run's page: the viewer opens on click, on that run's recording and no other
+        recordings.clear()
+        with page.expect_response(lambda r: r.url.endswith(f"/live/runs/{done_id}/recording.rrd")) as got:
+            page.goto(f"{url}/runs/{done_id}")
+            assert page.locator("#live-viewer").get_attribute("src") is None     # closed: nothing loaded
+            page.click("#live-view summary")
+        body = got.value.body()
+        shown = page.locator("#recording-name").inner_text()
+        assert shown == f"run-{done_id} · service-short"
+        (tmp_path / "shown.rrd").write_bytes(body)
+        assert rrd_recording(tmp_path / "shown.rrd") == (f"run-{done_id}", shown)   # the data under that name
+        viewer.locator("canvas#the_canvas_id.visible").wait_for(state="visible")
+        time.sleep(8)
+        shot(page, "drivebench-live-finished-run")
+        assert [u for u, _ in recordings] == [f"{url}/live/runs/{done_id}/recording.rrd"], recordings
     if client.request("GET", f"/api/runs/{live_id}")["state"] == "running":
         client.request("POST", f"/api/runs/{live_id}/abort")
     client.wait([live_id], 120, poll_s=0.2)

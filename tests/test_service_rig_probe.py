@@ -13,7 +13,7 @@ import pytest
 
 pytest.importorskip("fastapi", reason="the [service] extra is not installed")
 
-from tests.service_fixtures import CHROMIUM, REPO, served_service, shot  # noqa: E402
+from tests.service_fixtures import CHROMIUM, REPO, chromium_page, served_service, shot  # noqa: E402
 
 
 
@@ -43,34 +43,25 @@ def test_a_held_real_rig_is_not_probed_and_a_viewer_cannot_probe(served):
 
 @pytest.mark.skipif(CHROMIUM is None, reason="no Chromium installed (Debian: apt-get install chromium)")
 def test_rig_page_shows_the_drive_identity_and_the_last_probe_as_a_checklist_in_chromium(served):
-    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
-    from bench.service.auth import COOKIE
+    pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
 
     url, tokens, operator = served
-    with sync_api.sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, headless=True,
-                                    args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"])
-        try:
-            context = browser.new_context(viewport={"width": 1300, "height": 1000})
-            context.set_default_timeout(120_000)
-            context.add_cookies([{"name": COOKIE, "value": tokens.operator, "url": url}])
-            page = context.new_page()
-            page.goto(f"{url}/rigs/sim-a")
-            assert "Not probed from this service yet" in page.locator("#probe-when").inner_text()
-            assert page.locator("#probe-checklist").count() == 0
-            page.click("#probe-now")
-            page.wait_for_url(f"{url}/rigs/sim-a#drive")
-            rows = page.locator("#probe-checklist tr")
-            assert rows.count() >= 5
-            identity = page.locator("#drive-identity").inner_text()
-            assert "drivebench simulated PMSM drive" in identity and "0x00DB0001" in identity
-            assert "by olga" in page.locator("#probe-when").inner_text()
-            page.locator("#drive").scroll_into_view_if_needed()
-            shot(page, "drivebench-rig-probe")
-            shown = [(rows.nth(i).locator("td").nth(1).inner_text(), rows.nth(i).locator("td").nth(0).inner_text())
-                     for i in range(1, rows.count())]
-        finally:
-            browser.close()
+    with chromium_page(timeout_ms=120_000, viewport={"width": 1300, "height": 1000},
+                      cookie=(url, tokens.operator)) as page:
+        page.goto(f"{url}/rigs/sim-a")
+        assert "Not probed from this service yet" in page.locator("#probe-when").inner_text()
+        assert page.locator("#probe-checklist").count() == 0
+        page.click("#probe-now")
+        page.wait_for_url(f"{url}/rigs/sim-a#drive")
+        rows = page.locator("#probe-checklist tr")
+        assert rows.count() >= 5
+        identity = page.locator("#drive-identity").inner_text()
+        assert "drivebench simulated PMSM drive" in identity and "0x00DB0001" in identity
+        assert "by olga" in page.locator("#probe-when").inner_text()
+        page.locator("#drive").scroll_into_view_if_needed()
+        shot(page, "drivebench-rig-probe")
+        shown = [(rows.nth(i).locator("td").nth(1).inner_text(), rows.nth(i).locator("td").nth(0).inner_text())
+                 for i in range(1, rows.count())]
 
     # what the page shows is what `drivebench probe --json` says about this rig's drive, item by item
     cli = subprocess.run([sys.executable, "-m", "bench", "probe", "--bench", str(REPO / "config/benches/sim-pmsm.toml"),

@@ -9,9 +9,9 @@ import time
 import pytest
 
 pytest.importorskip("fastapi", reason="the [service] extra is not installed")
-sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install playwright)")
+pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install playwright)")
 
-from tests.service_fixtures import (CHROMIUM, served_service, shot, LONG, SHORT, wait_until)
+from tests.service_fixtures import (CHROMIUM, chromium_page, served_service, shot, LONG, SHORT, wait_until)
 
 pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no Chromium installed (Debian: apt-get install chromium)")
 TIMEOUT_MS = 60_000
@@ -25,15 +25,8 @@ def served(tmp_path):
 
 @pytest.fixture
 def page():
-    with sync_api.sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, headless=True,
-                                    args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"])
-        try:
-            context = browser.new_context()
-            context.set_default_timeout(TIMEOUT_MS)
-            yield context.new_page()
-        finally:
-            browser.close()
+    with chromium_page(timeout_ms=TIMEOUT_MS) as page:
+        yield page
 
 
 def _api(url: str, token: str, method: str, path: str, body: dict | None = None) -> dict:
