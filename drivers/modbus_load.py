@@ -100,7 +100,7 @@ class ModbusLoadLink(LoadLink):
         try:
             with self._lock:
                 response = getattr(client, request)(address, device_id=self.unit_id, **kwargs)
-        except ModbusException as exc:
+        except (ModbusException, OSError) as exc:       # pymodbus lets a reset connection through as OSError
             raise LinkError(f"load machine {self.where}: {what}: no valid reply within {self.timeout_s:g} s x "
                             f"{self.retries + 1}: {exc}") from None
         if isinstance(response, ExceptionResponse) or response.isError():

@@ -96,7 +96,7 @@ class SerialDriveLink(DriveLink):
             port.timeout = left
             try:
                 data = port.read(self._decoder.bytes_wanted())
-            except serial.SerialException as exc:
+            except (serial.SerialException, OSError) as exc:
                 raise LinkError(f"serial drive {self.url}: {exc}") from None
             before = self._decoder.crc_errors
             frames = self._decoder.feed(data)
@@ -127,7 +127,7 @@ class SerialDriveLink(DriveLink):
                 self.stats["retries"] += 1
             try:
                 self._port.write(frame)
-            except serial.SerialException as exc:
+            except (serial.SerialException, OSError) as exc:
                 raise LinkError(f"serial drive {self.url}: write failed: {exc}") from None
             reply, crc_seen = self._read_reply(seq, time.monotonic() + self.timeout_s)
             if reply is None:
