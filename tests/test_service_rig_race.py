@@ -123,7 +123,7 @@ def test_two_services_race_for_one_real_rig_through_startups_kills_and_restarts(
             in lines[0], err
         assert "Traceback" not in err
         again = {r.id: r for r in _runs(db)}[first]
-        assert again.state == "running" and process_alive(again.pid, again.pid_start)
+        assert again.state == "running" and process_alive(again.pid, again.pid_start), (again.state, again.reason)
 
         # B as another instance: both schedule from one queue on one rig
         servers["b"] = _serve(tmp_path, db_url, "--host-id", "race-b")
