@@ -209,6 +209,22 @@ def test_a_queued_run_says_why_it_waits(api):
     assert 'id="waiting"' in page.text and "starting: rig sim-a is free" in page.text
 
 
+def test_the_run_list_and_the_queue_page_give_each_queued_run_the_reason_its_own_page_gives(api):
+    """The list reads the rigs and the queue once for all its runs: each run's reason must still be its own."""
+    op = H(api.tokens.operator)
+    ids = [api.post("/api/runs", json={"scenario": f"service/{SHORT}", "rig": rig}, headers=op).json()["id"]
+           for rig in ("sim-a", "sim-a", "spim-a")]
+    time.sleep(0.3)
+    own = {i: api.get(f"/api/runs/{i}", headers=op).json()["waiting"] for i in ids}
+    assert own[ids[0]].startswith("starting: rig sim-a is free")
+    assert own[ids[1]].startswith(f"behind run {ids[0]}, queued earlier")
+    listed = {r["id"]: r["waiting"] for r in api.get("/api/runs?state=queued", headers=op).json()}
+    assert {i: listed[i] for i in ids} == own
+    page = api.get("/", headers=op).text
+    for i in ids:
+        assert f'data-run-waiting="{i}">{own[i]}<' in page.replace("&#39;", "'")
+
+
 def test_submit_get_list_and_cancel_a_run(api):
     op, op2, adm = H(api.tokens.operator), H(api.tokens.operator2), H(api.tokens.admin)
     created = api.post("/api/runs", json={"scenario": f"service/{SHORT}", "rig": "sim-a", "seed": 7}, headers=op)

@@ -268,7 +268,7 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
                   verdict: str | None = None, revision: str | None = None, owner: str | None = None,
                   limit: int = 100, who: Principal = Depends(viewer)) -> list[dict]:
         s = svc()
-        return [s.run_dict(r) for r in s.list_runs(rig, state, scenario, verdict, revision, owner, limit)]
+        return s.run_dicts(s.list_runs(rig, state, scenario, verdict, revision, owner, limit))
 
     @app.get("/api/runs/{run_id}")
     def get_run(run_id: Id, who: Principal = Depends(viewer)) -> dict:

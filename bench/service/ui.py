@@ -54,7 +54,7 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
         return request.scope["state"]["principal"]
 
     def page(request: Request, name: str, **context) -> HTMLResponse:
-        return templates.TemplateResponse(request, name, {"me": who(request), "waiting": svc().why_waiting,
+        return templates.TemplateResponse(request, name, {"me": who(request), "waiting": svc().waiting_lookup(),
                                                           **context})
 
     def error(request: Request, exc: ApiError) -> HTMLResponse:
