@@ -270,3 +270,10 @@ def start(bench_cfg: dict, seed: int) -> Iterator[dict]:
     """[services] starter: yields the endpoint overrides for the bench config."""
     with build(spec_for_bench(bench_cfg, seed)) as rig:
         yield rig.overrides
+
+
+def warm_up(bench_cfg: dict) -> None:
+    """[services] warm-up (entry-point group drivebench.warm_ups): what a process that forks many runs of this bench
+    pays once, before it forks — the bench's drive model built and stepped (its compiled kernels loaded). Opens no
+    endpoint and touches no other state."""
+    rig_model(spec_for_bench(bench_cfg, 0))

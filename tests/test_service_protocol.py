@@ -85,7 +85,7 @@ def test_a_cold_run_process_without_a_run_leaves_quietly():
 
 pytest.importorskip("fastapi", reason="the [service] extra is not installed")
 
-from tests.service_fixtures import LONG, SHORT, Tokens, client_for, make_settings, wait_until  # noqa: E402
+from tests.service_fixtures import LONG, REPO, SHORT, Tokens, client_for, make_settings, wait_until  # noqa: E402
 
 H = Tokens.header
 
@@ -140,3 +140,36 @@ def test_forked_run_processes_pass_carry_the_drill_and_a_sigkilled_one_ends_abor
         assert run["state"] == "aborted" and "signal 9" in run["reason"]
         assert api.get("/api/rigs/sim-a", headers=H(op)).json()["state"] == "free"
         assert runner.spawned == {"forked": 3, "cold": 0}
+
+
+WARM_CHECK = """
+import gc, json, sys
+import bench.service.fork_warm
+from drivers.contract.eds import _od_snapshot
+from sim_backend.pmsm.kernel import run_steps as pmsm_steps
+from sim_backend.spim.kernel import run_steps as spim_steps
+print(json.dumps({"frozen": gc.get_freeze_count(), "od": _od_snapshot.cache_info().currsize,
+                  "pmsm": len(pmsm_steps.signatures), "spim": len(spim_steps.signatures),
+                  "threads": __import__("threading").active_count()}))
+"""
+
+
+def test_the_fork_server_warms_each_rigs_run_and_freezes_what_it_loaded(tmp_path):
+    """What bench.service.fork_warm does in the fork server, in a plain process: the rigs' drive models loaded (their
+    compiled kernels), the drive's object dictionary parsed, everything frozen out of the collector, no thread left
+    behind (the server forks); a bench config that cannot be read is one line, and the others are still warmed."""
+    from bench.service.worker import WARM_BENCHES_ENV
+
+    benches = [str(REPO / "config/benches/sim-pmsm.toml"), str(tmp_path / "missing.toml"),
+               str(REPO / "config/benches/sim-spim.toml")]
+    env = {**os.environ, WARM_BENCHES_ENV: json.dumps(benches)}
+    done = subprocess.run([sys.executable, "-c", WARM_CHECK], cwd=REPO, env=env, capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
+    got = json.loads(done.stdout.strip().splitlines()[-1])
+    assert got["pmsm"] >= 1 and got["spim"] >= 1 and got["od"] >= 1 and got["frozen"] > 10_000 and got["threads"] == 1
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "missing.toml" in lines[0] and "warm-up" in lines[0], done.stderr
+    cold = subprocess.run([sys.executable, "-c", WARM_CHECK], cwd=REPO, capture_output=True, text=True, timeout=120,
+                          env={k: v for k, v in os.environ.items() if k != WARM_BENCHES_ENV})
+    assert json.loads(cold.stdout.strip().splitlines()[-1])["pmsm"] == 0     # imported elsewhere: it does nothing

@@ -43,3 +43,20 @@ def _registered(spec: str) -> str:
         return spec
     choices = ", ".join(f"{name} ({value})" for name, value in sorted(known.items())) or "none installed"
     raise ValueError(f"{spec!r} is not a registered service starter (entry-point group {SERVICE_GROUP}: {choices})")
+
+
+WARM_UP_GROUP = "drivebench.warm_ups"
+
+
+def warm_up_for(spec: str) -> str | None:
+    """The "module:function" that warms a process for the starter `spec` names (registered under the same name in
+    entry-point group drivebench.warm_ups: sim = sim_backend.rig:warm_up), or None."""
+    from importlib.metadata import entry_points
+
+    try:
+        value = _registered(spec)
+    except ValueError:
+        return None
+    names = [name for name, known in registered_services().items() if known == value]
+    warm = {entry.name: entry.value for entry in entry_points(group=WARM_UP_GROUP)}
+    return next((warm[name] for name in names if name in warm), None)

@@ -560,6 +560,9 @@ class Runner:
 
         context = multiprocessing.get_context("forkserver")
         context.set_forkserver_preload(worker.preload_modules())
+        with self.db.session() as s:        # read by bench.service.fork_warm in the fork server (its environment)
+            benches = sorted({rig.bench for rig in s.execute(select(Rig)).scalars() if rig.bench})
+        os.environ[worker.WARM_BENCHES_ENV] = json.dumps(benches)
         multiprocessing.forkserver.ensure_running()
         self._forkserver = context
 

@@ -150,6 +150,9 @@ def forked(line: bytes, events: Connection, log: Connection, nice: int, service_
     sys.exit(serve(line, send))
 
 
+WARM_BENCHES_ENV = "DRIVEBENCH_WARM_BENCHES"     # the bench configs bench.service.fork_warm warms (a JSON list)
+
+
 def ready() -> None:
     """Forked once at the service's start: returns when the fork server has imported everything."""
 
@@ -157,19 +160,22 @@ def ready() -> None:
 # What a run imports lazily, on its way (the summary plot, the telemetry file, the Rerun stream, the links):
 # imported once by the fork server, not in every run (1.2 s of a 2.4 s first run in a process, measured).
 LAZY_IMPORTS = ("matplotlib", "matplotlib.figure", "matplotlib.backends.backend_agg", "matplotlib.pyplot", "PIL.Image",
-                "pyarrow", "pyarrow.parquet", "rerun", "numba", "can", "can.interfaces.virtual", "pymodbus.client",
-                "pymodbus.server", "serial", "psutil", "rich.table", "rich.progress")
+                "PIL.PngImagePlugin", "pyarrow", "pyarrow.parquet", "pyarrow.pandas_compat", "rerun", "numba", "can",
+                "can.interfaces.virtual", "pymodbus.client", "pymodbus.server", "serial", "psutil", "rich.table",
+                "rich.progress", "rich._emoji_codes", "encodings.idna")
 
 
 def preload_modules() -> list[str]:
-    """What the fork server imports once for every run it forks: the CLI and the run machinery, what a run imports
-    lazily, and every module of the packages whose run services the installed packages register (a simulator)."""
+    """What the fork server imports once for every run it forks: the CLI, the run machinery and the drivers, what a
+    run imports lazily, every module of the packages whose run services the installed packages register (a
+    simulator), and last bench.service.fork_warm, which warms the rigs' runs (DRIVEBENCH_WARM_BENCHES)."""
     import pkgutil
     from importlib import import_module
     from importlib.metadata import entry_points
 
     bench_modules = [m.name for m in pkgutil.walk_packages(import_module("bench").__path__, "bench.")
                      if not m.name.startswith("bench.service.") or m.name == "bench.service.child"]
+    driver_modules = [m.name for m in pkgutil.walk_packages(import_module("drivers").__path__, "drivers.")]
     services = []
     for package in sorted({entry.module.split(".")[0] for entry in entry_points(group="drivebench.services")}):
         try:
@@ -177,8 +183,9 @@ def preload_modules() -> list[str]:
         except Exception:
             continue
         services += [package, *(m.name for m in pkgutil.walk_packages(getattr(found, "__path__", []), package + "."))]
-    return [name for name in ("bench.faces.cli", "bench.run.orchestrator", "bench.service.worker", *LAZY_IMPORTS, *bench_modules,
-                              *services) if not name.endswith("__main__")]     # a package's __main__ runs its command
+    return [name for name in ("bench.faces.cli", "bench.run.orchestrator", "bench.service.worker", *LAZY_IMPORTS,
+                              *bench_modules, *driver_modules, *services) if not name.endswith("__main__")] + [
+        "bench.service.fork_warm"]      # last: warms the rigs' runs and freezes what all of the above left alive
 
 
 if __name__ == "__main__":
