@@ -111,6 +111,22 @@ class DriveLink(Protocol):
         without the check ignores it."""
         return None
 
+    def drill(self, before_withhold: Callable[[], None] | None = None) -> dict[str, Any] | None:
+        """The comm-loss drill: withhold the bench's traffic and observe the drive's own reaction (the record's
+        comm_loss drive entry); `before_withhold` is called just before. None: the link cannot drill, so the
+        bench's death cannot be shown safe."""
+        return None
+
+    def keepalive(self) -> None:
+        """One request now, for a drive whose watchdog sees only requests (while the load machine is drilled); a
+        drive with a heartbeat consumer needs nothing."""
+        return None
+
+    def interrupt(self) -> None:
+        """From another thread: a call in progress ends at once (the run loop is being abandoned, the safe stop
+        follows)."""
+        return None
+
     def open(self) -> DriveIdentity: ...
     def configure(self, live_signals: Sequence[str], trace_signals: Sequence[str], trace_decimation: int) -> None: ...
     def enable_velocity_mode(self) -> None: ...
@@ -126,8 +142,8 @@ class DriveLink(Protocol):
         ...
     def status(self) -> DriveStatus: ...
     def begin_quick_stop(self) -> None:
-        """Optional: the quick-stop command alone, confirmed, without waiting for standstill (the safe stop gives it
-        before it touches the load machine); quick_stop() then only waits."""
+        """The quick-stop command alone, confirmed, without waiting for standstill (the safe stop gives it before it
+        touches the load machine); quick_stop() then only waits."""
         ...
     def quick_stop(self) -> None: ...
     def disable(self) -> None: ...
@@ -148,6 +164,14 @@ class LoadLink(Protocol):
     report: dict[str, Any]                   # what the link read from the machine and set in it, for the record
     map: Any = None                          # its register map (drivers.contract.load_map.LoadMap), for the record; None: none
     modes: tuple[LoadMode, ...] = ()         # the modes the machine has; empty: every LoadMode
+
+    def drill(self) -> dict[str, Any] | None:
+        """The load machine's comm-loss drill (the record's comm_loss load entry); None: it cannot drill."""
+        return None
+
+    def interrupt(self) -> None:
+        """From another thread: a call in progress ends at once (the run is being abandoned)."""
+        return None
 
     def open(self) -> str: ...
     def set_load(self, mode: LoadMode, value: float) -> None: ...

@@ -222,3 +222,20 @@ def test_bench_groups_import_only_downwards_but_for_the_stated_exceptions():
               if _floor(m) is not None and _floor(d) is not None and _floor(d) > _floor(m)}
     assert upward - stated == set(), sorted(upward - stated)
     assert ("bench.faces.cli", "bench.service.child") not in upward
+
+
+def test_bench_calls_the_links_through_their_declared_protocols_not_by_probing_attributes():
+    """What a link may lack is declared on DriveLink / LoadLink with the default the bench gets (drill: None, keepalive
+    and interrupt: nothing), so the bench never asks a link with getattr/hasattr whether it has a member."""
+    from drivers.api import DriveLink, LoadLink
+
+    members = {name for proto in (DriveLink, LoadLink) for name in vars(proto) if not name.startswith("_")}
+    probes = []
+    for path in sorted((REPO / "bench").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in ("getattr", "hasattr")
+                    and len(node.args) >= 2 and isinstance(node.args[1], ast.Constant)
+                    and node.args[1].value in members):
+                probes.append(f"{path.relative_to(REPO)}:{node.lineno}: {node.func.id}(..., {node.args[1].value!r})")
+    assert {"drill", "keepalive", "interrupt", "begin_quick_stop", "set_reference_speed"} <= members
+    assert probes == []

@@ -32,43 +32,38 @@ def run_drills(drive: Any, load: Any | None) -> dict[str, Any]:
     with their watchdogs fed again."""
     load_out: dict[str, Any] = {}
     thread: threading.Thread | None = None
-    load_drill = getattr(load, "drill", None) if load is not None else None
 
     def drill_load() -> None:
         try:
-            load_out["result"] = load_drill()
+            load_out["result"] = load.drill()
         except BaseException as exc:       # re-raised on the caller's thread
             load_out["error"] = exc
 
     def start_load() -> None:
         nonlocal thread
-        if load_drill is not None and thread is None:
+        if load is not None and thread is None:
             thread = threading.Thread(target=drill_load, name="load-drill", daemon=True)
             thread.start()
 
-    drive_drill = getattr(drive, "drill", None)
-    if drive_drill is None:
+    try:
+        drive_result = drive.drill(before_withhold=start_load)
+    finally:
+        # a drive whose watchdog only sees requests (serial) must hear from the bench while the load's drill goes on,
+        # or it reacts a second time
+        deadline = LOAD_JOIN_MARGIN_S + 60.0
+        while thread is not None and thread.is_alive() and deadline > 0:
+            thread.join(0.05)
+            deadline -= 0.05
+            drive.keepalive()
+    if drive_result is None:
         drive_result = {"what": "drive", "result": "failed",
                         "refusal": f"drive: its link ({type(drive).__name__}) has no comm-loss drill, so its reaction "
                                    f"to the bench's death cannot be observed; where the rig stops it by other means "
                                    f"write [drive] {EXTERNAL_HINT}"}
-    else:
-        try:
-            drive_result = drive_drill(before_withhold=start_load)
-        finally:
-            # a drive whose watchdog only sees requests (serial) must hear from the bench while the load's drill
-            # goes on, or it reacts a second time
-            keepalive = getattr(drive, "keepalive", None)
-            deadline = LOAD_JOIN_MARGIN_S + 60.0
-            while thread is not None and thread.is_alive() and deadline > 0:
-                thread.join(0.05)
-                deadline -= 0.05
-                if keepalive is not None:
-                    keepalive()
     if load is None:
         load_result: Any = "none: free shaft"
     else:
-        if load_drill is not None and thread is None:
+        if thread is None:
             drill_load()                   # the drive was not enabled for its drill (external): the load alone
         if "error" in load_out:
             raise load_out["error"]
@@ -194,9 +189,8 @@ def drill_rig(live_cfg: Any, base_dir: Any, live_signals: tuple[str, ...]) -> di
             opened.append(load)
         drive.configure(live_signals, (), 1)
         reference = ReferenceConfig(live_cfg.reference_source).signals(load is not None)
-        set_reference = getattr(drive, "set_reference_speed", None)
-        if set_reference is not None and load is not None and "speed_true_mech_rad_s" in reference:
-            set_reference(lambda: load.feedback().speed_mech_rad_s)
+        if load is not None and "speed_true_mech_rad_s" in reference:
+            drive.set_reference_speed(lambda: load.feedback().speed_mech_rad_s)
         return run_drills(drive, load)
     except BaseException:
         if opened:

@@ -82,9 +82,7 @@ class LoopThread:
     def abandon(self) -> None:
         self._abandoned.set()
         for link in self._raw:
-            interrupt = getattr(link, "interrupt", None)
-            if interrupt is not None:
-                try:
-                    interrupt()
-                except Exception:
-                    pass
+            try:
+                link.interrupt()
+            except Exception:
+                pass

@@ -364,9 +364,8 @@ class SafeStop:
 
     The drive is told first: on a unit or overspeed trip the shaft is running away under the drive's own torque, and
     the load machine is what brakes it until the drive does; a Modbus write takes milliseconds the drive should
-    already be braking in. A link with `begin_quick_stop` (the quick-stop controlword alone, state confirmed) gets
-    it before the load machine is touched, and its `quick_stop` then only waits for standstill; a link without it
-    gets its quick stop and the load's zero-torque write at once, from two threads, the drive's started first.
+    already be braking in. Its `begin_quick_stop` (the quick-stop command alone, state confirmed) comes before the
+    load machine is touched, and its `quick_stop` then only waits for standstill.
 
     Runs at most once however often it is requested (trip, Ctrl-C, SIGTERM, normal end). Every step is
     tried even if an earlier one fails or hangs: each runs in a worker thread and is given up after
@@ -388,17 +387,12 @@ class SafeStop:
             if self.done:
                 return self.errors
             self.done = True
-            load_step = ("load zero torque and disabled", self.load.zero_and_disable) if self.load is not None else None
-            begin = getattr(self.drive, "begin_quick_stop", None) if self.drive is not None else None
-            if self.drive is not None and begin is None and load_step is not None:
-                self._at_once([("drive quick stop", self.drive.quick_stop), load_step])
-            else:
-                if begin is not None:
-                    self._step("drive quick stop commanded", begin)
-                if load_step is not None:
-                    self._step(*load_step)
-                if self.drive is not None:
-                    self._step("drive quick stop", self.drive.quick_stop)
+            if self.drive is not None:
+                self._step("drive quick stop commanded", self.drive.begin_quick_stop)
+            if self.load is not None:
+                self._step("load zero torque and disabled", self.load.zero_and_disable)
+            if self.drive is not None:
+                self._step("drive quick stop", self.drive.quick_stop)
             if self.drive is not None:
                 self._step("drive disabled", self.drive.disable)
             return self.errors
@@ -411,11 +405,6 @@ class SafeStop:
             self.steps.append(label)
         else:              # keep going: the remaining steps matter more than this error
             self.errors.append(f"{label}: {error}")
-
-    def _at_once(self, steps: list[tuple[str, Callable[[], None]]]) -> None:
-        workers = [_Worker(action) for _, action in steps]
-        for (label, _), worker in zip(steps, workers):
-            self._outcome(label, worker.result(self.step_timeout_s))
 
 
 class _Worker:
