@@ -266,11 +266,11 @@ def test_scenario_paths_outside_the_scenario_root_are_refused(api, path, tmp_pat
 
 def test_bad_scenarios_give_the_clis_lines(api):
     from drivers.contract.errors import InputError
-    from bench.run.orchestrator import prepare
+    from bench.inputs.prepared import prepare_run
 
     op = H(api.tokens.operator)
     with pytest.raises(InputError) as cli:
-        prepare(SCENARIOS / "bad.toml", REPO / "config/benches/sim-pmsm.toml")
+        prepare_run(SCENARIOS / "bad.toml", REPO / "config/benches/sim-pmsm.toml")
     expected = [line.replace(str(SCENARIOS / "bad.toml"), "service/bad.toml") for line in cli.value.problems]
     response = api.post("/api/runs", json={"scenario": "service/bad.toml", "rig": "sim-a"}, headers=op)
     assert response.status_code == 422 and response.json()["detail"] == expected

@@ -49,12 +49,6 @@ class Interrupted(KeyboardInterrupt):
     """Ctrl-C or SIGTERM during a run."""
 
 
-def prepare(scenario_path: str | Path, bench_path: str | Path | None = None) -> tuple[Scenario, BenchConfig]:
-    """(scenario, bench config), validated: the older face of prepare_run, kept for its callers."""
-    prepared = prepare_run(scenario_path, bench_path)
-    return prepared.scenario, prepared.bench
-
-
 class _StopSignals:
     """Ctrl-C (SIGINT) and SIGTERM raise Interrupted in the main thread for the duration of the run, once.
 

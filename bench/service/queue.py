@@ -75,10 +75,10 @@ def _rename(lines: list[str], path: Path, shown: str) -> list[str]:
 
 def validate(path: Path, bench: str, shown: str):
     """The CLI's validation (`drivebench validate --bench`); lines name the file as the client named it."""
-    from bench.run.orchestrator import prepare
+    from bench.inputs.prepared import prepare_run
 
     try:
-        scenario, _ = prepare(path, bench)
+        scenario = prepare_run(path, bench).scenario
     except InputError as exc:
         raise bad_input(_rename(exc.problems or [str(exc)], path, shown)) from None
     except tomllib.TOMLDecodeError as exc:

@@ -65,12 +65,12 @@ def rig_scenarios(scenario_root: Path, bench: str) -> list[str]:
 
 @functools.lru_cache(maxsize=32)
 def _validated(root: str, bench: str, bench_stamp: int, files: tuple[tuple[str, int], ...]) -> tuple[str, ...]:
-    from bench.run.orchestrator import prepare
+    from bench.inputs.prepared import prepare_run
 
     ok = []
     for path, _ in files:
         try:
-            prepare(path, bench)
+            prepare_run(path, bench)
         except (InputError, OSError, ValueError):
             continue
         ok.append(str(Path(path).relative_to(root)))
