@@ -46,7 +46,7 @@ from drivers.contract.errors import LinkError
 from drivers.contract import objects as o
 from drivers.canopen import pdo as pdos
 from drivers.canopen.config import CanopenDriveConfig
-from drivers.canopen.bus import BusErrorCounter, SocketcandRefusal, bus_kwargs, make_bus, open_bus
+from drivers.canopen.bus import BusErrorCounter, QuickVirtualBus, SocketcandRefusal, bus_kwargs, make_bus, open_bus
 from drivers.canopen.comm_loss_guard import CommLossGuard
 from drivers.canopen import drill as drills
 from drivers.contract.comm_loss import CommLossConfig
@@ -132,6 +132,7 @@ class CanopenDriveLink(DriveLink):
         self.bus_errors = BusErrorCounter()
         self._reference_speed: Callable[[], float | None] | None = None
         self._refusal: SocketcandRefusal | None = None
+        self._handle_arrived: Callable[[list], None] | None = None
 
     # -- connection ----------------------------------------------------------------------------------
     def open(self) -> DriveIdentity:
@@ -188,6 +189,9 @@ class CanopenDriveLink(DriveLink):
         """The bus first, a socketcand refusal watched on it before the network's receive thread starts (a refusal
         that arrives first would otherwise be parsed as a frame and kill that thread)."""
         bus = make_bus(kwargs)
+        if isinstance(bus, QuickVirtualBus) and self.timing == "lockstep":   # nothing else runs while the bench waits
+            bus.inline_delivery = True
+            self._handle_arrived = bus.handle_arrived
         self._refusal = SocketcandRefusal(bus) if kwargs["interface"] == "socketcand" else None
         self.network.bus = bus
         self.network.listeners = [frame_dispatch(self.network)]
@@ -556,6 +560,8 @@ class CanopenDriveLink(DriveLink):
             self.frames_sent += 1
         except (can.CanError, OSError) as exc:
             raise LinkError(f"CAN send of 0x{cob:03X} failed: {exc}") from None
+        if self._handle_arrived is not None:     # lockstep, in-process: the answer is handled here, not waited for
+            self._handle_arrived(self.network.notifier.listeners)
 
     def _start_sync_producer(self) -> None:
         bus = self.network.bus
