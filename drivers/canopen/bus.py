@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import logging
 import queue
 import re
@@ -131,6 +132,25 @@ class SocketcandRefusal:
             return None, False
 
 
+class BurstQueue(queue.Queue):
+    """A QuickVirtualBus's receive queue: can.Message items, and bursts a sender hands over as one item
+    (`put_burst`: standard-ID data frames (cob, payload), in order, sent at one instant) — the simulator's TPDOs of
+    a SYNC, a block upload's sub-block — without a Message per frame; the receiving end takes them apart."""
+
+    def put_burst(self, timestamp: float, frames: list[tuple[int, bytes]]) -> None:
+        with self.mutex:
+            self.queue.append((timestamp, frames))
+            self.unfinished_tasks += 1
+            self.not_empty.notify()
+
+
+def burst_messages(burst: tuple[float, list[tuple[int, bytes]]], channel: Any) -> list[can.Message]:
+    timestamp, frames = burst
+    return [can.Message(timestamp=timestamp, arbitration_id=cob, is_extended_id=False, channel=channel,
+                        dlc=len(payload), data=bytearray(payload), is_rx=True, check=False)
+            for cob, payload in frames]
+
+
 class QuickVirtualBus(VirtualBus):
     """python-can's `virtual` interface, same channels and delivery, cheaper per frame at the link's end: a frame
     already queued is taken without the queue's lock and the receive log call (python-can logs every frame at level
@@ -145,6 +165,11 @@ class QuickVirtualBus(VirtualBus):
 
     def __init__(self, *args: Any, **kwargs: Any):
         super().__init__(*args, **kwargs)
+        if not self.queue.maxsize:
+            burst_queue = BurstQueue()
+            self.channel[self.channel.index(self.queue)] = burst_queue
+            self.queue = burst_queue
+        self._taken: collections.deque[can.Message] = collections.deque()   # a burst's frames not yet returned
         # held while a received frame is handled: by the receive thread from taking a frame until it comes for the
         # next, or by a sender handling what has arrived (handle_arrived); frames are handled one at a time, in order
         self._handling = threading.Lock()
@@ -165,6 +190,12 @@ class QuickVirtualBus(VirtualBus):
         pending = self.queue.queue
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
+            if self._taken:
+                self._handling.acquire()
+                if self._taken:               # else a sender handled them meanwhile
+                    self._rx_holds = True
+                    return self._taken.popleft()
+                self._handling.release()
             if not pending:
                 with self.queue.not_empty:        # wait for a frame without taking it: a sender may handle it
                     while not pending:
@@ -174,25 +205,36 @@ class QuickVirtualBus(VirtualBus):
                         self.queue.not_empty.wait(remaining)
             self._handling.acquire()              # a sender handling frames finishes first: the order stays
             try:
-                msg = pending.popleft()
+                item = pending.popleft()
             except IndexError:                    # the sender took them all
                 self._handling.release()
                 continue
+            if isinstance(item, tuple):           # a burst: its frames one by one
+                self._taken.extend(burst_messages(item, self.channel_id))
+                item = self._taken.popleft()
             self._rx_holds = True
-            return msg
+            return item
 
-    def handle_arrived(self, listeners: list[Callable[[can.Message], Any]]) -> None:
+    def handle_arrived(self, listeners: list[Callable[[can.Message], Any]],
+                       on_burst: Callable[[float, list[tuple[int, bytes]]], None]) -> None:
         """Lockstep: hand the frames already here to `listeners` in this thread, as the receive thread (a notifier
-        with these listeners) would, when it is not handling one itself; the answer an inline receiver gave during
+        with these listeners) would, when it is not handling one itself — a burst to `on_burst(timestamp, frames)`,
+        which does for its frames what the listeners would frame by frame; the answer an inline receiver gave during
         send is then in before the caller waits for it, without a thread hand-off."""
         if not self._plain_queue() or not self._handling.acquire(blocking=False):
             return
-        pending = self.queue.queue
         try:
-            while pending:
-                msg = pending.popleft()
-                for listener in listeners:
-                    listener(msg)
+            items: list = list(self._taken)
+            self._taken.clear()
+            with self.queue.mutex:
+                items.extend(self.queue.queue)
+                self.queue.queue.clear()
+            for item in items:
+                if isinstance(item, tuple):
+                    on_burst(item[0], item[1])
+                else:
+                    for listener in listeners:
+                        listener(item)
         except Exception as exc:         # as on the receive thread: logged, never raised into the sender
             log.error("CAN receive listener: %s", exc)
         finally:
@@ -223,28 +265,59 @@ class QuickVirtualBus(VirtualBus):
             raise can.CanOperationError("Could not send message to one or more recipients")
 
 
-def frame_dispatch(network: Any) -> Callable[[can.Message], None]:
+class FrameDispatch:
     """A canopen Network's receive listener in one call per frame: what canopen's MessageListener ->
     Network.notify -> NodeScanner do in three (the subscribers' callbacks in order, then the scanner; error and
     remote frames skipped; an exception logged, skipping the frame's remaining callbacks). ~70,000 frames a 20 s
-    lockstep run."""
-    subscribers, scanner = network.subscribers, network.scanner
-    canopen_log = logging.getLogger("canopen.network")
+    lockstep run. `burst` does the same for a burst's frames, a run of frames of one CAN id in one call to a
+    subscriber that takes runs (`on_frames(can_id, datas, timestamp)`, a block upload's collector)."""
 
-    def on_frame(msg: can.Message) -> None:
+    def __init__(self, network: Any):
+        self.subscribers, self.scanner = network.subscribers, network.scanner
+        self.log = logging.getLogger("canopen.network")
+
+    def __call__(self, msg: can.Message) -> None:
         if msg.is_error_frame or msg.is_remote_frame:
             return
         can_id = msg.arbitration_id
         try:
-            callbacks = subscribers.get(can_id)
+            callbacks = self.subscribers.get(can_id)
             if callbacks:
                 data, timestamp = msg.data, msg.timestamp
                 for callback in callbacks:
                     callback(can_id, data, timestamp)
-            scanner.on_message_received(can_id)
+            self.scanner.on_message_received(can_id)
         except Exception as exc:       # as canopen's listener: a callback's failure must not stop the receive thread
-            canopen_log.error(str(exc))
-    return on_frame
+            self.log.error(str(exc))
+
+    def burst(self, timestamp: float, frames: list[tuple[int, bytes]]) -> None:
+        start, n = 0, len(frames)
+        while start < n:
+            can_id = frames[start][0]
+            end = start + 1
+            while end < n and frames[end][0] == can_id:
+                end += 1
+            try:
+                self._run(can_id, frames, start, end, timestamp)
+            except Exception as exc:
+                self.log.error(str(exc))
+            start = end
+
+    def _run(self, can_id: int, frames: list[tuple[int, bytes]], start: int, end: int, timestamp: float) -> None:
+        callbacks = self.subscribers.get(can_id)
+        if callbacks:
+            on_frames = getattr(callbacks[0], "on_frames", None) if len(callbacks) == 1 else None
+            if on_frames is not None:
+                on_frames(can_id, [payload for _, payload in frames[start:end]], timestamp)
+            else:
+                for k in range(start, end):
+                    for callback in callbacks:
+                        callback(can_id, frames[k][1], timestamp)
+        self.scanner.on_message_received(can_id)     # notes the node ids heard: once per run is the same
+
+
+def frame_dispatch(network: Any) -> FrameDispatch:
+    return FrameDispatch(network)
 
 
 def make_bus(kwargs: dict[str, Any]) -> can.BusABC:
@@ -321,6 +394,10 @@ class BusErrorCounter(can.Listener):
             self.counter += 8
         elif self.counter:
             self.counter -= 1
+
+    def count_good(self, n_frames: int) -> None:
+        """n_frames good frames in a row: what on_message_received does for each."""
+        self.counter = max(0, self.counter - n_frames)
 
     def problem(self, bus: can.BusABC | None) -> str | None:
         try:

@@ -53,7 +53,7 @@ from drivers.contract.comm_loss import CommLossConfig
 from drivers.canopen.profile import DriveProfile, ProfileConfig, resolve
 from drivers.contract.errors import ContentError
 from drivers.contract.eds import load_od
-from drivers.canopen.bus import frame_dispatch
+from drivers.canopen.bus import FrameDispatch, frame_dispatch
 from drivers.canopen.sdo import SdoAccess, block_upload
 from drivers.canopen.sync import NativeSync, ReceiveClock, SyncProducer, SyncTimeline, has_native_cyclic
 from drivers.contract.signals import SIGNAL_NAMES, TIME_COLUMN
@@ -132,7 +132,8 @@ class CanopenDriveLink(DriveLink):
         self.bus_errors = BusErrorCounter()
         self._reference_speed: Callable[[], float | None] | None = None
         self._refusal: SocketcandRefusal | None = None
-        self._handle_arrived: Callable[[list], None] | None = None
+        self._handle_arrived: Callable[..., None] | None = None
+        self._dispatch: FrameDispatch | None = None
 
     # -- connection ----------------------------------------------------------------------------------
     def open(self) -> DriveIdentity:
@@ -194,8 +195,14 @@ class CanopenDriveLink(DriveLink):
             self._handle_arrived = bus.handle_arrived
         self._refusal = SocketcandRefusal(bus) if kwargs["interface"] == "socketcand" else None
         self.network.bus = bus
-        self.network.listeners = [frame_dispatch(self.network)]
+        self._dispatch = frame_dispatch(self.network)
+        self.network.listeners = [self._dispatch]
         return self.network.connect(**kwargs)
+
+    def _on_burst(self, timestamp: float, frames: list[tuple[int, bytes]]) -> None:
+        """A burst of frames handled at once (QuickVirtualBus.handle_arrived): what the notifier's listeners do."""
+        self._dispatch.burst(timestamp, frames)
+        self.bus_errors.count_good(len(frames))
 
     def _read_identity_after_boot(self, interface: str) -> tuple[int, int, int, int]:
         """0x1018 (identity), the first SDO. A drive that does not answer may still be booting: with `boot_timeout_s`
@@ -561,7 +568,7 @@ class CanopenDriveLink(DriveLink):
         except (can.CanError, OSError) as exc:
             raise LinkError(f"CAN send of 0x{cob:03X} failed: {exc}") from None
         if self._handle_arrived is not None:     # lockstep, in-process: the answer is handled here, not waited for
-            self._handle_arrived(self.network.notifier.listeners)
+            self._handle_arrived(self.network.notifier.listeners, self._on_burst)
 
     def _start_sync_producer(self) -> None:
         bus = self.network.bus

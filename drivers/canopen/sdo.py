@@ -123,7 +123,7 @@ def block_upload(network: canopen.Network, node_id: int, index: int, subindex: i
     rx = o.SDO_TX + node_id
     collector = _BlockCollector(cancel)
     saved = network.subscribers.get(rx, [])
-    network.subscribers[rx] = [collector.on_frame]
+    network.subscribers[rx] = [collector]
     where = f"node {node_id}: block upload of 0x{index:04X}:{subindex:02X}"
 
     def request(data: bytes) -> None:
@@ -266,15 +266,30 @@ class _BlockCollector:
         with self._cond:
             self._frames, self._want, self._block, self._ready = [], 0, blksize, False
 
-    def on_frame(self, can_id, data, timestamp):
+    def __call__(self, can_id, data, timestamp):
         frames = self._frames
         frames.append(data)
         block = self._block
         if (data[0] & 0x80 or (data[0] & 0x7F) >= block) if block else len(frames) >= self._want:
-            with self._cond:
-                if frames is self._frames:
-                    self._ready = True
-                    self._cond.notify()
+            self._wake(frames)
+
+    def on_frames(self, can_id, datas, timestamp):
+        """A run of frames at once (bus.FrameDispatch.burst): what one call per frame does."""
+        frames = self._frames
+        frames.extend(datas)
+        block = self._block
+        if block:
+            complete = any(data[0] & 0x80 or (data[0] & 0x7F) >= block for data in reversed(datas))
+        else:
+            complete = len(frames) >= self._want
+        if complete:
+            self._wake(frames)
+
+    def _wake(self, frames: list) -> None:
+        with self._cond:
+            if frames is self._frames:
+                self._ready = True
+                self._cond.notify()
 
     def wait(self, timeout: float) -> list[bytearray] | None:
         deadline = time.monotonic() + timeout

@@ -125,7 +125,8 @@ class FastVirtualBus(VirtualBus):
 
     def send_frames(self, frames: list[tuple[int, bytes]]) -> None:
         """Standard-ID data frames (cob, payload), in order: what len(frames) send() calls deliver, with one queue
-        hand-off per receiver (the receiving thread wakes once per burst, not per frame). A subclass that
+        hand-off per receiver (the receiving thread wakes once per burst, not per frame); a receiver whose queue
+        takes bursts (`put_burst`) gets them as one item, stamped once, without a Message per frame. A subclass that
         overrides send() (fault injection) gets one send() per frame."""
         if type(self).send is not FastVirtualBus.send:
             for cob, payload in frames:
@@ -135,6 +136,10 @@ class FastVirtualBus(VirtualBus):
         now = (lambda: 0.0) if self.preserve_timestamps else time.time   # as send() would stamp a new Message
         for bus_queue in self.channel:
             if bus_queue is self.queue and not self.receive_own_messages:
+                continue
+            put_burst = getattr(bus_queue, "put_burst", None)
+            if put_burst is not None and not bus_queue.maxsize:      # a receiver that takes a burst as one item
+                put_burst(now(), frames)
                 continue
             is_rx = bus_queue is not self.queue
             channel = self.channel_id
