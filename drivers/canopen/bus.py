@@ -265,12 +265,25 @@ class QuickVirtualBus(VirtualBus):
             raise can.CanOperationError("Could not send message to one or more recipients")
 
 
+class RunReceiver:
+    """A subscriber (network.subscribe) that also takes a run of frames in one call: `on_frame(can_id, data,
+    timestamp)` per frame, `on_frames(frames, timestamp)` for consecutive frames (can_id, data) of one burst that
+    all go to it alone (FrameDispatch.burst) — one SYNC's TPDOs, a block upload's sub-block."""
+
+    def __init__(self, on_frame: Callable[[int, bytes, float], None],
+                 on_frames: Callable[[list[tuple[int, bytes]], float], None]):
+        self.on_frame, self.on_frames = on_frame, on_frames
+
+    def __call__(self, can_id: int, data: bytes, timestamp: float) -> None:
+        self.on_frame(can_id, data, timestamp)
+
+
 class FrameDispatch:
     """A canopen Network's receive listener in one call per frame: what canopen's MessageListener ->
     Network.notify -> NodeScanner do in three (the subscribers' callbacks in order, then the scanner; error and
     remote frames skipped; an exception logged, skipping the frame's remaining callbacks). ~70,000 frames a 20 s
-    lockstep run. `burst` does the same for a burst's frames, a run of frames of one CAN id in one call to a
-    subscriber that takes runs (`on_frames(can_id, datas, timestamp)`, a block upload's collector)."""
+    lockstep run. `burst` does the same for a burst's frames, consecutive frames that go to one RunReceiver alone
+    in one call."""
 
     def __init__(self, network: Any):
         self.subscribers, self.scanner = network.subscribers, network.scanner
@@ -293,27 +306,32 @@ class FrameDispatch:
     def burst(self, timestamp: float, frames: list[tuple[int, bytes]]) -> None:
         start, n = 0, len(frames)
         while start < n:
-            can_id = frames[start][0]
+            receiver = self._run_receiver(frames[start][0])
             end = start + 1
-            while end < n and frames[end][0] == can_id:
-                end += 1
+            if receiver is not None:
+                while end < n and self._run_receiver(frames[end][0]) is receiver:
+                    end += 1
             try:
-                self._run(can_id, frames, start, end, timestamp)
+                if receiver is not None:
+                    receiver.on_frames(frames[start:end], timestamp)
+                else:
+                    self._one(frames[start], timestamp)
+                for can_id, _ in frames[start:end]:
+                    self.scanner.on_message_received(can_id)
             except Exception as exc:
                 self.log.error(str(exc))
             start = end
 
-    def _run(self, can_id: int, frames: list[tuple[int, bytes]], start: int, end: int, timestamp: float) -> None:
+    def _run_receiver(self, can_id: int) -> RunReceiver | None:
         callbacks = self.subscribers.get(can_id)
-        if callbacks:
-            on_frames = getattr(callbacks[0], "on_frames", None) if len(callbacks) == 1 else None
-            if on_frames is not None:
-                on_frames(can_id, [payload for _, payload in frames[start:end]], timestamp)
-            else:
-                for k in range(start, end):
-                    for callback in callbacks:
-                        callback(can_id, frames[k][1], timestamp)
-        self.scanner.on_message_received(can_id)     # notes the node ids heard: once per run is the same
+        if callbacks and len(callbacks) == 1 and isinstance(callbacks[0], RunReceiver):
+            return callbacks[0]
+        return None
+
+    def _one(self, frame: tuple[int, bytes], timestamp: float) -> None:
+        can_id, data = frame
+        for callback in self.subscribers.get(can_id) or ():
+            callback(can_id, data, timestamp)
 
 
 def frame_dispatch(network: Any) -> FrameDispatch:

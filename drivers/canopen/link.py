@@ -53,7 +53,7 @@ from drivers.contract.comm_loss import CommLossConfig
 from drivers.canopen.profile import DriveProfile, ProfileConfig, resolve
 from drivers.contract.errors import ContentError
 from drivers.contract.eds import load_od
-from drivers.canopen.bus import FrameDispatch, frame_dispatch
+from drivers.canopen.bus import FrameDispatch, RunReceiver, frame_dispatch
 from drivers.canopen.sdo import SdoAccess, block_upload
 from drivers.canopen.sync import NativeSync, ReceiveClock, SyncProducer, SyncTimeline, has_native_cyclic
 from drivers.contract.signals import SIGNAL_NAMES, TIME_COLUMN
@@ -134,6 +134,7 @@ class CanopenDriveLink(DriveLink):
         self._refusal: SocketcandRefusal | None = None
         self._handle_arrived: Callable[..., None] | None = None
         self._dispatch: FrameDispatch | None = None
+        self._tpdo_receiver = RunReceiver(self._on_tpdo, self._on_tpdos)
 
     # -- connection ----------------------------------------------------------------------------------
     def open(self) -> DriveIdentity:
@@ -347,7 +348,7 @@ class CanopenDriveLink(DriveLink):
         with self._lock:
             self._decoder = decoder
         for cob in decoder.tpdos:
-            self.network.subscribe(cob, self._on_tpdo)
+            self.network.subscribe(cob, self._tpdo_receiver)
 
         if self._guard is None:
             self._guard = CommLossGuard(self.comm_loss_config, self.sdo, self.network)
@@ -459,18 +460,27 @@ class CanopenDriveLink(DriveLink):
             self._emcy.append((code, f"{text}; error register 0x{register:02X}"))
 
     def _on_tpdo(self, can_id, data, timestamp):
+        self._on_tpdos([(can_id, data)], timestamp)
+
+    def _on_tpdos(self, frames: list[tuple[int, bytes]], timestamp: float) -> None:
+        """TPDOs received at `timestamp` (one frame from the notifier, or a SYNC's burst at once), decoded in order
+        under one hold of the lock; waiters woken once."""
         now = time.time()
         if abs(now - timestamp) < 3600.0:       # interfaces stamping with the epoch clock: receive backlog
             self._rx_lag_s = now - timestamp
         with self._lock:
-            result = self._decoder.decode(can_id, data, timestamp)
-            if isinstance(result, str):
-                self._errors.append(result)
-                self._lock.notify_all()
-            elif result:
-                self._samples.extend(result)
-                self._latest = result[-1]
-                self._completed += len(result)
+            woken = False
+            for can_id, data in frames:
+                result = self._decoder.decode(can_id, data, timestamp)
+                if isinstance(result, str):
+                    self._errors.append(result)
+                    woken = True
+                elif result:
+                    self._samples.extend(result)
+                    self._latest = result[-1]
+                    self._completed += len(result)
+                    woken = True
+            if woken:
                 self._lock.notify_all()
 
     # -- SYNC ----------------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ import numpy as np
 from canopen import objectdictionary
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
+from drivers.canopen.bus import RunReceiver
 from drivers.contract.errors import LinkError
 from drivers.contract import objects as o
 
@@ -123,7 +124,7 @@ def block_upload(network: canopen.Network, node_id: int, index: int, subindex: i
     rx = o.SDO_TX + node_id
     collector = _BlockCollector(cancel)
     saved = network.subscribers.get(rx, [])
-    network.subscribers[rx] = [collector]
+    network.subscribers[rx] = [RunReceiver(collector.on_frame, collector.on_frames)]
     where = f"node {node_id}: block upload of 0x{index:04X}:{subindex:02X}"
 
     def request(data: bytes) -> None:
@@ -266,16 +267,17 @@ class _BlockCollector:
         with self._cond:
             self._frames, self._want, self._block, self._ready = [], 0, blksize, False
 
-    def __call__(self, can_id, data, timestamp):
+    def on_frame(self, can_id, data, timestamp):
         frames = self._frames
         frames.append(data)
         block = self._block
         if (data[0] & 0x80 or (data[0] & 0x7F) >= block) if block else len(frames) >= self._want:
             self._wake(frames)
 
-    def on_frames(self, can_id, datas, timestamp):
-        """A run of frames at once (bus.FrameDispatch.burst): what one call per frame does."""
+    def on_frames(self, run: list[tuple[int, bytes]], timestamp: float) -> None:
+        """A run of frames at once (bus.FrameDispatch.burst): what one on_frame call per frame does."""
         frames = self._frames
+        datas = [data for _, data in run]
         frames.extend(datas)
         block = self._block
         if block:
