@@ -12,6 +12,7 @@ import time
 from typing import Any, Callable
 
 import can
+import canopen
 from can.interfaces.virtual import VirtualBus
 
 log = logging.getLogger(__name__)
@@ -135,13 +136,27 @@ class SocketcandRefusal:
 class BurstQueue(queue.Queue):
     """A QuickVirtualBus's receive queue: can.Message items, and bursts a sender hands over as one item
     (`put_burst`: standard-ID data frames (cob, payload), in order, sent at one instant) — the simulator's TPDOs of
-    a SYNC, a block upload's sub-block — without a Message per frame; the receiving end takes them apart."""
+    a SYNC, a block upload's sub-block — without a Message per frame; the receiving end takes them apart.
+
+    What the thread `handled_by` puts does not wake the receive thread: that thread handles it itself once its send
+    returns (HandlingNetwork); the receive thread takes what is left on its next poll."""
+
+    handled_by: int | None = None
+
+    def put(self, item: Any, block: bool = True, timeout: float | None = None) -> None:
+        if self.handled_by != threading.get_ident():
+            super().put(item, block, timeout)
+            return
+        with self.mutex:
+            self.queue.append(item)
+            self.unfinished_tasks += 1
 
     def put_burst(self, timestamp: float, frames: list[tuple[int, bytes]]) -> None:
         with self.mutex:
             self.queue.append((timestamp, frames))
             self.unfinished_tasks += 1
-            self.not_empty.notify()
+            if self.handled_by != threading.get_ident():
+                self.not_empty.notify()
 
 
 def burst_messages(burst: tuple[float, list[tuple[int, bytes]]], channel: Any) -> list[can.Message]:
@@ -215,14 +230,30 @@ class QuickVirtualBus(VirtualBus):
             self._rx_holds = True
             return item
 
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        """python-can's receive (a bus with filters): a burst's frames one by one, as recv gives them."""
+        if self._taken:
+            return self._taken.popleft(), False
+        item, filtered = super()._recv_internal(timeout)
+        if isinstance(item, tuple):
+            self._taken.extend(burst_messages(item, self.channel_id))
+            item = self._taken.popleft()
+        return item, filtered
+
     def handle_arrived(self, listeners: list[Callable[[can.Message], Any]],
                        on_burst: Callable[[float, list[tuple[int, bytes]]], None]) -> None:
         """Lockstep: hand the frames already here to `listeners` in this thread, as the receive thread (a notifier
         with these listeners) would, when it is not handling one itself — a burst to `on_burst(timestamp, frames)`,
         which does for its frames what the listeners would frame by frame; the answer an inline receiver gave during
         send is then in before the caller waits for it, without a thread hand-off."""
-        if not self._plain_queue() or not self._handling.acquire(blocking=False):
-            return
+        if self._plain_queue() and self._handling.acquire(blocking=False):
+            self._handle_taken_and_queued(listeners, on_burst)
+        if self.queue.queue:             # left to the receive thread (or put meanwhile by a thread that does not
+            with self.queue.not_empty:   # handle what it puts): wake it
+                self.queue.not_empty.notify()
+
+    def _handle_taken_and_queued(self, listeners: list[Callable[[can.Message], Any]],
+                                 on_burst: Callable[[float, list[tuple[int, bytes]]], None]) -> None:
         try:
             items: list = list(self._taken)
             self._taken.clear()
@@ -332,6 +363,28 @@ class FrameDispatch:
         can_id, data = frame
         for callback in self.subscribers.get(can_id) or ():
             callback(can_id, data, timestamp)
+
+
+class HandlingNetwork(canopen.Network):
+    """canopen's Network; with `after_send` set (a lockstep link on a QuickVirtualBus), each send_message is
+    followed, in the sending thread, by after_send() — handling what the send brought (an inline receiver's
+    answer) — and what the sending thread itself puts into the receive queue meanwhile does not wake the receive
+    thread (BurstQueue.handled_by)."""
+
+    after_send: Callable[[], None] | None = None
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        after_send = self.after_send
+        if after_send is None:
+            super().send_message(can_id, data, remote)
+            return
+        arrivals = self.bus.queue
+        arrivals.handled_by = threading.get_ident()
+        try:
+            super().send_message(can_id, data, remote)
+        finally:
+            arrivals.handled_by = None
+        after_send()
 
 
 def frame_dispatch(network: Any) -> FrameDispatch:

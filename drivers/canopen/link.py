@@ -53,7 +53,7 @@ from drivers.contract.comm_loss import CommLossConfig
 from drivers.canopen.profile import DriveProfile, ProfileConfig, resolve
 from drivers.contract.errors import ContentError
 from drivers.contract.eds import load_od
-from drivers.canopen.bus import FrameDispatch, RunReceiver, frame_dispatch
+from drivers.canopen.bus import FrameDispatch, HandlingNetwork, RunReceiver, frame_dispatch
 from drivers.canopen.sdo import SdoAccess, block_upload
 from drivers.canopen.sync import NativeSync, ReceiveClock, SyncProducer, SyncTimeline, has_native_cyclic
 from drivers.contract.signals import SIGNAL_NAMES, TIME_COLUMN
@@ -132,7 +132,6 @@ class CanopenDriveLink(DriveLink):
         self.bus_errors = BusErrorCounter()
         self._reference_speed: Callable[[], float | None] | None = None
         self._refusal: SocketcandRefusal | None = None
-        self._handle_arrived: Callable[..., None] | None = None
         self._dispatch: FrameDispatch | None = None
         self._tpdo_receiver = RunReceiver(self._on_tpdo, self._on_tpdos)
 
@@ -140,7 +139,7 @@ class CanopenDriveLink(DriveLink):
     def open(self) -> DriveIdentity:
         kwargs = bus_kwargs(self.section)
         try:
-            self.network = canopen.Network()
+            self.network = HandlingNetwork()
             self.network.NOTIFIER_CYCLE = 0.02  # close() returns within 20 ms (the notifier thread polls)
             open_bus(kwargs, lambda: self._connect(kwargs))
         except (can.CanError, OSError, ValueError, TimeoutError, TypeError) as exc:
@@ -192,8 +191,8 @@ class CanopenDriveLink(DriveLink):
         that arrives first would otherwise be parsed as a frame and kill that thread)."""
         bus = make_bus(kwargs)
         if isinstance(bus, QuickVirtualBus) and self.timing == "lockstep":   # nothing else runs while the bench waits
-            bus.inline_delivery = True
-            self._handle_arrived = bus.handle_arrived
+            bus.inline_delivery = True      # an in-process node answers in the sending thread, which handles the answer
+            self.network.after_send = lambda: bus.handle_arrived(self.network.notifier.listeners, self._on_burst)
         self._refusal = SocketcandRefusal(bus) if kwargs["interface"] == "socketcand" else None
         self.network.bus = bus
         self._dispatch = frame_dispatch(self.network)
@@ -577,8 +576,6 @@ class CanopenDriveLink(DriveLink):
             self.frames_sent += 1
         except (can.CanError, OSError) as exc:
             raise LinkError(f"CAN send of 0x{cob:03X} failed: {exc}") from None
-        if self._handle_arrived is not None:     # lockstep, in-process: the answer is handled here, not waited for
-            self._handle_arrived(self.network.notifier.listeners, self._on_burst)
 
     def _start_sync_producer(self) -> None:
         bus = self.network.bus
