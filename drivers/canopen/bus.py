@@ -309,6 +309,19 @@ class RunReceiver:
         self.on_frame(can_id, data, timestamp)
 
 
+def same_id_stretches(frames: list[tuple[int, bytes]]) -> list[tuple[int, int, int]]:
+    """(can_id, start, end) of each stretch of consecutive frames with one CAN id."""
+    out = []
+    start, can_id = 0, frames[0][0] if frames else None
+    for k, (cob, _) in enumerate(frames):
+        if cob != can_id:
+            out.append((can_id, start, k))
+            start, can_id = k, cob
+    if frames:
+        out.append((can_id, start, len(frames)))
+    return out
+
+
 class FrameDispatch:
     """A canopen Network's receive listener in one call per frame: what canopen's MessageListener ->
     Network.notify -> NodeScanner do in three (the subscribers' callbacks in order, then the scanner; error and
@@ -335,23 +348,26 @@ class FrameDispatch:
             self.log.error(str(exc))
 
     def burst(self, timestamp: float, frames: list[tuple[int, bytes]]) -> None:
-        start, n = 0, len(frames)
-        while start < n:
-            receiver = self._run_receiver(frames[start][0])
-            end = start + 1
-            if receiver is not None:
-                while end < n and self._run_receiver(frames[end][0]) is receiver:
-                    end += 1
+        stretches = same_id_stretches(frames)
+        k = 0
+        while k < len(stretches):
+            can_id, start, end = stretches[k]
+            receiver = self._run_receiver(can_id)
+            last = k
+            while receiver is not None and last + 1 < len(stretches) and \
+                    self._run_receiver(stretches[last + 1][0]) is receiver:
+                last += 1
             try:
                 if receiver is not None:
-                    receiver.on_frames(frames[start:end], timestamp)
+                    receiver.on_frames(frames[start:stretches[last][2]], timestamp)
                 else:
-                    self._one(frames[start], timestamp)
-                for can_id, _ in frames[start:end]:
-                    self.scanner.on_message_received(can_id)
+                    for frame in frames[start:end]:
+                        self._one(frame, timestamp)
+                for can_id, _, _ in stretches[k:last + 1]:
+                    self.scanner.on_message_received(can_id)     # notes the node ids heard: once per id is the same
             except Exception as exc:
                 self.log.error(str(exc))
-            start = end
+            k = last + 1
 
     def _run_receiver(self, can_id: int) -> RunReceiver | None:
         callbacks = self.subscribers.get(can_id)
