@@ -391,7 +391,7 @@ class HandlingNetwork(canopen.Network):
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         after_send = self.after_send
-        if after_send is None:
+        if after_send is None or self.bus is None:        # (no bus: canopen's own error)
             super().send_message(can_id, data, remote)
             return
         arrivals = self.bus.queue
