@@ -10,7 +10,8 @@ import time
 import can
 import canopen
 
-from drivers.canopen.bus import BusErrorCounter, FrameDispatch, QuickVirtualBus, RunReceiver, same_id_stretches
+from drivers.canopen.bus import BusErrorCounter, QuickVirtualBus
+from drivers.canopen.dispatch import FrameDispatch, RunReceiver, same_id_stretches
 from sim_backend.canopen.virtual_bus import FastVirtualBus, InlineReceiveQueue
 from sim_backend.rig import private_channel
 

@@ -53,7 +53,7 @@ from drivers.contract.comm_loss import CommLossConfig
 from drivers.canopen.profile import DriveProfile, ProfileConfig, resolve
 from drivers.contract.errors import ContentError
 from drivers.contract.eds import load_od
-from drivers.canopen.bus import FrameDispatch, HandlingNetwork, RunReceiver, frame_dispatch
+from drivers.canopen.dispatch import FrameDispatch, HandlingNetwork, RunReceiver, frame_dispatch
 from drivers.canopen.sdo import SdoAccess, block_upload
 from drivers.canopen.sync import NativeSync, ReceiveClock, SyncProducer, SyncTimeline, has_native_cyclic
 from drivers.contract.signals import SIGNAL_NAMES, TIME_COLUMN

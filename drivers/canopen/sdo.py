@@ -14,7 +14,7 @@ import numpy as np
 from canopen import objectdictionary
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
-from drivers.canopen.bus import RunReceiver
+from drivers.canopen.dispatch import RunReceiver
 from drivers.contract.errors import LinkError
 from drivers.contract import objects as o
 
