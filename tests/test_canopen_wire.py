@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import struct
+import time
 
 import can
 import canopen
@@ -169,6 +170,12 @@ def test_python_can_loggers_capture_the_run(tmp_path):
         r.link.set_speed_ref(3.0)
         sent = [s for _ in range(25) for s in r.link.sync()]
         r.link.disable()
+        # python-can's Notifier drops what it has not read when stopped; a lockstep link in-process never waits on
+        # another thread, so the loggers' thread may not have had its turn yet: let it read what is queued first
+        deadline = time.monotonic() + 5.0
+        while r.sniffer.bus.queue.qsize() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.1)                                       # the last frame taken is being written
         notifier.stop()                                       # stops (and closes) the loggers too
         for path in paths:
             frames = list(can.LogReader(str(path)))

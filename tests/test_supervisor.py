@@ -130,3 +130,26 @@ def test_safe_stop_continues_after_a_failing_step():
     errors = stop.run()
     assert rig.names() == SAFE_STOP  # the drive is still stopped and disabled
     assert len(errors) == 1 and "modbus timeout" in errors[0]
+
+
+def test_inline_supervisor_judges_in_the_feeding_thread_at_once_and_the_thread_keeps_the_wall_clock():
+    threads = []
+    sup = Supervisor(Limits(max_duration_s=0.3), judge_inline=True,
+                     on_trip=lambda trip: threads.append(threading.current_thread().name)).start()
+    try:
+        sup.feed([LiveSample(0.01 * k, OK) for k in range(10)])
+        assert not sup.tripped.is_set()
+        sup.feed([LiveSample(0.11, {**OK, "i_sy_a": -12.0})])
+        assert sup.tripped.is_set()                       # before feed returned: the loop sees it at this SYNC
+        assert sup.trip.reason == "overcurrent" and sup.trip.t_s == 0.11
+        assert threads == [threading.current_thread().name]
+        sup.feed([LiveSample(0.12, {**OK, "vdc_v": 900.0})])
+        assert sup.trip.reason == "overcurrent" and len(threads) == 1      # the first trip stays the run's
+        assert sup.drain(0.1)
+    finally:
+        sup.stop()
+    wall = Supervisor(Limits(max_duration_s=0.1), judge_inline=True).start()
+    try:
+        assert wall.tripped.wait(2.0) and wall.trip.reason == "max_duration"
+    finally:
+        wall.stop()

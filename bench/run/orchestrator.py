@@ -208,7 +208,7 @@ class _Run(RunArming, RunSteps, RunJournal, RunTrips, RunEnding):
         self.telemetry = TelemetryWorker()
         self.realtime = self.cfg.bench.timing == "realtime"
         self._live_lock = threading.Lock()        # live_buffer: the command thread adds, the worker prunes
-        self.supervisor = Supervisor(self.scenario.limits)
+        self.supervisor = Supervisor(self.scenario.limits, judge_inline=not self.realtime)
         self.sync_period_s = float(self.cfg.drive["sync_period_s"])
         # real time: no live sample for this long is lost feedback (a host hiccup is not)
         self._feedback_lost_s = max(FEEDBACK_LOST_MIN_S, FEEDBACK_LOST_PERIODS * self.sync_period_s)

@@ -237,14 +237,19 @@ WATCHDOG_PERIOD_S = 0.05
 
 
 class Supervisor:
-    """Runs check_sample/check_status on everything fed to it, in a daemon thread.
+    """Runs check_sample/check_status on everything fed to it, in a daemon thread — or, with `judge_inline`
+    (lockstep: the drive's time stands still while the bench judges), in the feeding thread at once, so a trip is
+    seen at the SYNC whose sample shows it.
 
     The thread also watches the wall clock from start(): past limits.max_duration_s it trips even if
     nothing is fed any more (a hung link, a run loop stuck somewhere).
     """
 
     def __init__(self, limits: SupervisorLimits, on_trip: Callable[[Trip], None] | None = None,
-                 unit_check: UnitCheck | None = None, feedback_check: FeedbackCheck | None = None):
+                 unit_check: UnitCheck | None = None, feedback_check: FeedbackCheck | None = None,
+                 judge_inline: bool = False):
+        self.judge_inline = judge_inline
+        self._trip_lock = threading.Lock()      # one judge at a time: the feeding thread (inline) or the thread
         self.limits = limits
         self.unit_check = unit_check
         self.feedback_check = feedback_check
@@ -283,6 +288,9 @@ class Supervisor:
             self._put(("silent", (t_s, silent_s)))
 
     def _put(self, item) -> None:
+        if self.judge_inline:
+            self._settle(item)
+            return
         with self._idle:
             self._pending += 1
         self._queue.put(item)
@@ -306,21 +314,27 @@ class Supervisor:
             if item is _STOP:
                 return
             try:
-                if not self.tripped.is_set():
-                    trip = self._judge(item) if item is not None else None
-                    if trip is None:
-                        trip = self._check_wall_clock()
-                    if trip is not None:
-                        self.trip = trip
-                        self.trip_utc = datetime.now(timezone.utc).isoformat(timespec="milliseconds")
-                        self.tripped.set()
-                        if self.on_trip is not None:
-                            self.on_trip(trip)
+                self._settle(item)
             finally:
                 if item is not None:
                     with self._idle:
                         self._pending -= 1
                         self._idle.notify_all()
+
+    def _settle(self, item) -> None:
+        """Judge one fed item (None: the wall clock only); the first trip is the run's."""
+        with self._trip_lock:
+            if self.tripped.is_set():
+                return
+            trip = self._judge(item) if item is not None else None
+            if trip is None:
+                trip = self._check_wall_clock()
+            if trip is not None:
+                self.trip = trip
+                self.trip_utc = datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+                self.tripped.set()
+                if self.on_trip is not None:
+                    self.on_trip(trip)
 
     def _check_wall_clock(self) -> Trip | None:
         elapsed = time.monotonic() - self._started

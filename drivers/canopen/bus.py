@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import logging
 import queue
 import re
@@ -131,23 +132,143 @@ class SocketcandRefusal:
             return None, False
 
 
+class BurstQueue(queue.Queue):
+    """A QuickVirtualBus's receive queue: can.Message items, and bursts a sender hands over as one item
+    (`put_burst`: standard-ID data frames (cob, payload), in order, sent at one instant) — the simulator's TPDOs of
+    a SYNC, a block upload's sub-block — without a Message per frame; the receiving end takes them apart.
+
+    What the thread `handled_by` puts does not wake the receive thread: that thread handles it itself once its send
+    returns (HandlingNetwork); the receive thread takes what is left on its next poll."""
+
+    handled_by: int | None = None
+
+    def put(self, item: Any, block: bool = True, timeout: float | None = None) -> None:
+        if self.handled_by != threading.get_ident():
+            super().put(item, block, timeout)
+            return
+        with self.mutex:
+            self.queue.append(item)
+            self.unfinished_tasks += 1
+
+    def put_burst(self, timestamp: float, frames: list[tuple[int, bytes]]) -> None:
+        with self.mutex:
+            self.queue.append((timestamp, frames))
+            self.unfinished_tasks += 1
+            if self.handled_by != threading.get_ident():
+                self.not_empty.notify()
+
+
+def burst_messages(burst: tuple[float, list[tuple[int, bytes]]], channel: Any) -> list[can.Message]:
+    timestamp, frames = burst
+    return [can.Message(timestamp=timestamp, arbitration_id=cob, is_extended_id=False, channel=channel,
+                        dlc=len(payload), data=bytearray(payload), is_rx=True, check=False)
+            for cob, payload in frames]
+
+
 class QuickVirtualBus(VirtualBus):
     """python-can's `virtual` interface, same channels and delivery, cheaper per frame at the link's end: a frame
     already queued is taken without the queue's lock and the receive log call (python-can logs every frame at level
     9), and a sent frame is copied field by field for each receiver instead of by deepcopy. Measured on the receive
-    thread: ~30 % less CPU per frame of a block upload, the bulk of a lockstep run's frames."""
+    thread: ~30 % less CPU per frame of a block upload, the bulk of a lockstep run's frames.
+
+    `inline_delivery` (lockstep links): a receiver on the channel that offers it (`put_inline`, an in-process node
+    that handles a frame at once when idle) gets the frame handled in the sending thread, before send returns;
+    the same frames in the same order, without a thread hand-off per request."""
+
+    inline_delivery = False
+
+    def __init__(self, *args: Any, **kwargs: Any):
+        super().__init__(*args, **kwargs)
+        if not self.queue.maxsize:
+            burst_queue = BurstQueue()
+            self.channel[self.channel.index(self.queue)] = burst_queue
+            self.queue = burst_queue
+        self._taken: collections.deque[can.Message] = collections.deque()   # a burst's frames not yet returned
+        # held while a received frame is handled: by the receive thread from taking a frame until it comes for the
+        # next, or by a sender handling what has arrived (handle_arrived); frames are handled one at a time, in order
+        self._handling = threading.Lock()
+        self._rx_holds = False
+
+    def _plain_queue(self) -> bool:
+        # one reader pops; writers append under the queue's lock (a deque's popleft and append are atomic); a bounded
+        # queue (rx_queue_size) needs get() to wake a writer waiting for room; a receive wrapped for a purpose
+        # (SocketcandRefusal) goes through it
+        return self._filters is None and not self.queue.maxsize and self._open and "_recv_internal" not in vars(self)
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
+        if self._rx_holds:                    # the frame returned last has been handled
+            self._rx_holds = False
+            self._handling.release()
+        if not self._plain_queue():
+            return super().recv(timeout)
         pending = self.queue.queue
-        # one reader (the notifier thread) pops; writers append under the queue's lock (a deque's popleft and append
-        # are atomic); a bounded queue (rx_queue_size) needs get() to wake a writer waiting for room
-        if pending and self._filters is None and not self.queue.maxsize and self._open \
-                and "_recv_internal" not in vars(self):          # a receive wrapped for a purpose goes through it
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            if self._taken:
+                self._handling.acquire()
+                if self._taken:               # else a sender handled them meanwhile
+                    self._rx_holds = True
+                    return self._taken.popleft()
+                self._handling.release()
+            if not pending:
+                with self.queue.not_empty:        # wait for a frame without taking it: a sender may handle it
+                    while not pending:
+                        remaining = None if deadline is None else deadline - time.monotonic()
+                        if remaining is not None and remaining <= 0:
+                            return None
+                        self.queue.not_empty.wait(remaining)
+            self._handling.acquire()              # a sender handling frames finishes first: the order stays
             try:
-                return pending.popleft()
-            except IndexError:
-                pass
-        return super().recv(timeout)
+                item = pending.popleft()
+            except IndexError:                    # the sender took them all
+                self._handling.release()
+                continue
+            if isinstance(item, tuple):           # a burst: its frames one by one
+                self._taken.extend(burst_messages(item, self.channel_id))
+                item = self._taken.popleft()
+            self._rx_holds = True
+            return item
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        """python-can's receive (a bus with filters): a burst's frames one by one, as recv gives them."""
+        if self._taken:
+            return self._taken.popleft(), False
+        item, filtered = super()._recv_internal(timeout)
+        if isinstance(item, tuple):
+            self._taken.extend(burst_messages(item, self.channel_id))
+            item = self._taken.popleft()
+        return item, filtered
+
+    def handle_arrived(self, listeners: list[Callable[[can.Message], Any]],
+                       on_burst: Callable[[float, list[tuple[int, bytes]]], None]) -> None:
+        """Lockstep: hand the frames already here to `listeners` in this thread, as the receive thread (a notifier
+        with these listeners) would, when it is not handling one itself — a burst to `on_burst(timestamp, frames)`,
+        which does for its frames what the listeners would frame by frame; the answer an inline receiver gave during
+        send is then in before the caller waits for it, without a thread hand-off."""
+        if self._plain_queue() and self._handling.acquire(blocking=False):
+            self._handle_taken_and_queued(listeners, on_burst)
+        if self.queue.queue:             # left to the receive thread (or put meanwhile by a thread that does not
+            with self.queue.not_empty:   # handle what it puts): wake it
+                self.queue.not_empty.notify()
+
+    def _handle_taken_and_queued(self, listeners: list[Callable[[can.Message], Any]],
+                                 on_burst: Callable[[float, list[tuple[int, bytes]]], None]) -> None:
+        try:
+            items: list = list(self._taken)
+            self._taken.clear()
+            with self.queue.mutex:
+                items.extend(self.queue.queue)
+                self.queue.queue.clear()
+            for item in items:
+                if isinstance(item, tuple):
+                    on_burst(item[0], item[1])
+                else:
+                    for listener in listeners:
+                        listener(item)
+        except Exception as exc:         # as on the receive thread: logged, never raised into the sender
+            log.error("CAN receive listener: %s", exc)
+        finally:
+            self._handling.release()
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self._check_if_open()
@@ -162,36 +283,16 @@ class QuickVirtualBus(VirtualBus):
                                data=bytearray(msg.data), is_fd=msg.is_fd, is_rx=bus_queue is not self.queue,
                                bitrate_switch=msg.bitrate_switch, error_state_indicator=msg.error_state_indicator,
                                check=False)
+            put_inline = getattr(bus_queue, "put_inline", None) if self.inline_delivery else None
+            if put_inline is not None:
+                put_inline(copy)
+                continue
             try:
                 bus_queue.put(copy, block=True, timeout=timeout)
             except queue.Full:
                 all_sent = False
         if not all_sent:
             raise can.CanOperationError("Could not send message to one or more recipients")
-
-
-def frame_dispatch(network: Any) -> Callable[[can.Message], None]:
-    """A canopen Network's receive listener in one call per frame: what canopen's MessageListener ->
-    Network.notify -> NodeScanner do in three (the subscribers' callbacks in order, then the scanner; error and
-    remote frames skipped; an exception logged, skipping the frame's remaining callbacks). ~70,000 frames a 20 s
-    lockstep run."""
-    subscribers, scanner = network.subscribers, network.scanner
-    canopen_log = logging.getLogger("canopen.network")
-
-    def on_frame(msg: can.Message) -> None:
-        if msg.is_error_frame or msg.is_remote_frame:
-            return
-        can_id = msg.arbitration_id
-        try:
-            callbacks = subscribers.get(can_id)
-            if callbacks:
-                data, timestamp = msg.data, msg.timestamp
-                for callback in callbacks:
-                    callback(can_id, data, timestamp)
-            scanner.on_message_received(can_id)
-        except Exception as exc:       # as canopen's listener: a callback's failure must not stop the receive thread
-            canopen_log.error(str(exc))
-    return on_frame
 
 
 def make_bus(kwargs: dict[str, Any]) -> can.BusABC:
@@ -268,6 +369,10 @@ class BusErrorCounter(can.Listener):
             self.counter += 8
         elif self.counter:
             self.counter -= 1
+
+    def count_good(self, n_frames: int) -> None:
+        """n_frames good frames in a row: what on_message_received does for each."""
+        self.counter = max(0, self.counter - n_frames)
 
     def problem(self, bus: can.BusABC | None) -> str | None:
         try:

@@ -46,14 +46,14 @@ from drivers.contract.errors import LinkError
 from drivers.contract import objects as o
 from drivers.canopen import pdo as pdos
 from drivers.canopen.config import CanopenDriveConfig
-from drivers.canopen.bus import BusErrorCounter, SocketcandRefusal, bus_kwargs, make_bus, open_bus
+from drivers.canopen.bus import BusErrorCounter, QuickVirtualBus, SocketcandRefusal, bus_kwargs, make_bus, open_bus
 from drivers.canopen.comm_loss_guard import CommLossGuard
 from drivers.canopen import drill as drills
 from drivers.contract.comm_loss import CommLossConfig
 from drivers.canopen.profile import DriveProfile, ProfileConfig, resolve
 from drivers.contract.errors import ContentError
 from drivers.contract.eds import load_od
-from drivers.canopen.bus import frame_dispatch
+from drivers.canopen.dispatch import FrameDispatch, HandlingNetwork, RunReceiver, frame_dispatch
 from drivers.canopen.sdo import SdoAccess, block_upload
 from drivers.canopen.sync import NativeSync, ReceiveClock, SyncProducer, SyncTimeline, has_native_cyclic
 from drivers.contract.signals import SIGNAL_NAMES, TIME_COLUMN
@@ -132,12 +132,14 @@ class CanopenDriveLink(DriveLink):
         self.bus_errors = BusErrorCounter()
         self._reference_speed: Callable[[], float | None] | None = None
         self._refusal: SocketcandRefusal | None = None
+        self._dispatch: FrameDispatch | None = None
+        self._tpdo_receiver = RunReceiver(self._on_tpdo, self._on_tpdos)
 
     # -- connection ----------------------------------------------------------------------------------
     def open(self) -> DriveIdentity:
         kwargs = bus_kwargs(self.section)
         try:
-            self.network = canopen.Network()
+            self.network = HandlingNetwork()
             self.network.NOTIFIER_CYCLE = 0.02  # close() returns within 20 ms (the notifier thread polls)
             open_bus(kwargs, lambda: self._connect(kwargs))
         except (can.CanError, OSError, ValueError, TimeoutError, TypeError) as exc:
@@ -188,10 +190,19 @@ class CanopenDriveLink(DriveLink):
         """The bus first, a socketcand refusal watched on it before the network's receive thread starts (a refusal
         that arrives first would otherwise be parsed as a frame and kill that thread)."""
         bus = make_bus(kwargs)
+        if isinstance(bus, QuickVirtualBus) and self.timing == "lockstep":   # nothing else runs while the bench waits
+            bus.inline_delivery = True      # an in-process node answers in the sending thread, which handles the answer
+            self.network.after_send = lambda: bus.handle_arrived(self.network.notifier.listeners, self._on_burst)
         self._refusal = SocketcandRefusal(bus) if kwargs["interface"] == "socketcand" else None
         self.network.bus = bus
-        self.network.listeners = [frame_dispatch(self.network)]
+        self._dispatch = frame_dispatch(self.network)
+        self.network.listeners = [self._dispatch]
         return self.network.connect(**kwargs)
+
+    def _on_burst(self, timestamp: float, frames: list[tuple[int, bytes]]) -> None:
+        """A burst of frames handled at once (QuickVirtualBus.handle_arrived): what the notifier's listeners do."""
+        self._dispatch.burst(timestamp, frames)
+        self.bus_errors.count_good(len(frames))
 
     def _read_identity_after_boot(self, interface: str) -> tuple[int, int, int, int]:
         """0x1018 (identity), the first SDO. A drive that does not answer may still be booting: with `boot_timeout_s`
@@ -336,7 +347,7 @@ class CanopenDriveLink(DriveLink):
         with self._lock:
             self._decoder = decoder
         for cob in decoder.tpdos:
-            self.network.subscribe(cob, self._on_tpdo)
+            self.network.subscribe(cob, self._tpdo_receiver)
 
         if self._guard is None:
             self._guard = CommLossGuard(self.comm_loss_config, self.sdo, self.network)
@@ -448,18 +459,27 @@ class CanopenDriveLink(DriveLink):
             self._emcy.append((code, f"{text}; error register 0x{register:02X}"))
 
     def _on_tpdo(self, can_id, data, timestamp):
+        self._on_tpdos([(can_id, data)], timestamp)
+
+    def _on_tpdos(self, frames: list[tuple[int, bytes]], timestamp: float) -> None:
+        """TPDOs received at `timestamp` (one frame from the notifier, or a SYNC's burst at once), decoded in order
+        under one hold of the lock; waiters woken once."""
         now = time.time()
         if abs(now - timestamp) < 3600.0:       # interfaces stamping with the epoch clock: receive backlog
             self._rx_lag_s = now - timestamp
         with self._lock:
-            result = self._decoder.decode(can_id, data, timestamp)
-            if isinstance(result, str):
-                self._errors.append(result)
-                self._lock.notify_all()
-            elif result:
-                self._samples.extend(result)
-                self._latest = result[-1]
-                self._completed += len(result)
+            woken = False
+            for can_id, data in frames:
+                result = self._decoder.decode(can_id, data, timestamp)
+                if isinstance(result, str):
+                    self._errors.append(result)
+                    woken = True
+                elif result:
+                    self._samples.extend(result)
+                    self._latest = result[-1]
+                    self._completed += len(result)
+                    woken = True
+            if woken:
                 self._lock.notify_all()
 
     # -- SYNC ----------------------------------------------------------------------------------------

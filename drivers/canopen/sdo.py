@@ -14,6 +14,7 @@ import numpy as np
 from canopen import objectdictionary
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
+from drivers.canopen.dispatch import RunReceiver
 from drivers.contract.errors import LinkError
 from drivers.contract import objects as o
 
@@ -123,7 +124,7 @@ def block_upload(network: canopen.Network, node_id: int, index: int, subindex: i
     rx = o.SDO_TX + node_id
     collector = _BlockCollector(cancel)
     saved = network.subscribers.get(rx, [])
-    network.subscribers[rx] = [collector.on_frame]
+    network.subscribers[rx] = [RunReceiver(collector.on_frame, collector.on_frames)]
     where = f"node {node_id}: block upload of 0x{index:04X}:{subindex:02X}"
 
     def request(data: bytes) -> None:
@@ -271,10 +272,26 @@ class _BlockCollector:
         frames.append(data)
         block = self._block
         if (data[0] & 0x80 or (data[0] & 0x7F) >= block) if block else len(frames) >= self._want:
-            with self._cond:
-                if frames is self._frames:
-                    self._ready = True
-                    self._cond.notify()
+            self._wake(frames)
+
+    def on_frames(self, run: list[tuple[int, bytes]], timestamp: float) -> None:
+        """A run of frames at once (bus.FrameDispatch.burst): what one on_frame call per frame does."""
+        frames = self._frames
+        datas = [data for _, data in run]
+        frames.extend(datas)
+        block = self._block
+        if block:
+            complete = any(data[0] & 0x80 or (data[0] & 0x7F) >= block for data in reversed(datas))
+        else:
+            complete = len(frames) >= self._want
+        if complete:
+            self._wake(frames)
+
+    def _wake(self, frames: list) -> None:
+        with self._cond:
+            if frames is self._frames:
+                self._ready = True
+                self._cond.notify()
 
     def wait(self, timeout: float) -> list[bytearray] | None:
         deadline = time.monotonic() + timeout

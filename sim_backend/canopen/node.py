@@ -6,8 +6,9 @@ the drive, EMCY on faults, SDO block upload (block_server), the heartbeat (heart
 advances the drive by the communication cycle period (0x1006) before its TPDOs go out. What the objects mean is in
 drive_objects.
 
-Everything runs on the node network's receive thread; SimulatedDevice's lock guards the drive against the
-other protocol servers.
+Everything runs on the node network's receive thread, or, for a frame whose sender offers it while the node is idle,
+in the sender's thread (virtual_bus.InlineReceiveQueue: one at a time, in order, as the receive thread would);
+SimulatedDevice's lock guards the drive against the other protocol servers.
 """
 
 from __future__ import annotations
@@ -88,6 +89,8 @@ class SimCanopenNode:
         self._rebuild_pdos()
         self.network.connect()
         self.network.notifier.add_listener(_ErrorLogger())
+        if type(bus) is FastVirtualBus:       # not a bus with its own receive semantics (wire_faults.FaultyBus)
+            bus.handle_inline(self._handle_inline)
         self.heartbeat = HeartbeatProducer(self)
         self.consumer = HeartbeatConsumer(self)
         device.on_master_lost.append(self._on_master_lost)
@@ -112,6 +115,14 @@ class SimCanopenNode:
         self.network.subscribe(o.SYNC, self._on_sync)
         self.node.nmt.send_command(NMT_START_BOOT_UP)
         self.node.nmt.send_command(NMT_ENTER_PRE_OPERATIONAL)
+
+    def _handle_inline(self, msg: can.Message) -> None:
+        """A frame handled in its sender's thread (InlineReceiveQueue): what the receive thread's notifier does."""
+        try:
+            for listener in self.network.notifier.listeners:
+                listener(msg)
+        except Exception as exc:          # as on the receive thread: logged, never raised into the sender
+            log.error("CANopen node receive thread: %s", exc)
 
     @property
     def nmt_state(self) -> int:

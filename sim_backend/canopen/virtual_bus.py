@@ -1,9 +1,13 @@
-"""python-can's `virtual` bus, cheaper per frame on the simulator's side, and bursts of frames sent as one."""
+"""python-can's `virtual` bus, cheaper per frame on the simulator's side, bursts of frames sent as one, and frames a
+sender may have handled at once in its own thread (InlineReceiveQueue)."""
 
 from __future__ import annotations
 
+import logging
 import queue
+import threading
 import time
+from typing import Callable
 
 import can
 import canopen
@@ -14,6 +18,7 @@ _MESSAGE_SLOTS = frozenset({"__weakref__", "arbitration_id", "bitrate_switch", "
                             "error_state_indicator", "is_error_frame", "is_extended_id", "is_fd", "is_remote_frame",
                             "is_rx", "timestamp"})
 _new = object.__new__
+log = logging.getLogger(__name__)
 
 
 def _data_frame(timestamp: float, cob: int, channel, payload: bytes, is_rx: bool) -> can.Message:
@@ -42,6 +47,31 @@ if set(can.Message.__slots__) != _MESSAGE_SLOTS:      # another python-can: its 
                            dlc=len(payload), data=bytearray(payload), is_rx=is_rx)
 
 
+class InlineReceiveQueue(queue.Queue):
+    """A receive queue whose frames may be handled in the sender's thread: what `put_inline` is given is handled at
+    once when the receiver is idle and nothing is queued ahead of it, else queued for the receive thread as usual.
+    Same frames, same order, same handler, one thread hand-off fewer per frame (a lockstep SYNC, a block-upload ack).
+
+    `idle` is held while a frame is handled, by the receive thread (FastVirtualBus.recv takes it before it takes a
+    frame, and gives it back when it comes for the next) or by an inline sender (which only tries it: a sender never
+    waits for the receiver)."""
+
+    def __init__(self, handler: Callable[[can.Message], None]):
+        super().__init__()
+        self.idle = threading.Lock()
+        self.handler = handler
+
+    def put_inline(self, msg: can.Message) -> None:
+        if self.idle.acquire(blocking=False):
+            try:
+                if not self.queue:
+                    self.handler(msg)
+                    return
+            finally:
+                self.idle.release()
+        self.put(msg)
+
+
 class FastVirtualBus(VirtualBus):
     """python-can's `virtual` bus with a cheaper per-receiver copy (a new Message instead of deepcopy, ~2.5x
     faster per frame). Same channels, same delivery semantics; the simulator's end of the bus uses it because
@@ -61,15 +91,42 @@ class FastVirtualBus(VirtualBus):
                                is_fd=msg.is_fd, is_rx=bus_queue is not self.queue, bitrate_switch=msg.bitrate_switch,
                                error_state_indicator=msg.error_state_indicator, check=False)
             try:
-                bus_queue.put(copy, block=True, timeout=timeout)
+                bus_queue.put(copy, block=True, timeout=timeout)        # never inline: a node's frames are queued
             except queue.Full:
                 all_sent = False
         if not all_sent:
             raise can.CanOperationError("Could not send message to one or more recipients")
 
+    def handle_inline(self, handler: Callable[[can.Message], None]) -> None:
+        """Let senders that offer it (put_inline) have their frames handled by `handler` in their own thread when
+        this end is idle; the receive thread (recv) handles the rest, in order. Before any frame arrives."""
+        inline = InlineReceiveQueue(handler)
+        self.channel[self.channel.index(self.queue)] = inline
+        self.queue = inline
+        self._rx_holds_idle = False
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        inline = self.queue
+        if not isinstance(inline, InlineReceiveQueue):
+            return super().recv(timeout)
+        if self._rx_holds_idle:              # the frame returned last has been handled
+            self._rx_holds_idle = False
+            inline.idle.release()
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with inline.not_empty:               # wait for a frame without taking it: an inline sender checks the queue
+            while not inline.queue:
+                remaining = None if deadline is None else deadline - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    return None
+                inline.not_empty.wait(remaining)
+        inline.idle.acquire()                # an inline handling under way ends first: the order stays
+        self._rx_holds_idle = True
+        return super().recv(0)
+
     def send_frames(self, frames: list[tuple[int, bytes]]) -> None:
         """Standard-ID data frames (cob, payload), in order: what len(frames) send() calls deliver, with one queue
-        hand-off per receiver (the receiving thread wakes once per burst, not per frame). A subclass that
+        hand-off per receiver (the receiving thread wakes once per burst, not per frame); a receiver whose queue
+        takes bursts (`put_burst`) gets them as one item, stamped once, without a Message per frame. A subclass that
         overrides send() (fault injection) gets one send() per frame."""
         if type(self).send is not FastVirtualBus.send:
             for cob, payload in frames:
@@ -79,6 +136,10 @@ class FastVirtualBus(VirtualBus):
         now = (lambda: 0.0) if self.preserve_timestamps else time.time   # as send() would stamp a new Message
         for bus_queue in self.channel:
             if bus_queue is self.queue and not self.receive_own_messages:
+                continue
+            put_burst = getattr(bus_queue, "put_burst", None)
+            if put_burst is not None and not bus_queue.maxsize:      # a receiver that takes a burst as one item
+                put_burst(now(), frames)
                 continue
             is_rx = bus_queue is not self.queue
             channel = self.channel_id
