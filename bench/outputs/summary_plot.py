@@ -93,6 +93,7 @@ def write_summary_png(path: Path, t_s: np.ndarray, columns: Mapping[str, np.ndar
 
     matplotlib.use("Agg")
     from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
 
     t_s = np.asarray(t_s, dtype=float)
     panels = [p for p in PANELS if any(columns.get(s) is not None and len(columns[s]) == len(t_s)
@@ -108,6 +109,7 @@ def write_summary_png(path: Path, t_s: np.ndarray, columns: Mapping[str, np.ndar
                 continue
             ax.plot(*envelope(t_s, np.asarray(values, dtype=float)), label=label, linewidth=0.8)
         ax.set_ylabel(f"{name}\n[{unit}]")
+        ax.yaxis.set_major_locator(MaxNLocator(nbins=4))      # 1.9 in per panel: more ticks only cost drawing
         ax.grid(True, alpha=0.3)
     params = params or {}
     per_panel = [0] * len(panels)          # labels of one panel stacked, not drawn over each other
@@ -146,6 +148,5 @@ def write_summary_png(path: Path, t_s: np.ndarray, columns: Mapping[str, np.ndar
         with matplotlib.rc_context({"agg.path.chunksize": 500}):
             fig.savefig(path, dpi=100, pil_kwargs={"compress_level": 1})  # fast zlib: the plot is written every run
     finally:
-        fig.clear()         # a figure is a web of cycles: without this its canvas waits for the cyclic collector
-        del fig, axes
+        del fig, axes       # a web of cycles: a run's end collects it at once (memory.release_freed_memory)
     return path
