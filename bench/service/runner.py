@@ -46,6 +46,7 @@ from bench.service.run_protocol import (MAX_LINE_BYTES, Failed, Finished, Log, P
                                         decode, encode)
 
 TICK_S = 0.2
+REAP_WAIT_S = 5.0             # a run process whose protocol pipe closed is waited for this long, then reaped at once
 ABORT_KILL_AFTER_S = 60.0     # SIGTERM runs the safe stop; a run process still alive after this gets SIGKILL
 STOP_WAIT_S = 30.0            # service shutdown: how long to wait for runs to finish their safe stop
 PROGRESS_DB_PERIOD_S = 1.0
@@ -683,6 +684,11 @@ class Runner:
             elif isinstance(message, Failed):
                 child.failure = message.reason
         child.proc.stdout.close()
+        try:                      # the run process is ending: reap it now, not at the next tick (0.2 s of its slot)
+            child.proc.wait(timeout=REAP_WAIT_S)
+        except Exception:
+            pass
+        self._wake.set()
 
     def _read_log(self, child: Child) -> None:
         """The run process's stderr (and its own stdout): service.log, the last lines kept for an error's reason."""
