@@ -152,15 +152,12 @@ class Service:
     # -- runs ---------------------------------------------------------------------------------------------
 
     def run_dicts(self, runs: list[Run]) -> list[dict]:
-        """run_dict of each, the waiting reasons of the queued ones read together."""
-        from bench.service.waiting import waiting_reasons
+        """run_dict of each, the waiting reasons of the queued ones from one read of the rigs and the queue."""
+        waiting = self.waiting_lookup()
+        return [self.run_dict(run, waiting) for run in runs]
 
-        runner = self.runner
-        with self.db.session() as s:
-            waiting = waiting_reasons(s, runs, len(runner.children), runner.settings.max_parallel)
-        return [self.run_dict(run, waiting.get(run.id)) for run in runs]
-
-    def run_dict(self, run: Run, waiting: str | None = None) -> dict:
+    def run_dict(self, run: Run, waiting: Callable[[Run], str] | None = None) -> dict:
+        """`waiting`: a waiting_lookup() shared by the runs of one list."""
         has_dir = bool(run.run_dir)
         return {
             "id": run.id, "state": run.state, "verdict": run.verdict, "rig": run.rig, "scenario": run.scenario,
@@ -175,12 +172,12 @@ class Service:
             "abort_requested_by": run.abort_requested_by, "aborted_by": run.aborted_by, "drive": run.drive,
             "firmware_version": run.firmware_version, "revision": run.revision,
             "software": run.software, "host": run.host, "pid": run.pid,
-            "waiting": (waiting or self.why_waiting(run)) if run.state == "queued" else None,
+            "waiting": (waiting or self.waiting_lookup())(run) if run.state == "queued" else None,
         }
 
     def waiting_lookup(self) -> Callable[[Run], str]:
-        """For a page that lists runs: why_waiting of each queued one, the rigs and the queue read once, when first
-        asked."""
+        """Why a queued run has not started (bench.service.waiting), from this instance's point of view: for a run, a
+        list or a page, the rigs and the queue read once, when first asked."""
         from bench.service.waiting import read_context, why_waiting
 
         runner, context = self.runner, []
@@ -188,18 +185,10 @@ class Service:
         def waiting(run: Run) -> str:
             if not context:
                 with self.db.session() as s:
-                    context.extend(read_context(s))
-            return why_waiting(None, run, len(runner.children), runner.settings.max_parallel, *context)
+                    context.append(read_context(s))
+            return why_waiting(run, len(runner.children), runner.settings.max_parallel, context[0])
 
         return waiting
-
-    def why_waiting(self, run: Run) -> str:
-        """Why a queued run has not started (bench.service.waiting), from this instance's point of view."""
-        from bench.service.waiting import why_waiting
-
-        runner = self.runner
-        with self.db.session() as s:
-            return why_waiting(s, run, len(runner.children), runner.settings.max_parallel)
 
     def get_run(self, run_id: int) -> Run:
         with self.db.session() as s:

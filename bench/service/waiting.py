@@ -25,11 +25,11 @@ def _rig_reason(view: RigView, owner: str) -> str | None:
     return None
 
 
-def why_waiting(s: Session | None, run: Run, running_here: int, max_parallel: int,
-                views: dict[str, RigView] | None = None, queued: list | None = None) -> str:
-    """`views` (rig name -> RigView) and `queued` (rows of id, submitted_ts, rig, tag of every queued run, oldest
-    first) may be read once for many runs (waiting_reasons); read here when not given."""
-    views = views if views is not None else {v.name: v for v in rig_views(s)}
+WaitContext = tuple[dict[str, RigView], list]      # read_context: the rigs' views by name, the queued runs
+
+
+def why_waiting(run: Run, running_here: int, max_parallel: int, context: WaitContext) -> str:
+    views, queued = context
     names = [run.rig] if run.rig else list(run.candidates or [n for n, v in views.items() if run.tag in v.tags])
     if not names:
         return f"no rig carries the tag {run.tag!r}" if run.tag else "no rig named"
@@ -43,7 +43,6 @@ def why_waiting(s: Session | None, run: Run, running_here: int, max_parallel: in
     if running_here >= max_parallel:
         return (f"host slots: this service instance runs {running_here} of its {max_parallel} runs at once "
                 f"(--max-parallel); rig {free[0]} is free")
-    queued = queued if queued is not None else _queued(s)
     earlier = next((q.id for q in queued if q.submitted_ts < run.submitted_ts and (q.rig in free or q.tag is not None)),
                    None)
     if earlier is not None:
@@ -51,21 +50,10 @@ def why_waiting(s: Session | None, run: Run, running_here: int, max_parallel: in
     return f"starting: rig {free[0]} is free"
 
 
-def _queued(s: Session) -> list:
-    return list(s.execute(select(Run.id, Run.submitted_ts, Run.rig, Run.tag).where(Run.state == "queued")
-                          .order_by(Run.submitted_ts)))
-
-
-def waiting_reasons(s: Session, runs: list[Run], running_here: int, max_parallel: int) -> dict[int, str]:
-    """why_waiting of every queued run of `runs`, with the rigs and the queue read once (a page of 20 queued runs
-    made 80 queries: 40 % of the service's CPU under benchmarks/service.py, measured)."""
-    waiting = [run for run in runs if run.state == "queued"]
-    if not waiting:
-        return {}
-    views, queued = read_context(s)
-    return {run.id: why_waiting(s, run, running_here, max_parallel, views, queued) for run in waiting}
-
-
-def read_context(s: Session) -> tuple[dict[str, RigView], list]:
-    """What why_waiting reads for any run: the rigs' views and the queue; once for a page or a list."""
-    return {v.name: v for v in rig_views(s)}, _queued(s)
+def read_context(s: Session) -> WaitContext:
+    """What why_waiting reads for any run, read once for a run, a list or a page (a page of 20 queued runs made 80
+    queries: 40 % of the service's CPU under benchmarks/service.py, measured): the rigs' views, and the queued runs
+    (id, submitted_ts, rig, tag), oldest first."""
+    queued = list(s.execute(select(Run.id, Run.submitted_ts, Run.rig, Run.tag).where(Run.state == "queued")
+                            .order_by(Run.submitted_ts)))
+    return {v.name: v for v in rig_views(s)}, queued
