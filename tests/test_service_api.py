@@ -14,7 +14,8 @@ from fastapi.routing import APIRoute  # noqa: E402
 from starlette.routing import WebSocketRoute  # noqa: E402
 from starlette.testclient import WebSocketDenialResponse  # noqa: E402
 
-from tests.service_fixtures import REPO, SCENARIOS, SHORT, Tokens, client_for, make_settings  # noqa: E402
+from bench.service.limits import READ_CACHE_S  # noqa: E402
+from tests.service_fixtures import REPO, SCENARIOS, SHORT, Tokens, client_for, make_settings, wait_until  # noqa: E402
 
 H = Tokens.header
 CONTRACT_RUN_KEYS = {"id", "state", "verdict", "rig", "scenario", "criteria", "record_url", "live_url"}
@@ -190,13 +191,14 @@ def test_a_queued_run_says_why_it_waits(api):
     assert waiting == "rig sim-a is disabled by an admin"
     api.patch("/api/rigs/sim-a", json={"enabled": True}, headers=adm)
     # the run queue is off in this fixture, so its host slots are what holds a startable run
+    # (a setting changed behind the API's back shows within the answers' age, READ_CACHE_S)
     api.service.runner.settings.max_parallel = 0
-    time.sleep(0.3)
-    assert api.get(f"/api/runs/{run['id']}", headers=op).json()["waiting"].startswith(
-        "host slots: this service instance runs 0 of its 0 runs at once (--max-parallel); rig sim-a is free")
+    assert wait_until(lambda: api.get(f"/api/runs/{run['id']}", headers=op).json()["waiting"].startswith(
+        "host slots: this service instance runs 0 of its 0 runs at once (--max-parallel); rig sim-a is free"),
+        READ_CACHE_S + 0.5, 0.05, "the host-slot reason")
     api.service.runner.settings.max_parallel = 2
-    time.sleep(0.3)                           # GET answers are kept 0.25 s unless something was written meanwhile
-    assert api.get(f"/api/runs/{run['id']}", headers=op).json()["waiting"] == "starting: rig sim-a is free"
+    assert wait_until(lambda: api.get(f"/api/runs/{run['id']}", headers=op).json()["waiting"]
+                      == "starting: rig sim-a is free", READ_CACHE_S + 0.5, 0.05, "the starting reason")
     # a real rig reserved by someone else
     api.post("/api/rigs/real-a/lease", json={"ttl_s": 60, "reason": "wiring"}, headers=H(api.tokens.operator2))
     other = api.post("/api/runs", json={"scenario": f"service/{SHORT}", "rig": "real-a"}, headers=op)
@@ -369,3 +371,32 @@ def test_failing_since_names_the_run_and_revision_a_failing_streak_began_at(api)
     for axis in ("revision", "time", "run"):
         png = api.get(f"/trend.png?scenario=svc&criterion=X&criterion=Y&x={axis}", headers=H(api.tokens.viewer))
         assert png.status_code == 200 and png.content[:8] == b"\x89PNG\r\n\x1a\n", axis
+
+
+def test_a_change_shows_within_the_cache_age_and_never_after_an_event_or_a_write_that_told_of_it(api):
+    viewer, admin = H(api.tokens.viewer), H(api.tokens.admin)
+
+    def enabled(headers=viewer) -> bool:
+        return api.get("/api/rigs/sim-a", headers=headers).json()["enabled"]
+
+    def shows_within_the_cache_age(value: bool, headers=viewer) -> None:
+        t0 = time.monotonic()
+        while enabled(headers) is not value:
+            assert time.monotonic() - t0 < READ_CACHE_S, "the change did not show within the answers' age"
+            time.sleep(0.005)
+
+    assert enabled() is True and enabled(admin) is True
+    api.service.set_rig_enabled("sim-a", False)     # a change the API did not make, as the runner's are
+    api.service.events.changed()
+    assert enabled() is True                        # nobody was told yet: the previous answer, the new one read
+    shows_within_the_cache_age(False)
+
+    with api.websocket_connect("/api/events", headers=viewer) as events:
+        api.service.set_rig_enabled("sim-a", True)
+        api.service.events.publish({"type": "rig", "id": None, "name": "sim-a"})
+        assert events.receive_json()["name"] == "sim-a"
+        assert enabled() is True                    # the event's reader never gets an answer older than it
+
+    assert api.patch("/api/rigs/sim-a", json={"enabled": False}, headers=admin).status_code == 200
+    assert enabled(admin) is False                  # the writer reads its write at once...
+    shows_within_the_cache_age(False)               # ...the others within the answers' age

@@ -27,7 +27,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from bench.service.auth import COOKIE, ROLES, Principal, bearer, create_token
 from bench.service.core import MEDIA, Service, ServiceSettings
 from bench.service.errors import ApiError, bad_input
-from bench.service.guard import BodyLimitMiddleware, ReadCache, rate_limited_accept_errors
+from bench.service.guard import BodyLimitMiddleware, ReadCache, api_answers, rate_limited_accept_errors
 from bench.service.limits import MAX_SCENARIO_CHARS
 from bench.service.params import MAX_ID, Id
 from bench.service.leases import extend, lease_dict, release, reserve, active_leases
@@ -61,9 +61,7 @@ class AuthMiddleware:
                 jar = SimpleCookie()
             token = jar[COOKIE].value if COOKIE in jar else None
         service: Service = self.service_getter()
-        found, principal = service.tokens.cached(token) if token else (True, None)
-        if not found:
-            principal = await anyio.to_thread.run_sync(service.tokens.lookup, token)
+        principal = await service.tokens.resolve(token) if token else None
         if principal is None:
             return await self._deny(scope, receive, send, "a valid token is needed (Authorization: Bearer TOKEN)"
                                     if token is None else "unknown or revoked token")
@@ -163,6 +161,7 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
         holder["service"] = svc
         app.state.service = svc
         svc.events.bind(asyncio.get_running_loop())
+        svc.events.on_shown = answers.show
         rate_limited_accept_errors(asyncio.get_running_loop())
         svc.start()
         # what start-up left alive (the web stack, the ORM, the migrations) out of the collector's generations: a full
@@ -176,7 +175,9 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
 
     app = FastAPI(title="drivebench bench service", version="1", lifespan=lifespan, docs_url=None,
                   redoc_url=None, openapi_url="/openapi.json")
-    app.add_middleware(ReadCache, generation=lambda: holder["service"].events.generation)
+    answers = api_answers()
+    app.add_middleware(ReadCache, generation=lambda: holder["service"].events.generation,
+                       changed=lambda: holder["service"].events.changed(), answers=answers)
     app.add_middleware(BodyLimitMiddleware)          # inner: runs only for a request the token let through
     app.add_middleware(AuthMiddleware, service_getter=lambda: holder["service"])
 
@@ -368,7 +369,7 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
         """Run events as JSON: {"type": "run", "id", "state", "verdict", ...} on every state change and
         {"type": "progress", "id", "progress_s", "duration_s"} while a run runs. ?run=ID: one run only."""
         s = svc()
-        queue = s.events.subscribe()
+        queue = s.events.subscribe(websocket.scope["state"]["principal"].token_id)
         await websocket.accept()
 
         async def pump():

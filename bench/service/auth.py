@@ -8,13 +8,13 @@ from __future__ import annotations
 
 import hashlib
 import secrets
-import threading
-import time
 from dataclasses import dataclass
 
+import anyio
 from sqlalchemy import select
 
 from bench.service.db import Database, Token
+from bench.service.fresh import FreshCache
 
 ROLES = ("viewer", "operator", "admin")
 TOKEN_PREFIX = "dbt_"          # recognisable in a leaked log or a secret scanner
@@ -52,43 +52,34 @@ def create_token(db: Database, name: str, role: str) -> tuple[int, str]:
 
 
 class TokenCache:
-    """Looks tokens up by hash; answers from memory for CACHE_S so that a busy API does not hit the database
-    for every request."""
+    """Looks tokens up by hash; the API answers from memory for CACHE_S so that a busy API does not hit the database
+    for every request: the fifty requests in flight when a token's answer expires share one read, and a token in
+    use is read again in the background before then (bench.service.fresh). A revocation through this service
+    forgets every answer at once."""
 
     def __init__(self, db: Database):
         self.db = db
-        self._lock = threading.Lock()
-        self._cache: dict[str, tuple[float, Principal | None]] = {}
+        self._revocations = 0
+        self._answers: FreshCache[Principal | None] = FreshCache(CACHE_S, 10_000)
 
-    def cached(self, token: str) -> tuple[bool, Principal | None]:
-        """(found, principal) from memory only: the event loop asks this first and goes to a thread only on a miss."""
-        with self._lock:
-            hit = self._cache.get(hash_token(token))
-        if hit is not None and hit[0] > time.monotonic():
-            return True, hit[1]
-        return False, None
+    async def resolve(self, token: str) -> Principal | None:
+        """For the event loop: from memory, or one read on a worker thread."""
+        digest = hash_token(token)
+        return await self._answers.get(digest, self._revocations,
+                                       lambda: anyio.to_thread.run_sync(self._read, digest))
 
     def lookup(self, token: str | None) -> Principal | None:
-        if not token:
-            return None
-        digest = hash_token(token)
-        now = time.monotonic()
-        with self._lock:
-            hit = self._cache.get(digest)
-        if hit is not None and hit[0] > now:
-            return hit[1]
+        """For a worker thread (the login form): from the database."""
+        return self._read(hash_token(token)) if token else None
+
+    def _read(self, digest: str) -> Principal | None:
         with self.db.session() as s:
             row = s.execute(select(Token).where(Token.sha256 == digest, Token.revoked.is_(False))).scalar_one_or_none()
-            principal = Principal(row.id, row.name, row.role) if row else None
-        with self._lock:
-            if len(self._cache) > 10_000:
-                self._cache.clear()
-            self._cache[digest] = (now + CACHE_S, principal)
-        return principal
+            return Principal(row.id, row.name, row.role) if row else None
 
     def forget(self) -> None:
-        with self._lock:
-            self._cache.clear()
+        self._revocations += 1
+        self._answers.show(self._revocations)
 
 
 def bearer(header: str | None) -> str | None:

@@ -5,9 +5,9 @@ limited and idle or slow ones closed, accept errors logged once per interval (nu
   is read; a body without one (chunked) is counted as it arrives and refused when it passes the limit; a body that
   stops arriving for BODY_IDLE_TIMEOUT_S is 408. It sits inside AuthMiddleware, which reads only headers: a request
   without a valid token never has its body read.
-- GuardedH11Protocol (uvicorn's h11 protocol): a connection must send a complete request head within HEAD_TIMEOUT_S
-  of connecting or of its last response (uvicorn itself never times out a connection that sends nothing), and
-  beyond max_connections the oldest idle connections are closed for the newcomer: idle clients cannot lock the API
+- GuardedHttpProtocol (uvicorn's httptools protocol): a connection must send a complete request head within
+  HEAD_TIMEOUT_S of connecting or of its last response (uvicorn itself never times out a connection that sends
+  nothing), and beyond max_connections the oldest idle connections are closed for the newcomer: idle clients cannot lock the API
   out, and the process never runs out of descriptors for its own work.
 """
 
@@ -22,13 +22,19 @@ import time
 from typing import Any
 
 from starlette.exceptions import HTTPException
-from uvicorn.protocols.http.h11_impl import H11Protocol
+from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
+from bench.service.fresh import FreshCache
 from bench.service.limits import (BODY_IDLE_TIMEOUT_S, FD_RESERVE, HEAD_TIMEOUT_S, KEEP_ALIVE_S, MAX_CONNECTIONS,
                                   READ_CACHE_ENTRIES, READ_CACHE_S, SWITCH_INTERVAL_S, body_limit)
 from drivers.contract.ratelog import RateLimitedLog
 
 log = logging.getLogger("drivebench.serve")
+
+
+def api_answers() -> FreshCache[tuple[int, list, list[bytes]]]:
+    """What ReadCache keeps: (status, headers, body chunks), only whole 200 answers."""
+    return FreshCache(READ_CACHE_S, READ_CACHE_ENTRIES, keep=lambda answer: answer[0] == 200 and len(answer[2]) == 1)
 
 
 async def _reply(send, status: int, detail: str) -> None:
@@ -80,31 +86,52 @@ class BodyLimitMiddleware:
         return await self.app(scope, bounded_receive, send)
 
 
+def _reader(scope) -> int | None:
+    """Whose session an answer belongs to: the token's (a write or an answer raises what that token is owed)."""
+    principal = scope.get("state", {}).get("principal")
+    return principal.token_id if principal is not None else None
+
+
 class ReadCache:
-    """GET answers of the viewer-level JSON API (rigs, runs, leases, trend) kept for READ_CACHE_S unless something
-    changed meanwhile (a run's state or its progress written to the database, any API or form write): fifty clients
-    reading the same lists cost one database read, not fifty (1.5-1.8 ms of CPU each). A read already under way for
-    the same URL and generation is waited for, not repeated (after a change, fifty misses at once queued fifty
-    database reads on the worker threads: the p99 of benchmarks/service_abuse.py). It sits inside the auth
-    middleware: only a valid token gets an answer."""
+    """GET answers of the viewer-level JSON API (rigs, runs, leases, trend) from memory (bench.service.fresh): at most
+    READ_CACHE_S old, read again in the background before then, and after a change (a run's state or progress
+    written to the database) the previous answer while the new one is read, never older than anything already
+    shown to the same token (another answer, a websocket event delivered to it, its own write). Fifty clients
+    reading the same lists cost one database read, not fifty (1.5-1.8 ms of CPU each), and seldom wait for one:
+    with a read on the request path, every expiry and every change made the fifty wait 20-130 ms while the event
+    loop served the others (the p99 of benchmarks/service_abuse.py and benchmarks/service.py). It sits inside the
+    auth middleware: only a valid token gets an answer, and the answers are the same for every role that may read
+    them."""
 
     PREFIXES = ("/api/rigs", "/api/runs", "/api/leases", "/api/trend")
 
-    def __init__(self, app, generation):
+    def __init__(self, app, generation, changed, answers: FreshCache):
         self.app = app
         self.generation = generation          # () -> int; changes invalidate
-        self._answers: dict[str, tuple[float, int, int, list, bytes]] = {}
-        self._reading: dict[tuple[str, int], asyncio.Future] = {}
+        self.changed = changed                # () -> None; an API write is a change its writer has seen
+        self.answers = answers
 
     def _cacheable(self, scope) -> bool:
         path = scope["path"]
         return (scope["method"] == "GET" and path.startswith(self.PREFIXES) and "/files/" not in path
-                and not path.endswith("/lease"))
+                and "/export/" not in path and not path.endswith("/lease"))
 
-    @staticmethod
-    async def _send_answer(send, answer: tuple[int, list, bytes]) -> None:
-        await send({"type": "http.response.start", "status": answer[0], "headers": answer[1]})
-        await send({"type": "http.response.body", "body": answer[2]})
+    async def _read(self, scope) -> tuple[int, list, list[bytes]]:
+        """The route's answer, whole, without a client (the background reads have none)."""
+        start: dict = {}
+        chunks: list[bytes] = []
+
+        async def receive():
+            return {"type": "http.request", "body": b"", "more_body": False}
+
+        async def capture(message):
+            if message["type"] == "http.response.start":
+                start.update(message)
+            elif message["type"] == "http.response.body":
+                chunks.append(message.get("body", b""))
+
+        await self.app(dict(scope), receive, capture)
+        return start.get("status", 500), list(start.get("headers", [])), chunks
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
@@ -114,46 +141,22 @@ class ReadCache:
                 return await self.app(scope, receive, send)
             finally:
                 if scope["method"] not in ("GET", "HEAD", "OPTIONS"):
-                    self._answers.clear()
+                    self.changed()
+                    self.answers.show(self.generation(), _reader(scope))
         key = scope["path"] + "?" + scope.get("query_string", b"").decode("latin-1")
-        now, generation = time.monotonic(), self.generation()
-        hit = self._answers.get(key)
-        if hit is not None and now - hit[0] < READ_CACHE_S and hit[1] == generation:
-            return await self._send_answer(send, hit[2:])
-        reading = self._reading.get((key, generation))
-        if reading is not None:
-            answer = await asyncio.shield(reading)
-            if answer is not None:
-                return await self._send_answer(send, answer)
-        future = asyncio.get_running_loop().create_future()
-        self._reading[(key, generation)] = future
-        start: dict = {}
-        chunks: list[bytes] = []
-        whole = True
-
-        async def capture(message):
-            nonlocal whole
-            if message["type"] == "http.response.start":
-                start.update(message)
-            elif message["type"] == "http.response.body":
-                chunks.append(message.get("body", b""))
-                whole = whole and not message.get("more_body", False)
-            await send(message)
-
-        answer = None
-        try:
-            await self.app(scope, receive, capture)
-            if start.get("status") == 200 and whole and len(chunks) == 1:
-                answer = (200, list(start.get("headers", [])), chunks[0])
-                if len(self._answers) > READ_CACHE_ENTRIES:
-                    self._answers.clear()
-                self._answers[key] = (now, generation, *answer)
-        finally:
-            self._reading.pop((key, generation), None)
-            future.set_result(answer)      # waiters without an answer (an error, a cancelled read) read themselves
+        status, headers, chunks = await self.answers.get(key, self.generation(), lambda: self._read(scope),
+                                                         _reader(scope))
+        await send({"type": "http.response.start", "status": status, "headers": headers})
+        for i, chunk in enumerate(chunks):
+            await send({"type": "http.response.body", "body": chunk, "more_body": i < len(chunks) - 1})
+        if not chunks:
+            await send({"type": "http.response.body", "body": b""})
 
 
-class GuardedH11Protocol(H11Protocol):
+class GuardedHttpProtocol(HttpToolsProtocol):
+    """uvicorn's httptools protocol (its C parser and byte-joined response heads: 0.13-0.25 ms of the service's CPU
+    per cached API answer against 0.26-0.43 with the pure-Python h11, same sitting), guarded."""
+
     max_connections = MAX_CONNECTIONS
 
     def connection_made(self, transport) -> None:  # type: ignore[override]
@@ -180,7 +183,7 @@ class GuardedH11Protocol(H11Protocol):
     def _make_room(self) -> None:
         """Close the oldest idle connections so that this one fits; if every one is busy, this one goes."""
         excess = len(self.connections) - self.max_connections
-        idle = sorted((c for c in self.connections if c is not self and isinstance(c, GuardedH11Protocol)
+        idle = sorted((c for c in self.connections if c is not self and isinstance(c, GuardedHttpProtocol)
                        and c._idle() and not c.transport.is_closing()), key=lambda c: c.born_s)
         for conn in idle[:excess]:
             conn.transport.close()
@@ -192,11 +195,11 @@ class GuardedH11Protocol(H11Protocol):
         if not self.transport.is_closing():
             self._arm_head_timer()
 
-    def handle_websocket_upgrade(self, event) -> None:
+    def handle_websocket_upgrade(self) -> None:
         if self._head_timer is not None:       # the websocket protocol owns the transport from here
             self._head_timer.cancel()
             self._head_timer = None
-        super().handle_websocket_upgrade(event)
+        super().handle_websocket_upgrade()
 
     def connection_lost(self, exc) -> None:
         if self._head_timer is not None:
@@ -246,7 +249,7 @@ def run_server(app, host: str, port: int, ssl_keyfile: str | None, ssl_certfile:
     # that wants it waits up to the switch interval behind a busy one, several times per request (5 ms by default;
     # API p99 under benchmarks/service.py 88.9/61.3 -> 68.8/40.3 ms with 1 ms, back to back)
     sys.setswitchinterval(SWITCH_INTERVAL_S)
-    GuardedH11Protocol.max_connections = max(32, min(MAX_CONNECTIONS, soft - FD_RESERVE))
+    GuardedHttpProtocol.max_connections = max(32, min(MAX_CONNECTIONS, soft - FD_RESERVE))
     uvicorn.run(app, host=host, port=port, log_level="warning", ssl_keyfile=ssl_keyfile, ssl_certfile=ssl_certfile,
-                timeout_graceful_shutdown=5, http=GuardedH11Protocol, timeout_keep_alive=KEEP_ALIVE_S,
+                timeout_graceful_shutdown=5, http=GuardedHttpProtocol, timeout_keep_alive=KEEP_ALIVE_S,
                 backlog=ACCEPT_BATCH)

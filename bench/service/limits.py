@@ -15,7 +15,7 @@ MAX_CONNECTIONS = 4096                # at most this many client connections; be
 MAX_RENDERS = 2                       # plots rendered at once (each a matplotlib figure on a worker thread)
 RENDER_WAIT_S = 10.0                  # a plot request waits this long for a renderer, then 503 with Retry-After
 SWITCH_INTERVAL_S = 0.001             # the service process's interpreter-lock switch interval (Python's default: 5 ms)
-READ_CACHE_S = 0.25                   # a read of the JSON API is at most this old (and never older than a change)
+READ_CACHE_S = 1.0                    # a JSON API answer is at most this old (bench/service/fresh.py)
 READ_CACHE_ENTRIES = 512
 ROUTE_BODY_LIMITS = {("POST", "/api/runs"): MAX_SUBMIT_BODY_BYTES}
 

@@ -634,7 +634,8 @@ class Runner:
                 row = s.get(Run, run.id)
                 row.state, row.reason, row.ended_ts = "error", f"cannot start the run process: {exc}", now()
                 s.execute(update(Lease).where(Lease.id == lease_id).values(released_ts=now(), released_by="runner"))
-                self.events.publish(run_event(row))
+                event = run_event(row)
+            self.events.publish(event)      # after the commit: a read the event prompts sees what it says
             return
         child = Child(run.id, rig.name, proc, out_dir, lease_id, time.monotonic(), warm=warm)
         child.log = open(out_dir / "service.log", "ab")
@@ -647,7 +648,8 @@ class Runner:
         with self.db.session() as s:
             row = s.get(Run, run.id)
             row.pid, row.pid_start, row.run_dir = proc.pid, instances.process_start(proc.pid), str(out_dir)
-            self.events.publish(run_event(row))
+            event = run_event(row)
+        self.events.publish(event)
 
     def _write_log(self, child: Child, raw: bytes) -> None:
         with child.log_lock:
