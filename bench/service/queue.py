@@ -113,8 +113,9 @@ def _fitting_rigs(path: Path, shown: str, rigs: list[Rig], by_tag: bool):
     first_error: ApiError | None = None
     fitting: list[str] = []
     scenario = None
+    kinds: dict[str, str | None] = {}
     for rig in rigs:
-        kind = _drive_kind(rig.bench)
+        kind = kinds[rig.bench] if rig.bench in kinds else kinds.setdefault(rig.bench, _drive_kind(rig.bench))
         if own_kind and kind and kind != own_kind:
             continue
         if rig.bench not in validated:
