@@ -15,7 +15,7 @@ SERVICE_GROUP = "drivebench.services"
 def registered_services() -> dict[str, str]:
     """{name: "module:function"} of the service starters installed packages register (entry-point group
     drivebench.services; drivebench itself registers sim = sim_backend.rig:start). Read once per process: the scan
-    of every installed distribution cost 6 ms per bench config read, half of a submit's validation."""
+    of every installed distribution took about 3 ms of each bench config read (prepare_run 5.4 -> 2.5 ms)."""
     from importlib.metadata import entry_points
 
     return {entry.name: entry.value for entry in entry_points(group=SERVICE_GROUP)}
