@@ -173,8 +173,11 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
         finally:
             await anyio.to_thread.run_sync(svc.stop)
 
+    # FastAPI's native OpenTelemetry off: the service exports its own /metrics, and the per-request check of
+    # whether a provider is configured was about 3 % of its CPU per cached answer (py-spy, benchmarks/service_abuse.py)
     app = FastAPI(title="drivebench bench service", version="1", lifespan=lifespan, docs_url=None,
-                  redoc_url=None, openapi_url="/openapi.json")
+                  redoc_url=None, openapi_url="/openapi.json",
+                  telemetry={"tracing": False, "metrics": False, "logs": False, "operation_spans": False})
     answers = api_answers()
     app.add_middleware(ReadCache, generation=lambda: holder["service"].events.generation,
                        changed=lambda: holder["service"].events.changed(), answers=answers)
