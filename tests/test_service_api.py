@@ -386,9 +386,13 @@ def test_a_change_shows_within_the_cache_age_and_never_after_an_event_or_a_write
             time.sleep(0.005)
 
     assert enabled() is True and enabled(admin) is True
-    api.service.set_rig_enabled("sim-a", False)     # a change the API did not make, as the runner's are
+    api.service.set_rig_enabled("sim-a", False)     # a change this service does not see (another instance's)
+    assert enabled() is True                        # the answer in memory...
+    assert enabled({**viewer, "Cache-Control": "no-cache"}) is False    # ...unless the client asks for the state now
+    api.service.set_rig_enabled("sim-a", True)
+    shows_within_the_cache_age(True)                # and within the answers' age for everyone
+    api.service.set_rig_enabled("sim-a", False)     # a change it sees, as the runner's: read again at once
     api.service.events.changed()
-    assert enabled() is True                        # nobody was told yet: the previous answer, the new one read
     shows_within_the_cache_age(False)
 
     with api.websocket_connect("/api/events", headers=viewer) as events:
@@ -398,5 +402,4 @@ def test_a_change_shows_within_the_cache_age_and_never_after_an_event_or_a_write
         assert enabled() is True                    # the event's reader never gets an answer older than it
 
     assert api.patch("/api/rigs/sim-a", json={"enabled": False}, headers=admin).status_code == 200
-    assert enabled(admin) is False                  # the writer reads its write at once...
-    shows_within_the_cache_age(False)               # ...the others within the answers' age
+    assert enabled(admin) is False and enabled() is False     # a write through the API: every read after it

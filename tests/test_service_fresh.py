@@ -1,6 +1,6 @@
 """The service's in-memory answers (bench.service.fresh): one read however many ask, a read ahead of expiry that
-nobody waits for, the previous answer while a change is read, and never an answer older than max_age_s or older
-than one already shown."""
+nobody waits for, the previous answer while a change is read (but not to a reader told of the change, nor to a
+request for a fresh answer), and never an answer older than max_age_s."""
 
 from __future__ import annotations
 
@@ -99,20 +99,22 @@ def test_after_a_change_the_previous_answer_is_served_while_the_new_one_is_read(
     asyncio.run(main())
 
 
-def test_no_answer_is_older_than_one_already_served_or_shown(clock):
+def test_a_reader_told_of_a_change_and_a_request_for_a_fresh_answer_wait_for_the_read(clock):
     async def main():
         cache, source = FreshCache(10.0, 10), Source("before")
         for key in ("runs", "rigs", "leases"):
             assert await cache.get(key, 0, source.read) == "before"
         source.value = "after"
-        assert await cache.get("run/7", 1, source.read) == "after"   # a new answer of the changed version...
-        assert await cache.get("rigs", 1, source.read) == "after"    # ...so the others wait for their reads
-        cache.show(2)                             # an event of version 2 delivered: nothing older is served
+        assert await cache.get("rigs", 1, source.read) == "before"          # the previous answer, read behind
+        cache.show(2)                             # an event of version 2 delivered to everyone
         source.value = "event"
         assert await cache.get("runs", 2, source.read) == "event"
-        cache.show(3)
-        source.value = "write"
-        assert await cache.get("leases", 3, source.read) == "write"
+        source.value = "newest"
+        assert await cache.get("leases", 2, source.read, fresh=True) == "newest"
+        assert await cache.get("rigs", 3, source.read, fresh=True) == "newest"
+        source.value = "unseen"                   # a change no version tells of: a fresh request reads it
+        assert await cache.get("rigs", 3, source.read) == "newest"
+        assert await cache.get("rigs", 3, source.read, fresh=True) == "unseen"
     asyncio.run(main())
 
 
@@ -166,4 +168,19 @@ def test_what_one_reader_was_shown_does_not_hold_up_another(clock):
         assert not ci.done() and source.reads == 2
         source.gate.set()
         assert await ci == "after" and source.reads == 2
+    asyncio.run(main())
+
+
+def test_a_change_reads_again_at_once_the_answers_in_use_and_only_those(clock):
+    async def main():
+        cache, used, idle = FreshCache(1.0, 10), Source("u0"), Source("i0")
+        assert await cache.get("idle", 0, idle.read) == "i0"
+        clock.now += 1.5                          # nobody asked for "idle" within its age
+        assert await cache.get("used", 0, used.read) == "u0"
+        used.value, idle.value = "u1", "i1"
+        cache.changed(1)
+        await asyncio.sleep(0)
+        await asyncio.sleep(0)
+        assert used.reads == 2 and idle.reads == 1
+        assert await cache.get("used", 1, used.read, "ci") == "u1" and used.reads == 2   # read already, no wait
     asyncio.run(main())

@@ -162,6 +162,7 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
         app.state.service = svc
         svc.events.bind(asyncio.get_running_loop())
         svc.events.on_shown = answers.show
+        svc.events.on_changed = answers.changed
         rate_limited_accept_errors(asyncio.get_running_loop())
         svc.start()
         # what start-up left alive (the web stack, the ORM, the migrations) out of the collector's generations: a full

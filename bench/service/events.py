@@ -16,10 +16,18 @@ class EventHub:
         self._lock = threading.Lock()
         self.generation = 0   # counts changes (events, API writes): cached API reads of an older generation are stale
         self.on_shown: Callable[[int, object], None] = lambda generation, reader: None   # an event was delivered
+        self.on_changed: Callable[[int], None] = lambda generation: None     # on the loop, after every change
 
     def changed(self) -> None:
         with self._lock:
             self.generation += 1
+            generation = self.generation
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            try:
+                loop.call_soon_threadsafe(self.on_changed, generation)
+            except RuntimeError:      # the loop closed in between
+                pass
 
     def bind(self, loop: asyncio.AbstractEventLoop) -> None:
         self._loop = loop

@@ -4,13 +4,13 @@ memory on the event loop; the reads run on worker threads).
 
 An answer belongs to a version (the service's change counter; a token table's revocations) and is never served
 once it is max_age_s old. From a quarter of that age on, the first caller starts one background read that
-replaces it. After a change (a newer version) the previous answer is still served while the new one is read
-(RFC 5861's stale-while-revalidate), but never older than anything its reader was already shown (the session
-guarantees of read-your-writes and monotonic reads, per reader: the service's readers are its tokens): once a
-reader got an answer of a version, or `show` says it learnt of one another way (a websocket event delivered to
-it, its own write answered), it gets no answer of an older version and waits for the read instead. `show` without
-a reader is for everyone. Callers that miss while a read of the same key and version is under way wait for that
-read instead of starting their own.
+replaces it, and `changed` reads again at once every answer asked for within max_age_s. After a change (a newer
+version) the previous answer is still served while the new one is read (RFC 5861's stale-while-revalidate),
+except to a reader that `show` says has learnt of the change (a websocket event delivered to it; without a
+reader: everyone, as after a write through the API): it waits for the read (the service's readers are its
+tokens). A caller that asks for a fresh answer gets a read that starts then. Answers of one key only move
+forward: a read of an older version never replaces a newer answer. Callers that miss while a read of the same key
+and version is under way wait for that read instead of starting their own.
 """
 
 from __future__ import annotations
@@ -31,11 +31,23 @@ class FreshCache(Generic[T]):
         self.max_entries = max_entries
         self.keep = keep                                  # whether an answer may be kept (an error is not)
         self._entries: dict[Hashable, tuple[float, int, T]] = {}
+        self._used: dict[Hashable, tuple[float, Callable[[], Awaitable[T]]]] = {}   # a kept answer's last asker
         self._reading: dict[tuple[Hashable, int], asyncio.Future] = {}
         self._background: set[asyncio.Task] = set()
 
     def clear(self) -> None:
         self._entries.clear()
+        self._used.clear()
+
+    def changed(self, version: int) -> None:
+        """A newer version exists (on the event loop): the answers asked for within max_age_s are read again now,
+        so that the next callers find them read instead of being the ones who start the reads."""
+        now = time.monotonic()
+        for key, (used, read) in list(self._used.items()):
+            hit = self._entries.get(key)
+            if now - used < self.max_age_s and hit is not None and hit[1] < version \
+                    and (key, version) not in self._reading:
+                self._behind(key, version, read)
 
     def show(self, version: int, reader: Hashable | None = None) -> None:
         if reader is None:
@@ -47,25 +59,26 @@ class FreshCache(Generic[T]):
             self._floors[reader] = version
 
     async def get(self, key: Hashable, version: int, read: Callable[[], Awaitable[T]],
-                  reader: Hashable | None = None) -> T:
+                  reader: Hashable | None = None, fresh: bool = False) -> T:
+        """fresh: a read that starts now (a client's Cache-Control: no-cache), kept for the others."""
+        if fresh:
+            return await self._read(key, version, read, self._claim(key, version))
         now = time.monotonic()
         hit = self._entries.get(key)
+        if hit is not None:
+            self._used[key] = (now, read)
         if hit is not None and now - hit[0] < self.max_age_s:
             born, was, value = hit
-            if was == version or was >= max(self.shown, self._floors.get(reader, 0)):
+            if was == version or (not fresh and was >= max(self.shown, self._floors.get(reader, 0))):
                 if (was != version or now - born >= self.refresh_after_s) and (key, version) not in self._reading:
                     self._behind(key, version, read)
-                self.show(was, reader)
                 return value
         reading = self._reading.get((key, version))
         if reading is not None:
             done, value = await asyncio.shield(reading)
             if done:
-                self.show(version, reader)
                 return value
-        value = await self._read(key, version, read, self._claim(key, version))
-        self.show(version, reader)
-        return value
+        return await self._read(key, version, read, self._claim(key, version))
 
     def _behind(self, key: Hashable, version: int, read: Callable[[], Awaitable[T]]) -> None:
         task = asyncio.ensure_future(self._read(key, version, read, self._claim(key, version), background=True))
@@ -97,6 +110,8 @@ class FreshCache(Generic[T]):
             old = self._entries.get(key)
             if old is None or (old[1], old[0]) <= (version, born):
                 if old is None and len(self._entries) >= self.max_entries:
-                    self._entries.clear()
+                    self.clear()
                 self._entries[key] = (born, version, value)
+                if not background:
+                    self._used[key] = (born, read)
         return value

@@ -92,16 +92,24 @@ def _reader(scope) -> int | None:
     return principal.token_id if principal is not None else None
 
 
+def _no_cache(scope) -> bool:
+    """Cache-Control: no-cache (or max-age=0): the client wants the state as of its request, not the previous one."""
+    for name, value in scope.get("headers", []):
+        if name.lower() == b"cache-control":
+            directives = value.lower().replace(b" ", b"").split(b",")
+            return b"no-cache" in directives or b"max-age=0" in directives
+    return False
+
+
 class ReadCache:
     """GET answers of the viewer-level JSON API (rigs, runs, leases, trend) from memory (bench.service.fresh): at most
-    READ_CACHE_S old, read again in the background before then, and after a change (a run's state or progress
-    written to the database) the previous answer while the new one is read, never older than anything already
-    shown to the same token (another answer, a websocket event delivered to it, its own write). Fifty clients
-    reading the same lists cost one database read, not fifty (1.5-1.8 ms of CPU each), and seldom wait for one:
-    with a read on the request path, every expiry and every change made the fifty wait 20-130 ms while the event
-    loop served the others (the p99 of benchmarks/service_abuse.py and benchmarks/service.py). It sits inside the
-    auth middleware: only a valid token gets an answer, and the answers are the same for every role that may read
-    them."""
+    READ_CACHE_S old, read again in the background before then and at once after a change, and while a change is
+    read the previous answer, except after a write through the API (seen by every read after it), to a token that
+    was sent a websocket event of the change, and to a request with Cache-Control: no-cache. Fifty clients reading the same lists cost one database read, not fifty
+    (1.5-1.8 ms of CPU each), and seldom wait for one: with a read on the request path, every expiry and every
+    change made the fifty wait 20-130 ms while the event loop served the others (the p99 of
+    benchmarks/service_abuse.py and benchmarks/service.py). It sits inside the auth middleware: only a valid token
+    gets an answer, and the answers are the same for every role that may read them."""
 
     PREFIXES = ("/api/rigs", "/api/runs", "/api/leases", "/api/trend")
 
@@ -142,10 +150,10 @@ class ReadCache:
             finally:
                 if scope["method"] not in ("GET", "HEAD", "OPTIONS"):
                     self.changed()
-                    self.answers.show(self.generation(), _reader(scope))
+                    self.answers.show(self.generation())      # an API write is seen by every read after it
         key = scope["path"] + "?" + scope.get("query_string", b"").decode("latin-1")
         status, headers, chunks = await self.answers.get(key, self.generation(), lambda: self._read(scope),
-                                                         _reader(scope))
+                                                         _reader(scope), fresh=_no_cache(scope))
         await send({"type": "http.response.start", "status": status, "headers": headers})
         for i, chunk in enumerate(chunks):
             await send({"type": "http.response.body", "body": chunk, "more_body": i < len(chunks) - 1})

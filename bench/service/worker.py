@@ -129,7 +129,10 @@ def _follow(service_pid: int) -> None:
 def forked(line: bytes, events: Connection, log: Connection, nice: int, service_pid: int) -> None:
     """A warm run process: forked by the service's fork server (multiprocessing, preloaded with `preload_modules`),
     with the protocol pipe `events` and the log pipe `log` handed over by descriptor."""
-    os.setsid()             # as a cold run process: a Ctrl-C at the service's terminal is the service's to handle
+    # as a cold run process: a process group of its own, so that a Ctrl-C at the service's terminal is the service's
+    # to handle; not a session of its own, whose scheduler autogroup would take an equal share of the CPU with the
+    # service's whatever the niceness (Linux autogroups: the API waited behind the runs, benchmarks/service.py)
+    os.setpgid(0, 0)
     if nice:
         os.nice(nice)
     _follow(service_pid)
