@@ -112,7 +112,8 @@ def test_rig_points_hold_their_rig_and_simulated_points_spread_over_both_nodes(t
         sim_proc.send_signal(signal.SIGINT)
         sim_proc.wait(30)
     assert len(rows) == 8 and len(all_nodes) == 2 and len(rig_nodes) == 1
-    assert [r["verdict"] for r in rows] == ["pass"] * 8, [(r["scenario"], r["verdict"], r["error"]) for r in rows]
+    assert [r["verdict"] for r in rows] == ["pass"] * 8, "\n".join(      # each point's whole error line
+        f"{Path(r['scenario']).name} seed {r.get('seed')}: {r['verdict']}: {r['error']}" for r in rows)
     on_rig = sorted((r for r in rows if r["rig"] == RIG), key=lambda r: r["started_unix"])
     assert {r["node"] for r in on_rig} == rig_nodes                      # only the node that owns the rig
     for before, after in zip(on_rig, on_rig[1:]):                       # never two runs on the rig at once

@@ -175,7 +175,7 @@ def test_a_change_reads_again_at_once_the_answers_in_use_and_only_those(clock):
     async def main():
         cache, used, idle = FreshCache(1.0, 10), Source("u0"), Source("i0")
         assert await cache.get("idle", 0, idle.read) == "i0"
-        clock.now += 1.5                          # nobody asked for "idle" within its age
+        clock.now += 0.3                          # nobody asked for "idle" within a quarter of its age
         assert await cache.get("used", 0, used.read) == "u0"
         used.value, idle.value = "u1", "i1"
         cache.changed(1)

@@ -4,7 +4,7 @@ memory on the event loop; the reads run on worker threads).
 
 An answer belongs to a version (the service's change counter; a token table's revocations) and is never served
 once it is max_age_s old. From a quarter of that age on, the first caller starts one background read that
-replaces it, and `changed` reads again at once every answer asked for within max_age_s. After a change (a newer
+replaces it, and `changed` reads again at once every answer in steady use. After a change (a newer
 version) the previous answer is still served while the new one is read (RFC 5861's stale-while-revalidate),
 except to a reader that `show` says has learnt of the change (a websocket event delivered to it; without a
 reader: everyone, as after a write through the API): it waits for the read (the service's readers are its
@@ -40,12 +40,13 @@ class FreshCache(Generic[T]):
         self._used.clear()
 
     def changed(self, version: int) -> None:
-        """A newer version exists (on the event loop): the answers asked for within max_age_s are read again now,
-        so that the next callers find them read instead of being the ones who start the reads."""
+        """A newer version exists (on the event loop): the answers in steady use (asked for within the last quarter
+        of their age) are read again now, so that the next callers find them read instead of being the ones who
+        start the reads; the others are read when next asked for."""
         now = time.monotonic()
         for key, (used, read) in list(self._used.items()):
             hit = self._entries.get(key)
-            if now - used < self.max_age_s and hit is not None and hit[1] < version \
+            if now - used < self.refresh_after_s and hit is not None and hit[1] < version \
                     and (key, version) not in self._reading:
                 self._behind(key, version, read)
 
