@@ -549,7 +549,7 @@ class Runner:
         env.pop("DRIVEBENCH_TOKEN", None)
         command = [self.python, *self.settings.worker, "--parent", str(os.getpid()), "--nice", str(nice)]
         return subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                cwd=self.root, env=env, process_group=0)     # not a session: see worker.forked
+                                cwd=self.root, env=env)     # worker.detach: its process group or session
 
     def _start_forkserver(self) -> None:
         """The fork server, preloaded in the background: until it has imported everything, runs start cold (a fork

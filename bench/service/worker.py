@@ -92,8 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--parent", type=int, required=True, help="the service's pid: die with it")
     parser.add_argument("--nice", type=int, default=0, help="added to this process's CPU niceness first")
     opts = parser.parse_args(argv)
-    if opts.nice:
-        os.nice(opts.nice)
+    detach(opts.nice)
     child.die_with(opts.parent)
     send = _channel()
     warm()
@@ -126,15 +125,23 @@ def _follow(service_pid: int) -> None:
     threading.Thread(target=wait, daemon=True, name="drivebench-follow-service").start()
 
 
+def detach(nice: int) -> None:
+    """Out of the service's process group, so that a Ctrl-C at its terminal is the service's to handle. A niced
+    (simulated) run stays in the service's session: with Linux autogroups a session of its own would take an equal
+    share of the CPU with the whole service whatever its niceness, and the API waited behind the runs
+    (benchmarks/service.py). A run on a real rig gets a session of its own: its share of the CPU, and with it the
+    heartbeat and SYNC it owes the drive, holds however busy the service is."""
+    if nice:
+        os.setpgid(0, 0)
+        os.nice(nice)
+    else:
+        os.setsid()
+
+
 def forked(line: bytes, events: Connection, log: Connection, nice: int, service_pid: int) -> None:
     """A warm run process: forked by the service's fork server (multiprocessing, preloaded with `preload_modules`),
     with the protocol pipe `events` and the log pipe `log` handed over by descriptor."""
-    # as a cold run process: a process group of its own, so that a Ctrl-C at the service's terminal is the service's
-    # to handle; not a session of its own, whose scheduler autogroup would take an equal share of the CPU with the
-    # service's whatever the niceness (Linux autogroups: the API waited behind the runs, benchmarks/service.py)
-    os.setpgid(0, 0)
-    if nice:
-        os.nice(nice)
+    detach(nice)
     _follow(service_pid)
     os.dup2(log.fileno(), 1)
     os.dup2(log.fileno(), 2)
