@@ -7,8 +7,8 @@ limited and idle or slow ones closed, accept errors logged once per interval (nu
   without a valid token never has its body read.
 - GuardedHttpProtocol (uvicorn's httptools protocol): a connection must send a complete request head within
   HEAD_TIMEOUT_S of connecting or of its last response (uvicorn itself never times out a connection that sends
-  nothing), and beyond max_connections the oldest idle connections are closed for the newcomer: idle clients cannot lock the API
-  out, and the process never runs out of descriptors for its own work.
+  nothing), and beyond max_connections the oldest idle connections are closed for the newcomer: idle clients
+  cannot lock the API out, and the process never runs out of descriptors for its own work.
 """
 
 from __future__ import annotations
@@ -87,7 +87,7 @@ class BodyLimitMiddleware:
 
 
 def _reader(scope) -> int | None:
-    """Whose session an answer belongs to: the token's (a write or an answer raises what that token is owed)."""
+    """Who asks: the token's id (a websocket event sent to that token raises the oldest answer it may get)."""
     principal = scope.get("state", {}).get("principal")
     return principal.token_id if principal is not None else None
 
@@ -105,18 +105,18 @@ class ReadCache:
     """GET answers of the viewer-level JSON API (rigs, runs, leases, trend) from memory (bench.service.fresh): at most
     READ_CACHE_S old, read again in the background before then and at once after a change, and while a change is
     read the previous answer, except after a write through the API (seen by every read after it), to a token that
-    was sent a websocket event of the change, and to a request with Cache-Control: no-cache. Fifty clients reading the same lists cost one database read, not fifty
-    (1.5-1.8 ms of CPU each), and seldom wait for one: with a read on the request path, every expiry and every
-    change made the fifty wait 20-130 ms while the event loop served the others (the p99 of
-    benchmarks/service_abuse.py and benchmarks/service.py). It sits inside the auth middleware: only a valid token
-    gets an answer, and the answers are the same for every role that may read them."""
+    was sent a websocket event of the change, and to a request with Cache-Control: no-cache. Fifty clients reading
+    the same lists cost one database read, not fifty (1.5-1.8 ms of CPU each), and seldom wait for one: with a
+    read on the request path, every expiry and every change made the fifty wait 20-130 ms while the event loop
+    served the others (the p99 of benchmarks/service_abuse.py and benchmarks/service.py). It sits inside the auth
+    middleware: only a valid token gets an answer, and the answers are the same for every role that may read them."""
 
     PREFIXES = ("/api/rigs", "/api/runs", "/api/leases", "/api/trend")
 
     def __init__(self, app, generation, changed, answers: FreshCache):
         self.app = app
         self.generation = generation          # () -> int; changes invalidate
-        self.changed = changed                # () -> None; an API write is a change its writer has seen
+        self.changed = changed                # () -> None; an API write is a change every later read sees
         self.answers = answers
 
     def _cacheable(self, scope) -> bool:

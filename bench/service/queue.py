@@ -115,7 +115,9 @@ def _fitting_rigs(path: Path, shown: str, rigs: list[Rig], by_tag: bool):
     scenario = None
     kinds: dict[str, str | None] = {}
     for rig in rigs:
-        kind = kinds[rig.bench] if rig.bench in kinds else kinds.setdefault(rig.bench, _drive_kind(rig.bench))
+        if rig.bench not in kinds:
+            kinds[rig.bench] = _drive_kind(rig.bench)
+        kind = kinds[rig.bench]
         if own_kind and kind and kind != own_kind:
             continue
         if rig.bench not in validated:

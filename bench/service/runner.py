@@ -549,7 +549,8 @@ class Runner:
         env.pop("DRIVEBENCH_TOKEN", None)
         command = [self.python, *self.settings.worker, "--parent", str(os.getpid()), "--nice", str(nice)]
         return subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                cwd=self.root, env=env)     # worker.detach: its process group or session
+                                cwd=self.root, env=env,     # from exec on, as worker.detach for a forked one
+                                **({"process_group": 0} if nice else {"start_new_session": True}))
 
     def _start_forkserver(self) -> None:
         """The fork server, preloaded in the background: until it has imported everything, runs start cold (a fork

@@ -92,7 +92,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--parent", type=int, required=True, help="the service's pid: die with it")
     parser.add_argument("--nice", type=int, default=0, help="added to this process's CPU niceness first")
     opts = parser.parse_args(argv)
-    detach(opts.nice)
+    if opts.nice:             # its process group or session: the runner's Popen, as detach() below says why
+        os.nice(opts.nice)
     child.die_with(opts.parent)
     send = _channel()
     warm()
