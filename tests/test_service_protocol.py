@@ -116,6 +116,7 @@ def test_forked_run_processes_pass_carry_the_drill_and_a_sigkilled_one_ends_abor
     with client_for(make_settings(tmp_path, lease_ttl_s=3.0)) as api:
         runner, op = api.service.runner, api.tokens.operator
         assert runner._forkserver_ready.wait(120), "the fork server's preload"
+        assert api.get("/api/health").json()["run_processes"] == "warm"
         first = api.post("/api/runs", json={"scenario": SHORT, "rig": "sim-a"}, headers=H(op)).json()["id"]
         run = wait_until(lambda: (r := api.get(f"/api/runs/{first}", headers=H(op)).json())["state"]
                          not in ("queued", "running") and r, 60, 0.1, "the first run")
@@ -140,6 +141,27 @@ def test_forked_run_processes_pass_carry_the_drill_and_a_sigkilled_one_ends_abor
         assert run["state"] == "aborted" and "signal 9" in run["reason"]
         assert api.get("/api/rigs/sim-a", headers=H(op)).json()["state"] == "free"
         assert runner.spawned == {"forked": 3, "cold": 0}
+
+
+def test_runs_wait_for_the_fork_servers_preload_a_minute_at_most_then_start_cold(tmp_path, monkeypatch):
+    from bench.service.runner import FORKSERVER_WAIT_S, Runner
+
+    def never_ready(self):                 # a preload that hangs, 3 s before the wait for it runs out
+        self._forkserver_since = time.monotonic() - FORKSERVER_WAIT_S + 3.0
+
+    monkeypatch.setattr(Runner, "_start_forkserver", never_ready)
+    with client_for(make_settings(tmp_path, lease_ttl_s=3.0)) as api:
+        runner, op = api.service.runner, api.tokens.operator
+        assert api.get("/api/health").json()["run_processes"] == "warming"
+        run_id = api.post("/api/runs", json={"scenario": SHORT, "rig": "sim-a"}, headers=H(op)).json()["id"]
+        held = api.get(f"/api/runs/{run_id}", headers=H(op)).json()     # not started cold beside the preload
+        assert held["state"] == "queued" and held["waiting"].startswith("run processes warming up"), held
+        time.sleep(1.0)
+        assert api.get(f"/api/runs/{run_id}", headers=H(op)).json()["state"] == "queued"
+        run = wait_until(lambda: (r := api.get(f"/api/runs/{run_id}", headers=H(op)).json())["state"]
+                         not in ("queued", "running") and r, 90, 0.1, "the run")
+        assert run["state"] == "pass" and runner.spawned == {"forked": 0, "cold": 1}, (run, runner.spawned)
+        assert api.get("/api/health").json()["run_processes"] == "cold"
 
 
 WARM_CHECK = """

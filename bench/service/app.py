@@ -214,7 +214,8 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
 
     @app.get("/api/health")
     async def health() -> dict:                     # on the event loop: answers while worker threads are busy
-        return {"status": "ok", "database": "sqlite" if svc().db.is_sqlite else "postgresql"}
+        return {"status": "ok", "database": "sqlite" if svc().db.is_sqlite else "postgresql",
+                "run_processes": svc().runner.run_processes()}
 
     @app.get("/api/rigs")
     def rigs(who: Principal = Depends(viewer)) -> list[dict]:

@@ -186,7 +186,8 @@ class Service:
             if not context:
                 with self.db.session() as s:
                     context.append(read_context(s))
-            return why_waiting(run, len(runner.children), runner.settings.max_parallel, context[0])
+            return why_waiting(run, len(runner.children), runner.settings.max_parallel, context[0],
+                               runner.warming_s())
 
         return waiting
 

@@ -51,6 +51,7 @@ ABORT_KILL_AFTER_S = 60.0     # SIGTERM runs the safe stop; a run process still 
 STOP_WAIT_S = 30.0            # service shutdown: how long to wait for runs to finish their safe stop
 PROGRESS_DB_PERIOD_S = 1.0
 LOG_REPEAT_S = 30.0           # the same runner error is logged at most this often
+FORKSERVER_WAIT_S = 60.0      # queued runs wait this long for the fork server's preload, then start cold
 SWEEP_PERIOD_S = 1.0          # how often a live instance looks for runs of gone instances to take over
 WORKER = ("-m", "bench.service.worker")
 VERDICT_STATE = {"pass": "pass", "fail": "fail", "incomplete": "fail", "aborted": "aborted", "error": "error"}
@@ -219,6 +220,7 @@ class Runner:
         self.spawned = {"forked": 0, "cold": 0}
         self._forkserver = None                    # multiprocessing's forkserver context, started with the runner
         self._forkserver_ready = threading.Event()  # its preload done: forking no longer waits for imports
+        self._forkserver_since: float | None = None  # monotonic time its preload began; None once it failed
 
     # -- lifecycle ----------------------------------------------------------------------------------------
 
@@ -254,6 +256,23 @@ class Runner:
 
     def wake(self) -> None:
         self._wake.set()
+
+    def warming_s(self) -> float | None:
+        """Seconds the fork server has been importing while queued runs wait for it; None when runs may start (it
+        is ready, it failed, it took longer than FORKSERVER_WAIT_S, or runs start cold). A run started meanwhile would
+        pay the same imports cold, on the same cores as the preload it waits for."""
+        since = self._forkserver_since
+        if self.settings.run_start != "forkserver" or since is None or self._forkserver_ready.is_set():
+            return None
+        waited = time.monotonic() - since
+        return waited if waited < FORKSERVER_WAIT_S else None
+
+    def run_processes(self) -> str:
+        """How the next run process starts: "warm" (forked from the preloaded fork server), "warming" (queued runs
+        wait for its preload), or "cold" (a new interpreter: --run-start cold, or the fork server is not there)."""
+        if self.settings.run_start == "forkserver" and self._forkserver_ready.is_set():
+            return "warm"
+        return "warming" if self.warming_s() is not None else "cold"
 
     def stop(self, reason: str = "the service stopped") -> None:
         """Stop every run this instance started (SIGTERM: the safe stop), wait for them, record them aborted."""
@@ -474,7 +493,7 @@ class Runner:
         oldest head starts first (on the least busy of the rigs it may take). Nothing queued for a rig that cannot
         take a run is read."""
         room = self.settings.max_parallel - len(self.children)
-        if room <= 0:
+        if room <= 0 or self.warming_s() is not None:
             return
         with self.db.session() as s:
             if s.execute(select(Run.id).where(Run.state == "queued").limit(1)).first() is None:
@@ -565,6 +584,7 @@ class Runner:
         with self.db.session() as s:        # read by bench.service.fork_warm in the fork server (its environment)
             benches = sorted({rig.bench for rig in s.execute(select(Rig)).scalars() if rig.bench})
         os.environ[worker.WARM_BENCHES_ENV] = json.dumps(benches)
+        self._forkserver_since = time.monotonic()
         multiprocessing.forkserver.ensure_running()
         self._forkserver = context
 
@@ -576,10 +596,13 @@ class Runner:
                 if probe.exitcode == 0:
                     self._forkserver_ready.set()
                 else:
+                    self._forkserver_since = None
                     print(f"drivebench serve: the fork server did not start (exit {probe.exitcode}); runs start cold",
                           file=sys.stderr)
             except Exception as exc:
+                self._forkserver_since = None
                 print(f"drivebench serve: the fork server did not start: {exc}; runs start cold", file=sys.stderr)
+            self.wake()               # the runs it held start now
 
         threading.Thread(target=wait_for_preload, daemon=True, name="drivebench-forkserver").start()
 

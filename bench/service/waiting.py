@@ -1,6 +1,7 @@
 """Why a queued run waits, in words a lab reads: its rig (or every rig of its tag) disabled, reserved by someone
-else, busy with another run, or this service instance's run slots (--max-parallel) full — or, when nothing holds
-it, which earlier run goes first. Shown by GET /api/runs/{id} (`waiting`) and on the run and queue pages."""
+else, busy with another run, this service instance's run slots (--max-parallel) full, or its run processes still
+warming up (for at most a minute after the service starts) — or, when nothing holds it, which earlier run goes
+first. Shown by GET /api/runs/{id} (`waiting`) and on the run and queue pages."""
 
 from __future__ import annotations
 
@@ -28,7 +29,8 @@ def _rig_reason(view: RigView, owner: str) -> str | None:
 WaitContext = tuple[dict[str, RigView], list]      # read_context: the rigs' views by name, the queued runs
 
 
-def why_waiting(run: Run, running_here: int, max_parallel: int, context: WaitContext) -> str:
+def why_waiting(run: Run, running_here: int, max_parallel: int, context: WaitContext,
+                warming_s: float | None = None) -> str:
     views, queued = context
     names = [run.rig] if run.rig else list(run.candidates or [n for n, v in views.items() if run.tag in v.tags])
     if not names:
@@ -40,6 +42,9 @@ def why_waiting(run: Run, running_here: int, max_parallel: int, context: WaitCon
         (reasons.append(reason) if reason else free.append(name))
     if not free:
         return "; ".join(reasons)
+    if warming_s is not None:
+        return (f"run processes warming up: the service started {warming_s:.0f} s ago and its fork server is still "
+                f"importing what a run needs; rig {free[0]} is free")
     if running_here >= max_parallel:
         return (f"host slots: this service instance runs {running_here} of its {max_parallel} runs at once "
                 f"(--max-parallel); rig {free[0]} is free")
