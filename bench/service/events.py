@@ -18,7 +18,8 @@ class EventHub:
         self.on_shown: Callable[[int, object], None] = lambda generation, reader: None   # an event was delivered
         self.on_changed: Callable[[int], None] = lambda generation: None     # on the loop, after every change
 
-    def changed(self) -> None:
+    def changed(self) -> int:
+        """A change: the new generation, also handed to on_changed on the loop."""
         with self._lock:
             self.generation += 1
             generation = self.generation
@@ -28,6 +29,7 @@ class EventHub:
                 loop.call_soon_threadsafe(self.on_changed, generation)
             except RuntimeError:      # the loop closed in between
                 pass
+        return generation
 
     def bind(self, loop: asyncio.AbstractEventLoop) -> None:
         self._loop = loop
@@ -45,10 +47,7 @@ class EventHub:
     def publish(self, event: dict, changed: bool = True) -> None:
         """Thread-safe; a no-op before the loop is bound or after it closed. changed=False: the event tells
         subscribers something the database does not hold yet (a progress tick), so cached reads stay valid."""
-        generation = None
-        if changed:
-            self.changed()
-            generation = self.generation
+        generation = self.changed() if changed else None
         loop = self._loop
         if loop is None or loop.is_closed():
             return

@@ -116,7 +116,7 @@ class ReadCache:
     def __init__(self, app, generation, changed, answers: FreshCache):
         self.app = app
         self.generation = generation          # () -> int; changes invalidate
-        self.changed = changed                # () -> None; an API write is a change every later read sees
+        self.changed = changed                # () -> int, the new generation: an API write is a change
         self.answers = answers
 
     def _cacheable(self, scope) -> bool:
@@ -149,8 +149,7 @@ class ReadCache:
                 return await self.app(scope, receive, send)
             finally:
                 if scope["method"] not in ("GET", "HEAD", "OPTIONS"):
-                    self.changed()
-                    self.answers.show(self.generation())      # an API write is seen by every read after it
+                    self.answers.show(self.changed())      # an API write is seen by every read after it
         key = scope["path"] + "?" + scope.get("query_string", b"").decode("latin-1")
         status, headers, chunks = await self.answers.get(key, self.generation(), lambda: self._read(scope),
                                                          _reader(scope), fresh=_no_cache(scope))

@@ -572,8 +572,9 @@ class Runner:
                                 **({"process_group": 0} if nice else {"start_new_session": True}))
 
     def _start_forkserver(self) -> None:
-        """The fork server, preloaded in the background: until it has imported everything, runs start cold (a fork
-        request would wait for those imports on the runner's thread, and its leases with it)."""
+        """The fork server, preloaded in the background: until it has imported everything, queued runs wait for it
+        (`warming_s`; a fork request meanwhile would wait for those imports on the runner's thread, and its leases
+        with it), for at most FORKSERVER_WAIT_S, then start cold."""
         import multiprocessing
         import multiprocessing.forkserver
 
@@ -632,7 +633,7 @@ class Runner:
         """The run's process, forked warm or started cold; (process, warm)."""
         data = encode(request)
         nice = self.settings.nice if simulated else 0
-        if self.settings.run_start == "forkserver" and self._forkserver_ready.is_set():
+        if self.run_processes() == "warm":
             self.spawned["forked"] += 1
             return self._fork(data, nice), True
         proc = self._start_worker(nice)
