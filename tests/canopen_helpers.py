@@ -14,11 +14,14 @@ from drivers.api import LinkSettings
 from drivers.canopen.link import CanopenDriveLink
 from sim_backend.canopen.node import SimCanopenNode, start_node
 from sim_backend.device import SimulatedDevice
-from sim_backend.rig import private_channel
+from sim_backend.canopen.generic import DriveSpec
+from sim_backend.rig import RigSpec, build, private_channel
 from sim_backend.toy import ToyDrive
 
 REPO = Path(__file__).resolve().parent.parent
 EDS = REPO / "config" / "od" / "drivebench-pmsm.eds"
+MOTOR = REPO / "config/motors/pmsm-paper.toml"
+LIVE = ["speed_ref_mech_rad_s", "speed_est_mech_rad_s", "i_sy_a", "vdc_v"]
 
 
 class Sniffer:
@@ -78,3 +81,25 @@ def rig(node_eds: Path = EDS, open_link: bool = True, **section) -> Iterator[Rig
         link.close()
         node.stop()
         sniffer.close()
+
+
+# A generic CiA 402 drive built from a third-party EDS (config/od/third-party), on the paper PMSM, behind the bench's
+# CANopen link (the third-party drive and comm-loss drill tests).
+def eds_path(name: str) -> Path:
+    return REPO / "config/od/third-party" / f"{name}.eds"
+
+
+@contextlib.contextmanager
+def generic_link(eds: str, spec: DriveSpec, motor=MOTOR, settings: LinkSettings = LinkSettings(), **section):
+    with build(RigSpec(motor=motor, seed=1, eds=eds_path(eds), drive=spec)) as rig:
+        fields = dict(transport="canopen", interface="virtual", channel=rig.channel, node_id=1, eds=str(eds_path(eds)),
+                      sync_period_s=0.01, heartbeat_timeout_s=2.0, sdo_timeout_s=2.0, consumer_time_ms=2000)
+        link = CanopenDriveLink(fields | section, REPO, settings)
+        try:
+            yield link, rig
+        finally:
+            link.close()
+
+
+def sync_for(link, seconds: float):
+    return [s for _ in range(round(seconds / link.sync_period_s)) for s in link.sync()]

@@ -6,11 +6,14 @@ check the order of the safe-stop sequence. Knobs make the drive misbehave on pur
 
 from __future__ import annotations
 
+import textwrap
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
+from bench.run.orchestrator import run_scenario
 from drivers.api import DriveIdentity, DriveLink, DriveStatus, LiveSample, LoadFeedback, LoadLink
 from drivers.contract.signals import SIGNAL_INDEX, TIME_COLUMN
 from drivers.contract.errors import LinkError
@@ -212,3 +215,72 @@ class FakeLoadLink(LoadLink):
 
 
 SAFE_STOP = ["drive.begin_quick_stop", "load.zero_and_disable", "drive.quick_stop", "drive.disable"]
+
+
+# A bench config and a toy-ramp scenario whose run goes over FakeRig's links (the orchestrator's tests and the
+# CLI, plugin, supervisor and not-judged tests that build on them).
+FAKE_BENCH = """
+[bench]
+name = "fake"
+plant_injections = {plant}
+
+[drive]
+transport = "serial"
+port = "fake"
+sync_period_s = 0.001
+
+[load]
+transport = "modbus-tcp"
+map = "config/load-machines/drivebench-sim.toml"
+host = "127.0.0.1"
+port = 1
+"""
+
+FAKE_SCENARIO = """
+schema_version = 1
+name = "toy-ramp"
+bench = "{bench}"
+duration_s = {duration}
+
+[[speed]]
+kind = "ramp"
+start_s = 0.0
+end_s = 0.2
+speed_mech_rad_s = 20.0
+
+[[load]]
+kind = "torque"
+start_s = 0.5
+torque_nm = 2.0
+
+{extra}
+
+[limits]
+overspeed_mech_rad_s = 40.0
+overcurrent_a = 10.0
+
+[[criteria]]
+name = "speed steady"
+kind = "steady_state_error"
+signal = "speed_true_mech_rad_s"
+window_s = [0.7, {duration}]
+reference = "speed_ref_mech_rad_s"
+percent = true
+limit = {limit}
+"""
+
+
+def write_case(tmp_path: Path, *, plant: bool = True, duration: float = 1.0, limit: float = 1.0,
+               extra: str = "") -> Path:
+    bench = tmp_path / "bench.toml"
+    bench.write_text(textwrap.dedent(FAKE_BENCH.format(plant=str(plant).lower())))
+    scenario = tmp_path / "scenario.toml"
+    scenario.write_text(FAKE_SCENARIO.format(bench=bench, duration=duration, limit=limit, extra=extra))
+    return scenario
+
+
+def run_fake(tmp_path, rig, **kwargs):
+    """Run write_case's scenario (or `scenario=`) over the fake rig's links; kwargs go to run_scenario."""
+    scenario = kwargs.pop("scenario", None) or write_case(tmp_path, **kwargs.pop("case", {}))
+    return run_scenario(scenario, out_root=tmp_path / "runs", rerun_mode=kwargs.pop("rerun_mode", "off"),
+                        links=rig.links(), **kwargs)

@@ -10,15 +10,14 @@ config/report/paper-suites.toml --out docs/validation.md` turns them into the va
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 
 import pytest
 
 from bench.inputs.scenario import load_scenario
+from tests.scenario_fixtures import band_violations, expected_failures, gap_entries, known_gaps
 
 ROOT = Path(__file__).resolve().parents[1]
-KNOWN_GAPS_FILE = ROOT / "tests" / "known_gaps.toml"
 SCENARIOS = sorted((ROOT / "scenarios" / "pmsm").glob("*.toml")) + sorted((ROOT / "scenarios" / "spim").glob("*.toml"))
 REQUIRED = (
     "pmsm/fig07-reversal-2rads-flux-kick", "pmsm/fig08-20rads-rs-step", "pmsm/fig09-crane-lift-lower",
@@ -33,40 +32,6 @@ REQUIRED = (
 
 def rel(path: Path) -> str:
     return path.resolve().relative_to(ROOT).as_posix()
-
-
-def gap_entries() -> list[dict]:
-    return tomllib.loads(KNOWN_GAPS_FILE.read_text(encoding="utf-8")).get("gap", [])
-
-
-def known_gaps() -> dict[str, set[str]]:
-    gaps: dict[str, set[str]] = {}
-    for entry in gap_entries():
-        gaps.setdefault(entry["scenario"], set()).add(entry["criterion"])
-    return gaps
-
-
-def expected_failures(scenario: str, seed: int) -> set[str]:
-    """The gaps that must fail with this seed: every plain gap, a seed-dependent one only for its failing seeds."""
-    return {e["criterion"] for e in gap_entries() if e["scenario"] == scenario
-            and ("failing_seeds" not in e or seed in e["failing_seeds"])}
-
-
-def band_violations(scenario: str, seed: int, criteria) -> list[str]:
-    """Gaps of this scenario whose value is outside their measured band: `band` when the gap fails with this seed,
-    `pass_band` when a seed-dependent gap passes with it."""
-    values = {c.name: c.value for c in criteria}
-    out = []
-    for e in gap_entries():
-        if e["scenario"] != scenario or e["criterion"] not in values:
-            continue
-        failing = "failing_seeds" not in e or seed in e["failing_seeds"]
-        key = "band" if failing else "pass_band"
-        lo, hi = e[key]
-        value = values[e["criterion"]]
-        if not lo <= value <= hi:
-            out.append(f"{e['criterion']}: value {value:.6g} outside its {key} [{lo:g}, {hi:g}] (seeds 1-20)")
-    return out
 
 
 def marked_gaps(path: Path) -> set[str]:

@@ -20,7 +20,7 @@ ray = pytest.importorskip("ray", reason="ray is not installed (pip install -e \"
 from bench.faces.campaign import load_campaign, points  # noqa: E402
 from bench.faces.campaign_run import run_campaign, write_results  # noqa: E402
 from tests.service_fixtures import free_port  # noqa: E402
-from tests.test_transports_agree import EDS, SCENARIO, _bench, _serve_pmsm  # noqa: E402
+from tests.sim_process import EDS, SCENARIO, serve_pmsm, sim_bench  # noqa: E402
 
 RAY = Path(sys.executable).with_name("ray")
 RIG = "served-rig"
@@ -88,22 +88,22 @@ def cluster(monkeypatch):
 
 
 def test_rig_points_hold_their_rig_and_simulated_points_spread_over_both_nodes(tmp_path, cluster):
-    sim_proc, endpoints = _serve_pmsm(tmp_path)          # the "real rig": a served simulator, one bench at a time
+    sim_proc, endpoints = serve_pmsm(tmp_path)          # the "real rig": a served simulator, one bench at a time
     try:
         # The drills run in wall time beside three runs and two Ray nodes on two cores: a margin for the host, not
         # for the drive (tests/test_comm_loss_drill.py holds the default margins: 200 ms drive, 100 ms load).
         # Under that load a point was once refused here by a drill that answered late.
-        rig_bench = _bench(
+        rig_bench = sim_bench(
             tmp_path, RIG, 'served_by = "drivebench sim serve"\n',   # lockstep without [services]: say who serves
             f'transport = "canopen"\ninterface = "socketcand"\nchannel = "can0@127.0.0.1:{endpoints["socketcand"]}"\n'
             f'node_id = 1\neds = "{EDS}"\nsdo_timeout_s = 5.0\ndrill_margin_ms = 2000\n',
             f'port = {endpoints["modbus"]}\ndrill_margin_ms = 2000')
-        sim_bench = _bench(tmp_path, "simulated", '[services]\nstart = "sim_backend.rig:start"\n',
-                           f'transport = "canopen"\ninterface = "virtual"\nchannel = "x"\nnode_id = 1\n'
-                           f'eds = "{EDS}"\nsdo_timeout_s = 5.0\n', "port = 0")
+        simulated_bench = sim_bench(tmp_path, "simulated", '[services]\nstart = "sim_backend.rig:start"\n',
+                                     f'transport = "canopen"\ninterface = "virtual"\nchannel = "x"\nnode_id = 1\n'
+                                     f'eds = "{EDS}"\nsdo_timeout_s = 5.0\n', "port = 0")
         # the 1.5 s scenario of test_transports_agree (speed step, load step, R_s injection, two criteria)
         (tmp_path / "scenario-on-rig.toml").write_text(SCENARIO.format(bench=rig_bench, seed=1))
-        (tmp_path / "scenario-simulated.toml").write_text(SCENARIO.format(bench=sim_bench, seed=1))
+        (tmp_path / "scenario-simulated.toml").write_text(SCENARIO.format(bench=simulated_bench, seed=1))
         (tmp_path / "campaign.toml").write_text('schema_version = 1\nname = "ray-two-nodes"\n'
                                                 'scenarios = ["scenario-on-rig.toml", "scenario-simulated.toml"]\n'
                                                 'seeds = [1, 2, 3, 4]\n[acceptance]\nrule = "every_run"\n')

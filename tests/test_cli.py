@@ -13,8 +13,7 @@ from click.testing import CliRunner
 
 import bench.run.orchestrator
 from bench.faces.cli import cli
-from tests.fakes import FakeRig
-from tests.test_orchestrator import write_case
+from tests.fakes import FakeRig, write_case
 
 REPO = Path(__file__).resolve().parents[1]
 

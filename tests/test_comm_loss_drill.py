@@ -15,7 +15,7 @@ import pytest
 
 from drivers.contract import cia402
 from sim_backend.canopen.generic import DriveSpec
-from tests.test_third_party_drives import LIVE, generic_link, sync_for
+from tests.canopen_helpers import LIVE, generic_link, sync_for
 
 REPO = Path(__file__).resolve().parents[1]
 SCENARIO = REPO / "scenarios/rig/speed-step-20rads.toml"
@@ -221,8 +221,7 @@ def test_a_tpdo_that_stops_in_real_time_trips_feedback_lost_and_stops_the_run(tm
 def test_warning_events_are_recorded_and_shown(tmp_path):
     from bench.faces.cli import print_record
     from rich.console import Console
-    from tests.fakes import FakeRig
-    from tests.test_orchestrator import run
+    from tests.fakes import FakeRig, run_fake as run
 
     rig = FakeRig()
     status = rig.drive.status
@@ -241,8 +240,7 @@ def test_warning_events_are_recorded_and_shown(tmp_path):
 
 
 def test_a_failed_or_unverified_drill_reaches_the_record_with_fake_links(tmp_path):
-    from tests.fakes import FakeRig
-    from tests.test_orchestrator import run
+    from tests.fakes import FakeRig, run_fake as run
 
     rig = FakeRig(drill_result="failed")
     result = run(tmp_path, rig)
@@ -359,8 +357,7 @@ def test_an_operator_stop_during_the_drill_never_enables_the_drive_for_the_run(t
     import signal as signals
     import time
 
-    from tests.fakes import SAFE_STOP, FakeRig
-    from tests.test_orchestrator import run
+    from tests.fakes import SAFE_STOP, FakeRig, run_fake as run
 
     rig = FakeRig()
     drill = rig.drive.drill

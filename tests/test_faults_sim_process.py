@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_sim_serve import _endpoints, _serve
+from tests.sim_process import read_endpoints, serve_sim
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -77,9 +77,9 @@ def test_simulator_process_killed_mid_run(tmp_path, how):
     """SIGKILL: the sockets close, the bench sees it at once. SIGSTOP: a hung simulator, only timeouts tell."""
     serve_cfg = tmp_path / "serve.toml"
     serve_cfg.write_text(SERVE.format(eds=REPO / "config/od/drivebench-pmsm.eds"))
-    sim = _serve(serve_cfg)
+    sim = serve_sim(serve_cfg)
     try:
-        lines = _endpoints(sim)
+        lines = read_endpoints(sim)
         serial = next(line.split()[1] for line in lines if line.startswith("serial "))
         modbus = int(re.search(r"modbus tcp://127.0.0.1:(\d+)", "\n".join(lines)).group(1))
         bench = tmp_path / "bench.toml"

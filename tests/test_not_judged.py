@@ -12,8 +12,7 @@ import numpy as np
 import pytest
 
 from bench.inputs.criteria import CriterionSpec, TimeAxis, evaluate, time_axis, verdict
-from tests.fakes import FakeRig
-from tests.test_orchestrator import run
+from tests.fakes import FakeRig, run_fake as run
 
 REPO = Path(__file__).resolve().parents[1]
 

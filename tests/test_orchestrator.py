@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -15,73 +14,7 @@ from bench.run.orchestrator import LIVE_SIGNALS, run_scenario
 from bench.outputs.record_schema import RECORD_KEYS
 from bench.outputs.run_files import load_run
 from drivers.contract.errors import LinkError
-from tests.fakes import SAFE_STOP, FakeRig
-
-BENCH = """
-[bench]
-name = "fake"
-plant_injections = {plant}
-
-[drive]
-transport = "serial"
-port = "fake"
-sync_period_s = 0.001
-
-[load]
-transport = "modbus-tcp"
-map = "config/load-machines/drivebench-sim.toml"
-host = "127.0.0.1"
-port = 1
-"""
-
-SCENARIO = """
-schema_version = 1
-name = "toy-ramp"
-bench = "{bench}"
-duration_s = {duration}
-
-[[speed]]
-kind = "ramp"
-start_s = 0.0
-end_s = 0.2
-speed_mech_rad_s = 20.0
-
-[[load]]
-kind = "torque"
-start_s = 0.5
-torque_nm = 2.0
-
-{extra}
-
-[limits]
-overspeed_mech_rad_s = 40.0
-overcurrent_a = 10.0
-
-[[criteria]]
-name = "speed steady"
-kind = "steady_state_error"
-signal = "speed_true_mech_rad_s"
-window_s = [0.7, {duration}]
-reference = "speed_ref_mech_rad_s"
-percent = true
-limit = {limit}
-"""
-
-
-def write_case(tmp_path: Path, *, plant: bool = True, duration: float = 1.0, limit: float = 1.0,
-               extra: str = "") -> Path:
-    bench = tmp_path / "bench.toml"
-    bench.write_text(textwrap.dedent(BENCH.format(plant=str(plant).lower())))
-    scenario = tmp_path / "scenario.toml"
-    scenario.write_text(SCENARIO.format(bench=bench, duration=duration, limit=limit, extra=extra))
-    return scenario
-
-
-def run(tmp_path, rig, **kwargs):
-    scenario = kwargs.pop("scenario", None) or write_case(tmp_path, **kwargs.pop("case", {}))
-    return run_scenario(scenario, out_root=tmp_path / "runs", rerun_mode=kwargs.pop("rerun_mode", "off"),
-                        links=rig.links(), **kwargs)
-
+from tests.fakes import SAFE_STOP, FakeRig, run_fake as run, write_case
 
 def safe_stop_calls(rig) -> list[str]:
     return [n for n in rig.names() if n in SAFE_STOP]

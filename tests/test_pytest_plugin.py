@@ -14,8 +14,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 CHILD_TEST = """
 import bench.run.orchestrator
-from tests.fakes import FakeRig
-from tests.test_orchestrator import write_case
+from tests.fakes import FakeRig, write_case
 
 
 def test_uses_fixture(drivebench, tmp_path, monkeypatch):

@@ -17,7 +17,7 @@ import canopen
 from pymodbus.client import ModbusTcpClient
 
 from drivers.contract import cia402
-from tests.test_sim_serve import _endpoints, _serve
+from tests.sim_process import read_endpoints, serve_sim
 
 REPO = Path(__file__).resolve().parents[1]
 EDS = REPO / "config/od/third-party/e35.eds"
@@ -88,12 +88,12 @@ max_duration_s = 120.0
 def test_sigkilled_bench_leaves_the_drive_and_the_load_machine_to_stop_themselves(tmp_path):
     serve_cfg = tmp_path / "serve.toml"
     serve_cfg.write_text(SERVE)
-    server = _serve(serve_cfg)
+    server = serve_sim(serve_cfg)
     monitor = canopen.Network()
     modbus = None
     bench_proc = None
     try:
-        lines = _endpoints(server, timeout=120.0)
+        lines = read_endpoints(server, timeout=120.0)
         can_port = next(l for l in lines if l.startswith("canopen ")).split(":")[2].split("/")[0]
         modbus_port = int(next(l for l in lines if l.startswith("modbus ")).split(":")[2].split()[0])
         bench = tmp_path / "bench.toml"
@@ -162,10 +162,10 @@ def test_a_served_drive_without_comm_loss_reaction_is_refused_before_motion(tmp_
     motion. Watched by a second master: the shaft never turned, the drive is left switched off."""
     serve_cfg = tmp_path / "serve.toml"
     serve_cfg.write_text(SERVE.replace('drive = "generic"\n', 'drive = "generic"\ncomm_loss_reaction = false\n'))
-    server = _serve(serve_cfg)
+    server = serve_sim(serve_cfg)
     monitor = canopen.Network()
     try:
-        lines = _endpoints(server, timeout=120.0)
+        lines = read_endpoints(server, timeout=120.0)
         can_port = next(l for l in lines if l.startswith("canopen ")).split(":")[2].split("/")[0]
         modbus_port = int(next(l for l in lines if l.startswith("modbus ")).split(":")[2].split()[0])
         bench = tmp_path / "bench.toml"

@@ -21,8 +21,7 @@ import pytest
 from bench.run.orchestrator import run_scenario
 from bench.run.supervisor import SafeStop
 from drivers.api import LoadFeedback
-from tests.fakes import SAFE_STOP, FakeRig
-from tests.test_orchestrator import write_case
+from tests.fakes import SAFE_STOP, FakeRig, write_case
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))

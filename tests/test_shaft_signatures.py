@@ -117,7 +117,7 @@ def test_a_sensor_mutant_is_rejected_twice_on_the_shaft_on_every_seed(mutant, tm
 def test_the_slip_pi_x10_mutant_moves_a_known_gap_out_of_its_band(tmp_path):
     """Not rejected on the shaft, the x10 slip PI is caught by the measured band of a known gap judged on the drive's
     estimate (tests/known_gaps.toml): Fig. 6's estimate error through the load steps falls below its band."""
-    from tests.test_acceptance_suite import band_violations
+    from tests.scenario_fixtures import band_violations
 
     mutant = next(m for m in SENSOR_MUTANTS if key(m) == "spim/slip_gains_x10")
     scenario = "scenarios/spim/fig06-1500rpm-load-step.toml"

@@ -2,20 +2,17 @@
 
 from __future__ import annotations
 
-import os
 import re
 import signal
 import socket
-import subprocess
-import sys
 import threading
-from pathlib import Path
 
 import pytest
 
 from drivers.api import LinkSettings
 from drivers.canopen.link import CanopenDriveLink
 from tests.canopen_helpers import EDS, REPO
+from tests.sim_process import read_endpoints, serve_sim
 
 CONFIG = """
 [simulator]
@@ -30,35 +27,13 @@ eds = "{eds}"
 """
 
 
-def _serve(config: Path) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "sim_backend.serve", "--config", str(config)], cwd=REPO,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
-
-
-def _endpoints(proc: subprocess.Popen, timeout: float = 60.0) -> list[str]:
-    lines: list[str] = []
-
-    def read():
-        for line in proc.stdout:
-            lines.append(line.strip())
-            if line.startswith("ready"):
-                return
-
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
-    reader.join(timeout)
-    assert lines and lines[-1].startswith("ready"), f"no 'ready' line: {lines} {proc.poll()}"
-    return lines
-
-
 @pytest.mark.parametrize("stop_signal", [signal.SIGINT, signal.SIGTERM])
 def test_serve_prints_its_endpoints_answers_on_them_and_exits_cleanly(tmp_path, stop_signal):
     config = tmp_path / "bench.toml"
     config.write_text(CONFIG.format(eds=EDS))
-    proc = _serve(config)
+    proc = serve_sim(config)
     try:
-        lines = _endpoints(proc)
+        lines = read_endpoints(proc)
         canopen_line = next(l for l in lines if l.startswith("canopen "))
         m = re.fullmatch(r"canopen socketcand://127\.0\.0\.1:(\d+)/can0 node=3", canopen_line)
         assert m, canopen_line
@@ -95,7 +70,7 @@ def test_serve_prints_its_endpoints_answers_on_them_and_exits_cleanly(tmp_path, 
 def test_serve_bad_config_is_one_line_and_exit_2(tmp_path):
     config = tmp_path / "bench.toml"
     config.write_text("[simulator]\nmotor = 'toy'\n[simulator.serve]\ncanopen_socketcand = 'localhost'\n")
-    proc = _serve(config)
+    proc = serve_sim(config)
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 2
     assert err.strip().splitlines() == [

@@ -4,7 +4,6 @@ its reaction to a dead bench; the read-only probe and the node scan."""
 
 from __future__ import annotations
 
-import contextlib
 import math
 import time
 from pathlib import Path
@@ -15,14 +14,12 @@ import pytest
 from drivers.contract.errors import LinkError
 from drivers.api import LinkSettings
 from drivers.contract import objects as o
-from drivers.canopen.link import CanopenDriveLink
 from drivers.canopen.probe import probe, scan
 from sim_backend.canopen.generic import DriveSpec
 from sim_backend.rig import RigSpec, build
+from tests.canopen_helpers import LIVE, eds_path, generic_link, sync_for
 
 REPO = Path(__file__).resolve().parents[1]
-MOTOR = REPO / "config/motors/pmsm-paper.toml"
-LIVE = ["speed_ref_mech_rad_s", "speed_est_mech_rad_s", "i_sy_a", "vdc_v"]
 
 # eds, what the simulated drive uses, what the bench config must state (the EDS has no 0x60A9 / 0x608F / 0x6091)
 DRIVES = {
@@ -36,26 +33,6 @@ DRIVES = {
     ("cia402_slave", "inc/s"): (DriveSpec(velocity_unit="inc/s", encoder_increments_per_rev=4096),
                                 {"velocity_unit": "inc/s", "gear_ratio": [1, 1]}),
 }
-
-
-def eds_path(name: str) -> Path:
-    return REPO / "config/od/third-party" / f"{name}.eds"
-
-
-@contextlib.contextmanager
-def generic_link(eds: str, spec: DriveSpec, motor=MOTOR, settings: LinkSettings = LinkSettings(), **section):
-    with build(RigSpec(motor=motor, seed=1, eds=eds_path(eds), drive=spec)) as rig:
-        fields = dict(transport="canopen", interface="virtual", channel=rig.channel, node_id=1, eds=str(eds_path(eds)),
-                      sync_period_s=0.01, heartbeat_timeout_s=2.0, sdo_timeout_s=2.0, consumer_time_ms=2000)
-        link = CanopenDriveLink(fields | section, REPO, settings)
-        try:
-            yield link, rig
-        finally:
-            link.close()
-
-
-def sync_for(link, seconds: float):
-    return [s for _ in range(round(seconds / link.sync_period_s)) for s in link.sync()]
 
 
 @pytest.mark.parametrize("fixed", [False, True], ids=["remap", "fixed"])
