@@ -3,6 +3,7 @@
 
     python3 dev.py run [drivebench run arguments]   # default: the PMSM Fig. 8 scenario on the simulator
     python3 dev.py test [pytest arguments]          # the whole test suite (what CI runs)
+    python3 dev.py quick [pytest arguments]         # the inner loop: bench, drivers, sim_backend without slow tests
     python3 dev.py setup                            # only create or refresh .venv
 
 Only Python 3.11+ is needed (no make, no shell: the same on a Windows lab PC). The environment is `.venv` in the
@@ -22,6 +23,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent
 MAIN_JOB = ("scenarios/pmsm/fig08-20rads-rs-step.toml",)
 DEFAULT_EXTRAS = "test"
+# the inner loop (docs/testing.md): every package's tests but the system tests and those marked slow
+QUICK = ("-m", "not slow and not system", "tests/bench", "tests/drivers", "tests/sim_backend")
 
 
 def venv_python(venv: Path) -> Path:
@@ -63,8 +66,8 @@ def main(argv: list[str]) -> int:
     if sys.version_info < (3, 11):
         print(f"dev.py: Python 3.11 or newer is needed, this is {sys.version.split()[0]}", file=sys.stderr)
         return 2
-    if not argv or argv[0] not in ("run", "test", "setup"):
-        print("usage: python3 dev.py run|test|setup [arguments]", file=sys.stderr)
+    if not argv or argv[0] not in ("run", "test", "quick", "setup"):
+        print("usage: python3 dev.py run|test|quick|setup [arguments]", file=sys.stderr)
         return 2
     command, rest = argv[0], argv[1:]
     python = ensure_venv()
@@ -72,6 +75,8 @@ def main(argv: list[str]) -> int:
         return 0
     if command == "run":
         args = [str(python), "-m", "bench", "run", *(rest or MAIN_JOB)]
+    elif command == "quick":
+        args = [str(python), "-m", "pytest", "-n", "2", "-q", *QUICK, *rest]
     else:
         args = [str(python), "-m", "pytest", "-n", "2", "-q", *rest]
     return subprocess.run(args, cwd=ROOT).returncode

@@ -1,4 +1,4 @@
-"""The simulator's three protocol servers under sustained abuse (the long version of tests/test_server_abuse.py).
+"""The simulator's three protocol servers under sustained abuse (the long version of tests/sim_backend/test_server_abuse.py).
 
 `drivebench sim serve` runs as its own process (toy drive: the servers, not the physics, are measured). Rounds of:
 32 MiB lines without '>' (before and after the socketcand handshake), socketcand clients that never read while the

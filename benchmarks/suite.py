@@ -1,4 +1,4 @@
-"""Wall time of the acceptance suite (tests/test_acceptance_suite.py) as CI runs it: pytest -n WORKERS.
+"""Wall time of the acceptance suite (tests/system/test_acceptance_suite.py) as CI runs it: pytest -n WORKERS.
 
 Prints each scenario's test time (pytest --durations), the simulated drive time per wall second, and last
 `RESULT wall_s=... workers=... scenarios=... passed=... failed=... drive_s=... drive_s_per_wall_s=...`.
@@ -30,7 +30,7 @@ def main() -> int:
     out = args.out or Path(tempfile.mkdtemp(prefix="drivebench-suite-"))
     scenarios = sorted((ROOT / "scenarios" / "pmsm").glob("*.toml")) + sorted((ROOT / "scenarios" / "spim").glob("*.toml"))
     drive_s = sum(load_scenario(p).duration_s for p in scenarios)
-    cmd = [sys.executable, "-m", "pytest", "tests/test_acceptance_suite.py", "-q", "-p", "no:cacheprovider",
+    cmd = [sys.executable, "-m", "pytest", "tests/system/test_acceptance_suite.py", "-q", "-p", "no:cacheprovider",
            "--durations=0", "--drivebench-out", str(out)]
     if args.workers > 1:
         cmd += ["-n", str(args.workers)]

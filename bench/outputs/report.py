@@ -408,7 +408,7 @@ MUTANTS_DIR = "mutants"
 
 
 def mutation_section(dirs: Sequence[Path], suites: Suites = Suites()) -> list[str]:
-    """The kill table tests/test_mutants.py leaves beside the runs (DIR/mutants/<drive>-<name>.json), if any."""
+    """The kill table tests/system/test_mutants.py leaves beside the runs (DIR/mutants/<drive>-<name>.json), if any."""
     table: dict[str, Any] = {}
     for path in sorted(p for d in dirs for p in (d / MUTANTS_DIR).glob("*.json")):
         try:

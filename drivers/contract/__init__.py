@@ -11,5 +11,5 @@ codes (exits) and the rate-limited log both sides' servers use (ratelog). Not he
 talk to a device (the CANopen, serial and Modbus links, the drive profile a CANopen link resolves,
 the probe and drill, the link protocol the bench calls in drivers.api), each transport's typed config beside its
 link, and the transport registry (drivers.transports). The contract imports nothing from drivers/ outside itself,
-nor bench/ or sim_backend/ (tests/test_structure.py); every other package may import it.
+nor bench/ or sim_backend/ (tests/bench/test_structure.py); every other package may import it.
 """

@@ -1,0 +1,86 @@
+"""Mutation testing of the acceptance suite: every firmware mutant (tests/mutants.py) run through its drive's paper
+scenarios must be rejected by at least one criterion that the real firmware passes (a known gap does not count), or
+by the run ending aborted or in error. A surviving mutant fails the suite.
+
+With --drivebench-out DIR the kill table is written to DIR/mutants/ (a file per mutant); `drivebench report DIR/* --suites
+config/report/paper-suites.toml --out docs/validation.md` puts it in the validation page.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from bench.run.orchestrator import run_scenario
+from bench.outputs.report import MUTANTS_DIR
+from tests.mutants import ALL_MUTANTS, Mutant, _apply, build, mutant_kernel
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def scenarios_of(drive: str) -> list[Path]:
+    return sorted((ROOT / "scenarios" / drive).glob("*.toml"))
+
+
+def kills(mutant: Mutant, out: Path) -> dict[str, list[str]]:
+    """scenario stem -> what rejected the mutant there (failing criteria that are not known gaps, or the verdict)."""
+    killed: dict[str, list[str]] = {}
+    with mutant_kernel(mutant, build(mutant)):
+        for path in scenarios_of(mutant.drive):
+            result = run_scenario(path, out_root=out, rerun_mode="off")
+            why = [c.name for c in result.criteria if c.status == "fail" and not c.known_gap]
+            if result.verdict in ("aborted", "error"):
+                why.insert(0, f"run {result.verdict}: {result.record.get('abort_reason') or result.error}")
+            if why:
+                killed[path.stem] = why
+    return killed
+
+
+@pytest.mark.parametrize("mutant", ALL_MUTANTS, ids=lambda m: f"{m.drive}-{m.name}")
+def test_every_firmware_mutant_is_rejected(mutant, tmp_path, request):
+    killed = kills(mutant, tmp_path)
+    assert killed, f"mutant {mutant.name} ({mutant.what}) survives every {mutant.drive} acceptance scenario"
+    out = request.config.getoption("--drivebench-out")
+    if out and out != "runs":             # one file per mutant: the suite's workers write side by side
+        path = Path(out) / MUTANTS_DIR / f"{mutant.drive}-{mutant.name}.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        entry = {"drive": mutant.drive, "name": mutant.name, "what": mutant.what, "killed_by": killed}
+        path.write_text(json.dumps(entry, indent=1, sort_keys=True))
+
+
+# A cheat that passes a paper figure and fails only the designed signature, by the signature's whole prediction
+# (value = |measured - expected| with the cheat's measurement ~0); the real firmware passes the signature.
+SIGNATURE_CASES = [
+    # an encoder-reading firmware passes the whole Fig. 8 scenario (zero position error is what fig08 asks for);
+    # the eq. (15a) signature with i_sx* = 2 A is what tells it from the MRAS: |0 - (-0.0919)|
+    ("encoder_cheat", "scenarios/pmsm/fig08-20rads-rs-step.toml", "scenarios/pmsm/sig-isx-rs-step-eq15a.toml",
+     "position error after the R_s step = eq. (15a), i_sx = 2 A", (0.08, math.inf)),
+    # a tachometer firmware passes Fig. 6; holding the slip estimator under load and then removing the load must
+    # leave w^ - w at -(held - no-load slip) / n_p (eq. 33), which it cannot show: |0 - (-10.564)|
+    ("true_speed_cheat", "scenarios/spim/fig06-1500rpm-load-step.toml", "scenarios/spim/sig-slip-hold-unload.toml",
+     "slip held, load removed: w^ - w = -(held - no-load slip) / n_p of eq. (33)", (10.364, 10.764)),
+]
+
+
+@pytest.mark.parametrize("name, figure, signature, criterion, value_range", SIGNATURE_CASES,
+                         ids=[case[0] for case in SIGNATURE_CASES])
+def test_the_sensor_cheat_is_caught_by_the_designed_signature_not_by_the_figure(tmp_path, name, figure, signature,
+                                                                              criterion, value_range):
+    mutant = next(m for m in ALL_MUTANTS if m.name == name)
+    with mutant_kernel(mutant):
+        fig = run_scenario(ROOT / figure, out_root=tmp_path, rerun_mode="off")
+        sig = run_scenario(ROOT / signature, out_root=tmp_path, rerun_mode="off")
+    assert fig.verdict == "pass"
+    failed = {c.name: c for c in sig.criteria if c.status == "fail"}
+    assert list(failed) == [criterion]
+    assert value_range[0] < failed[criterion].value < value_range[1]
+    real = run_scenario(ROOT / signature, out_root=tmp_path, rerun_mode="off")
+    assert real.verdict == "pass"
+
+
+def test_a_mutant_edit_that_no_longer_matches_the_firmware_fails_loudly():
+    with pytest.raises(AssertionError, match="found 0 times"):
+        _apply("def firmware_step(): pass\n", [("s[S_THETA] = 0", "pass")], "stale mutant")
