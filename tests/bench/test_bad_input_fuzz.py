@@ -75,6 +75,7 @@ def check_outcome(result, path: Path, others: tuple[str, ...] = ()) -> list[str]
     return lines
 
 
+@pytest.mark.slow
 @FUZZ
 @given(case=mutated(BENCHES))
 def test_fuzzed_bench_configs(tmp_path, case):
@@ -84,6 +85,7 @@ def test_fuzzed_bench_configs(tmp_path, case):
     check_outcome(invoke("validate", path), path)
 
 
+@pytest.mark.slow
 @FUZZ
 @given(case=mutated(SCENARIOS), bench=mutated(BENCHES))
 def test_fuzzed_scenarios_with_fuzzed_benches_through_validate_and_run(tmp_path, case, bench):
@@ -111,6 +113,7 @@ def _toml_float(x: float) -> str:
     return {"nan": "nan", "inf": "inf", "-inf": "-inf"}.get(repr(x), repr(x))
 
 
+@pytest.mark.slow
 @FUZZ
 @given(segments=SEGMENTS, duration=st.floats(allow_nan=True, allow_infinity=True, width=32),
        seed=st.one_of(st.integers(-5, 2**70), st.floats(width=16)))
@@ -150,6 +153,7 @@ def test_scenario_naming_a_missing_bench_config(tmp_path):
     assert result.exit_code == 2 and "bench" in line and "no/such/bench.toml" in line
 
 
+@pytest.mark.slow
 def test_real_subprocess_one_line_per_problem(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text('schema_version = 1\nbench = "config/benches/sim-pmsm.toml"\nduration_s = nan\nbogus = 1\n'

@@ -17,6 +17,7 @@ def test_there_are_examples():
     assert len(EXAMPLES) >= 4
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("example", EXAMPLES, ids=lambda p: p.stem)
 def test_every_example_passes_on_its_own_bench(example: Path, tmp_path: Path):
     result = run_scenario(example, out_root=tmp_path / "runs", rerun_mode="off")

@@ -41,6 +41,7 @@ def drivebench(*args) -> subprocess.CompletedProcess:
                           timeout=120)
 
 
+@pytest.mark.slow
 def test_mf4_reads_back_in_asammdf_with_the_drive_clock_as_master(run_dir: Path, tmp_path: Path):
     from asammdf import MDF
 
@@ -64,6 +65,7 @@ def test_mf4_reads_back_in_asammdf_with_the_drive_clock_as_master(run_dir: Path,
     mdf.close()
 
 
+@pytest.mark.slow
 def test_csv_has_the_same_rows_and_empty_cells_where_samples_are_missing(run_dir: Path):
     proc = drivebench("export", run_dir, "--format", "csv")
     assert proc.returncode == 0, proc.stderr

@@ -63,6 +63,7 @@ def test_the_rig_scenario_passes_on_the_instruments_rig(rig_runs, rig):
         record["trace_signals"])                       # the drive is never asked for rig truth
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rig", RIGS)
 def test_the_true_speed_is_the_encoder_reading_not_the_plant_speed(rig_runs, rig):
     """At every reading (one per SYNC, 10 ms) speed_true is a whole number of encoder counts over the gate (to the

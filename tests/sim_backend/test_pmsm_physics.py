@@ -39,6 +39,7 @@ def test_instantaneous_power_balance():
         assert p_in == pytest.approx(copper + magnetic + torque * w, rel=1e-9, abs=1e-9)
 
 
+@pytest.mark.slow
 def test_integrated_energy_balance():
     """Energy over 0.2 s of a run with a rotating voltage: input = copper + magnetic + kinetic + friction + load."""
     p = plant_params()

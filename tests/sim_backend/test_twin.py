@@ -78,6 +78,7 @@ def test_replay_with_the_rigs_own_motor_reproduces_the_record(lab_runs):
     np.testing.assert_allclose(twin["speed_ref_mech_rad_s"], run.columns["speed_ref_mech_rad_s"], atol=1e-4)
 
 
+@pytest.mark.slow
 def test_the_paper_motors_twin_leaves_the_tube(lab_runs):
     result = invoke(lab_runs["identify"], "--motor", PAPER_MOTOR, "--json", "--plot", lab_runs["identify"] / "p.png")
     assert result.exit_code == 1, result.output
@@ -133,6 +134,7 @@ def test_the_fitted_twin_stays_inside_on_another_scenario(lab_runs, tmp_path):
     assert json.loads(paper.output)["inside"] is False
 
 
+@pytest.mark.slow
 def test_a_parameter_the_run_does_not_excite_is_reported_not_identified(lab_runs):
     """The first 0.5 s at 20 rad/s without load hold no information on B (B w = 4 mN*m, i_sy = 3 mA, under the
     current noise) nor on psi_m apart from R_s: the fit says so instead of inventing values."""
@@ -181,6 +183,7 @@ def _copy_run(src: Path, dst: Path) -> Path:
     return dst
 
 
+@pytest.mark.slow
 def test_bad_input_is_one_line_and_exit_2(lab_runs, tmp_path):
     missing = invoke(tmp_path / "nowhere")
     assert missing.exit_code == 2
