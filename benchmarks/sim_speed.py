@@ -200,7 +200,10 @@ def main() -> None:
     sweep = sweep_rtf(args.drives, args.seconds)
     print(f"sweep: {args.drives} PMSM drives (different Rs, J, load, speed) on 2 processes: {sweep:8.1f} x real time "
           f"aggregate (whole run, not best block) = {sweep / pmsm_median:4.2f} x one drive's median")
+    print(f"ratios to the plain-Python baseline of this run: PMSM {pmsm / baseline:.1f}, SPIM {spim / baseline:.1f}; "
+          f"SPIM / PMSM {spim / pmsm:.3f} (both drives measured in this run)")
     print(f"RESULT pmsm_rtf={pmsm:.0f} spim_rtf={spim:.0f} sweep_rtf={sweep:.0f} baseline_rtf={baseline:.1f} "
+          f"pmsm_x_baseline={pmsm / baseline:.1f} spim_x_baseline={spim / baseline:.1f} spim_over_pmsm={spim / pmsm:.3f} "
           f"interpreted_rtf={interpreted:.2f} pmsm_compile_s={compile_s:.1f}")
 
 

@@ -6,10 +6,15 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def wrap_angle(angle: float) -> float:
     """Wrap to [-pi, pi)."""
-    return (angle + np.pi) % (2.0 * np.pi) - np.pi
+    shifted = angle + np.pi
+    if 0.0 <= shifted < 2.0 * np.pi:
+        # already in range, where the modulo returns its operand unchanged: the same bits without the
+        # out-of-line fmod call (an eighth of the SPIM drive's step time, twice per control period)
+        return shifted - np.pi
+    return shifted % (2.0 * np.pi) - np.pi
 
 
 @njit(cache=True, inline="always")

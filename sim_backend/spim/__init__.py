@@ -8,10 +8,10 @@ from pathlib import Path
 
 def _drop_stale_numba_cache() -> None:
     """numba's on-disk cache of a function is keyed on its own file only: a compiled kernel that inlines
-    code from plant.py / inverter.py / firmware.py / mechanics.py would survive edits of those files.
+    code from plant.py / inverter.py / firmware.py / mechanics.py / numerics.py would survive edits of those files.
     Keep a digest of all of them next to the cache and drop the cache when it changes."""
     here = Path(__file__).resolve().parent
-    sources = sorted(here.glob("*.py")) + [here.parent / "mechanics.py"]
+    sources = sorted(here.glob("*.py")) + [here.parent / "mechanics.py", here.parent / "numerics.py"]
     digest = hashlib.sha256(b"".join(p.read_bytes() for p in sources if p.exists())).hexdigest()
     cache = here / "__pycache__"
     stamp = cache / "spim-sources.sha256"

@@ -64,7 +64,7 @@ def reset_controllers(s):
         s[j] = 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # inlined into the kernel: no call with three arrays per period
 def firmware_step(s, f, isd_m, isq_m, vdc_m, row):
     """One control period. Returns (gates_on, d_a, d_b, d_c) to apply during the next period."""
     ts = f[F_TS]

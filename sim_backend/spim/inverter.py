@@ -28,7 +28,7 @@ def _leg_loss(i, p):
     return loss * min(max(i / p[I_IBAND], -1.0), 1.0)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def winding_voltages(da, db, dc, isd, isq, gates_off, p):
     """Averaged (v_sd, v_sq) over the next control period from the duties and the currents at its start."""
     vdc = p[I_VDC]

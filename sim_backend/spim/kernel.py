@@ -14,7 +14,7 @@ import math
 from numba import njit
 
 from sim_backend.numerics import wrap_angle
-from sim_backend.mechanics import LOAD_BRAKE, smooth_load_torque
+from sim_backend.mechanics import LOAD_BRAKE, smooth_load_torque_inline
 from sim_backend.spim import firmware as fw
 from sim_backend.spim import inverter as inv
 from sim_backend.spim import plant as pl
@@ -25,7 +25,7 @@ N_KERNEL_STATE = 4
 NOISE_CHANNELS = 3  # i_sd, i_sq, v_dc
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def load_torque_now(x, pp, te):
     """Shaft load torque the rig's transducer reads (brake at standstill: the torque it holds)."""
     mode = int(pp[pl.P_LOAD_MODE])
@@ -35,7 +35,7 @@ def load_torque_now(x, pp, te):
         if wm != 0.0:
             return abs(value) * math.copysign(1.0, wm)
         return min(max(te, -abs(value)), abs(value))
-    return smooth_load_torque(mode, value, wm)
+    return smooth_load_torque_inline(mode, value, wm)
 
 
 @njit(cache=True, nogil=True)  # protocol-server threads keep answering while a block steps

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from sim_backend.mechanics import coulomb_torque, smooth_load_torque
+from sim_backend.mechanics import coulomb_torque, smooth_load_torque_inline
 
 # plant parameter vector (effective values: nominal * injection factor)
 P_RSD, P_RSQ, P_RR, P_LSD, P_LSQ, P_LR, P_MSRD, P_MSRQ, P_NP, P_J, P_FRICTION, P_LOAD_MODE, P_LOAD_VALUE = range(13)
@@ -66,12 +66,12 @@ def derivatives(psd, psq, prd, prq, wm, vsd, vsq, p, open_d, open_q, coulomb_sig
     else:
         dpsq = vsq - p[P_RSQ] * isq           # (2)
     te = torque(isd, isq, ird, irq, p)
-    load = smooth_load_torque(int(p[P_LOAD_MODE]), p[P_LOAD_VALUE], wm)
+    load = smooth_load_torque_inline(int(p[P_LOAD_MODE]), p[P_LOAD_VALUE], wm)
     dwm = (te - load - coulomb_signed - p[P_FRICTION] * wm) / p[P_J]
     return dpsd, dpsq, dprd, dprq, dwm
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def advance(x, p, vsd, vsq, dt, substeps, gates_off):
     """Advance the plant by dt with the winding voltages held, RK4 in `substeps` equal steps.
 
@@ -96,7 +96,7 @@ def advance(x, p, vsd, vsq, dt, substeps, gates_off):
             if wm != 0.0:
                 cs = coulomb * np.sign(wm)
             else:
-                net = te - smooth_load_torque(int(p[P_LOAD_MODE]), p[P_LOAD_VALUE], 0.0)
+                net = te - smooth_load_torque_inline(int(p[P_LOAD_MODE]), p[P_LOAD_VALUE], 0.0)
                 if abs(net) <= coulomb:
                     cs = net
                     stuck = True
