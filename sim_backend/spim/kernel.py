@@ -38,7 +38,9 @@ def load_torque_now(x, pp, te):
     return smooth_load_torque_inline(mode, value, wm)
 
 
-@njit(cache=True, nogil=True)  # protocol-server threads keep answering while a block steps
+# nogil: protocol-server threads keep answering while a block steps. error_model numpy: no zero-divisor check and
+# branch before each of the ~25 divisions per period (every divisor is a checked positive parameter or guarded)
+@njit(cache=True, nogil=True, error_model="numpy")
 def run_steps(n, x, pp, ip, fs, fp, ks, noise, use_noise, substeps, out):
     ts = fp[fw.F_TS]
     k_true = pp[pl.P_MSRD] / pp[pl.P_MSRQ]
