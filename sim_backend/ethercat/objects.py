@@ -11,7 +11,7 @@ from pathlib import Path
 
 import canopen
 from canopen import objectdictionary
-from canopen.objectdictionary import ODArray, ODRecord, ODVariable
+from canopen.objectdictionary import ODRecord, ODVariable
 from canopen.sdo import SdoAbortedError
 
 from drivers.contract import objects as o
@@ -37,10 +37,10 @@ def _var(name: str, index: int, sub: int, data_type: int, access: str, default) 
     return var
 
 
-def _array(name: str, index: int, data_type: int, values: list[int], access: str = "rw") -> ODArray:
+def _array(name: str, index: int, data_type: int, values: list[int], access: str = "rw", capacity: int = 0) -> ODRecord:
     arr = ODRecord(name, index)
     arr.add_member(_var("Number of entries", index, 0, objectdictionary.UNSIGNED8, access, len(values)))
-    for k, value in enumerate(values, 1):
+    for k, value in enumerate(values + [0] * (capacity - len(values)), 1):
         arr.add_member(_var(f"Entry {k}", index, k, data_type, access, value))
     return arr
 
@@ -48,8 +48,8 @@ def _array(name: str, index: int, data_type: int, values: list[int], access: str
 def add_ethercat_objects(od: objectdictionary.ObjectDictionary, fixed_mapping: bool) -> None:
     access = "ro" if fixed_mapping else "rw"
     od.add_object(_array("Sync manager communication type", SM_TYPES, objectdictionary.UNSIGNED8, [1, 2, 3, 4], "ro"))
-    od.add_object(_array("RxPDO assign", RX_ASSIGN, objectdictionary.UNSIGNED16, [0x1600], access))
-    od.add_object(_array("TxPDO assign", TX_ASSIGN, objectdictionary.UNSIGNED16, [0x1A00], access))
+    od.add_object(_array("RxPDO assign", RX_ASSIGN, objectdictionary.UNSIGNED16, [0x1600], access, 4))
+    od.add_object(_array("TxPDO assign", TX_ASSIGN, objectdictionary.UNSIGNED16, [0x1A00], access, 4))
     for index, name in ((SM_OUT_PARAM, "SM output parameter"), (SM_IN_PARAM, "SM input parameter")):
         rec = ODRecord(name, index)
         rec.add_member(_var("Number of entries", index, 0, objectdictionary.UNSIGNED8, "ro", 2))
