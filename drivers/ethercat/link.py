@@ -77,6 +77,8 @@ class EthercatDriveLink(DriveLink):
         self.comm_loss = CommLossConfig.from_section(cfg)
         self.master = EthercatMaster(cfg.interface, cfg.slave, cfg.sdo_timeout_s, cfg.state_timeout_s)
         self.where = self.master.where
+        if self.timing == "lockstep":             # a simulator's pace: a loaded host answers late, not never
+            self.master.receive_timeout_us = int(max(cfg.sdo_timeout_s, 0.1) * 1e6)
         self.report: dict = {}
         self.identity: DriveIdentity | None = None
         self.extension = False

@@ -71,6 +71,7 @@ class EthercatMaster:
         self._pd_lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        self.receive_timeout_us = 2000             # a frame later than this counts as lost
         self.on_inputs: Callable[[bytes, int], None] | None = None   # cyclic thread: (inputs, wkc) each cycle
         self.opened = False
         self.last_exchange: float | None = None
@@ -204,7 +205,7 @@ class EthercatMaster:
         with self._pd_lock:
             self.slave.output = self.outputs
             self.master.send_processdata()
-            wkc = self.master.receive_processdata(2000)
+            wkc = self.master.receive_processdata(self.receive_timeout_us)
             self.inputs = self.slave.input
             self.last_exchange = time.monotonic()
         return self.inputs, wkc

@@ -36,12 +36,13 @@ class CoeServer:
         self.counter = self.counter % 7 + 1
         self.post(MBX_HEADER.pack(len(body), 0, 0, mbx_type | self.counter << 4) + body)
 
-    def _sdo(self, command: int, index: int, sub: int, data: bytes) -> None:
-        self._send(MBX_COE, struct.pack("<HBHB", COE_SDO_RESPONSE << 12, command, index, sub) + data)
+    def _sdo(self, command: int, index: int, sub: int, data: bytes, service: int = COE_SDO_RESPONSE) -> None:
+        self._send(MBX_COE, struct.pack("<HBHB", service << 12, command, index, sub) + data)
 
     def abort(self, index: int, sub: int, code: int) -> None:
+        """An abort travels as an SDO *request* (CoE service 2) in either direction (ETG.1000.6 5.6.2.7)."""
         self._upload = None
-        self._sdo(0x80, index, sub, struct.pack("<I", code))
+        self._sdo(0x80, index, sub, struct.pack("<I", code), COE_SDO_REQUEST)
 
     def received(self, message: bytes) -> None:
         length, _address, _channel, kind = MBX_HEADER.unpack_from(message)

@@ -109,6 +109,7 @@ def test_coe_sdo_upload_download_and_abort(slave):
     assert answer[2] == 0x60 and slave.device.abort_connection_option == 1
     answer = sdo(slave, struct.pack("<HBHB4x", 0x2000, 0x40, 0x5FFF, 0))
     assert answer[2] == 0x80 and struct.unpack_from("<I", answer, 6)[0] == 0x06020000
+    assert u16(answer) >> 12 == 2, "an abort is a CoE SDO request, which SOEM tells from a response"
     answer = sdo(slave, struct.pack("<HBHBI", 0x2000, 0x23, 0x1600, 1, 0x60410010))
     assert answer[2] == 0x80 and struct.unpack_from("<I", answer, 6)[0] == 0x06040041, "a read-only object in an RxPDO"
 
