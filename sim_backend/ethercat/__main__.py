@@ -9,6 +9,7 @@ are answered in this process's one thread (the drive's comm-loss watchdog runs b
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import socket
 import sys
@@ -21,7 +22,7 @@ DEFAULT_EDS = "config/od/drivebench-pmsm.eds"
 def serve(iface: str, slave, stop) -> None:
     sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETHERTYPE))
     sock.bind((iface, ETHERTYPE))
-    sock.settimeout(0.05)
+    sock.settimeout(0.002)
     print(f"ready {iface} vendor=0x{slave.identity.vendor_id:08X} product=0x{slave.identity.product_code:08X}",
           flush=True)
     try:
@@ -29,10 +30,15 @@ def serve(iface: str, slave, stop) -> None:
             try:
                 frame = sock.recv(2048)
             except socket.timeout:
-                continue
-            answer = slave.frame(frame)
-            if answer is not None:
-                sock.send(answer)
+                frame = None
+            if frame is not None:
+                answer = slave.frame(frame)
+                if answer is not None:
+                    sock.send(answer)
+            slave.watch_power()
+            while slave.events:
+                what, ms, state = slave.events.pop(0)
+                print(f"event {what} after_last_frame_ms={ms} drive={state}", flush=True)
     finally:
         sock.close()
 
@@ -48,6 +54,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from sim_backend.device import SimulatedDevice
     from sim_backend.ethercat.slave import Quirks, Slave
+    try:                                  # an ESC answers in hardware; this one at least ahead of busy loops
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(60))
+    except (PermissionError, OSError, AttributeError):
+        pass
     from sim_backend.rig import make_model
     eds = args.eds or (DEFAULT_EDS if args.motor == "toy" or "pmsm" in args.motor else
                        "config/od/drivebench-spim.eds")

@@ -6,6 +6,7 @@ runs on, as a real drive's does, until it has stopped)."""
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -47,6 +48,9 @@ class Slave:
         self.coe = CoeServer(self.objects.get, self.objects.set, self.esc.post_mailbox, sii.MBX_SIZE)
         self.state = INIT
         self.cycles = 0
+        self.events: list[tuple[str, float, str]] = []     # (what, ms after the master's last frame, drive state)
+        self._last_frame: float | None = None
+        self._powered = False
         self.rx: list[tuple[int, int, int]] = []
         self.tx: list[tuple[int, int, int]] = []
         device.on_master_lost.append(self._watchdog_expired)
@@ -182,12 +186,24 @@ class Slave:
                 return None
             if self.esc.outputs_written and self.state == OP:
                 self.outputs_received()
+                self._last_frame = time.monotonic()
             if self.esc.pd_cycle and self.state in (SAFEOP, OP):
                 self.cycle()
             return reply
 
+    def _since_last_frame_ms(self) -> float:
+        return -1.0 if self._last_frame is None else round((time.monotonic() - self._last_frame) * 1e3, 1)
+
+    def watch_power(self) -> None:
+        """Note when the power stage goes off after having been on (the SIGKILL test reads these events)."""
+        powered = self.device.device.power_enabled
+        if self._powered and not powered:
+            self.events.append(("power_off", self._since_last_frame_ms(), self.device.device.state.name))
+        self._powered = powered
+
     def _watchdog_expired(self) -> None:
         """Called by the device's watchdog after its 0x6007 reaction: the ESC's and the AL's part."""
+        self.events.append(("sm_watchdog", self._since_last_frame_ms(), self.device.device.state.name))
         if self.state == OP:
             self.esc.watchdog_expired()
             self.state = SAFEOP

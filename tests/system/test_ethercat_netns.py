@@ -200,3 +200,49 @@ def test_fixed_mapping_read(bus):
         assert link.measured_signals() == {"speed_est_mech_rad_s"}, "only what the fixed TxPDO carries"
     finally:
         link.close()
+
+
+MASTER = """
+import sys, time
+from pathlib import Path
+from drivers.api import LinkSettings
+from drivers.ethercat.link import EthercatDriveLink
+link = EthercatDriveLink({{"transport": "ethercat", "interface": "{iface}", "consumer_time_ms": {wd}}}, Path("."),
+                         LinkSettings(timing="realtime"))
+link.open()
+link.configure(["speed_est_mech_rad_s"], [], 1)
+link.enable_velocity_mode()
+link.set_speed_ref(20.0)
+time.sleep(0.5)
+print("running", link.sync()[-1].values["speed_est_mech_rad_s"], flush=True)
+time.sleep(60)
+"""
+
+
+def test_sigkill_of_the_bench_stops_the_drive(bus):
+    """The bench process dies with the drive turning: the SM watchdog takes the slave out of OP and the drive quick-
+    stops (0x6007 = 3) on its own clock until its power stage is off. Times are from the master's last frame."""
+    bus.start_slave()
+    watchdog_ms = 100
+    master = subprocess.Popen([sys.executable, "-c", MASTER.format(iface=bus.master, wd=watchdog_ms)], cwd=ROOT,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = master.stdout.readline()
+        assert line.startswith("running"), master.stderr.read()
+        assert float(line.split()[1]) > 5.0, "the shaft turns when the bench dies"
+        master.send_signal(signal.SIGKILL)
+        master.wait(timeout=5)
+        events = {}
+        deadline = time.monotonic() + 10
+        while "power_off" not in events and time.monotonic() < deadline:
+            parts = bus.proc.stdout.readline().split()
+            if parts and parts[0] == "event":
+                events[parts[1]] = (float(parts[2].split("=")[1]), parts[3].split("=")[1])
+    finally:
+        if master.poll() is None:
+            master.kill()
+    watchdog_after_ms, state = events["sm_watchdog"]
+    off_after_ms, off_state = events["power_off"]
+    print(f"RESULT sigkill sm_watchdog_ms={watchdog_after_ms} power_off_ms={off_after_ms}")
+    assert watchdog_ms <= watchdog_after_ms <= watchdog_ms + 200 and state == "QUICK_STOP_ACTIVE"
+    assert off_state == "SWITCH_ON_DISABLED" and off_after_ms <= watchdog_ms + 200 + 5000
