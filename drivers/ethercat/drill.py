@@ -68,7 +68,7 @@ def _recover(link, cyclic: bool) -> None:
     if slave.state & 0x0F != pysoem.OP_STATE:
         master.request(pysoem.SAFEOP_STATE | pysoem.STATE_ACK)
         master.require(pysoem.SAFEOP_STATE, "acknowledging the drill's SM watchdog error")
-        master.go_op()
+        master.go_op(link.state_cycle)
     if cyclic:
         master.start_cyclic(link.cycle_s)
     word = link.read_statusword()

@@ -63,6 +63,8 @@ class EthercatMaster:
         self.sdo_timeout_us = int(sdo_timeout_s * 1e6)
         self.state_timeout_us = int(state_timeout_s * 1e6)
         self.master = pysoem.Master()
+        self.master.always_release_gil = True      # SOEM's waits must not stop this process's other threads
+        self.master.sdo_read_timeout = self.master.sdo_write_timeout = self.sdo_timeout_us
         self.slave = None
         self.expected_wkc = 0
         self.outputs = b""
@@ -75,6 +77,13 @@ class EthercatMaster:
         self.on_inputs: Callable[[bytes, int], None] | None = None   # cyclic thread: (inputs, wkc) each cycle
         self.opened = False
         self.last_exchange: float | None = None
+
+    @staticmethod
+    def lenient_frames() -> None:
+        """SOEM's frame and mailbox timeouts (process-wide) stretched for a simulated slave on a loaded host: a frame
+        answered after SOEM's 2 ms is taken as lost and its register access fails. A rig keeps SOEM's defaults."""
+        pysoem.settings.timeouts.ret = 20_000
+        pysoem.settings.timeouts.tx_mailbox = 200_000
 
     # -- bus -----------------------------------------------------------------------------------------------------
     def open(self) -> None:
@@ -117,9 +126,20 @@ class EthercatMaster:
         self.slave.write_state()
 
     # -- CoE ------------------------------------------------------------------------------------------------------
+    def _retry(self, call):
+        """A mailbox exchange whose frame went missing (WkcError) is tried again, twice: reads are idempotent and
+        a download writes the same value again."""
+        for attempt in range(3):
+            try:
+                return call()
+            except pysoem.WkcError:
+                if attempt == 2:
+                    raise
+                time.sleep(0.01)
+
     def sdo_read(self, index: int, sub: int, size: int = 0) -> bytes:
         try:
-            return self.slave.sdo_read(index, sub, size)
+            return self._retry(lambda: self.slave.sdo_read(index, sub, size))
         except pysoem.SdoError as exc:
             raise LinkError(f"{self.where}: SDO read 0x{index:04X}:{sub:02X} aborted 0x{exc.abort_code:08X} "
                             f"({exc.desc})") from None
@@ -128,7 +148,7 @@ class EthercatMaster:
 
     def sdo_write(self, index: int, sub: int, data: bytes) -> None:
         try:
-            self.slave.sdo_write(index, sub, data)
+            self._retry(lambda: self.slave.sdo_write(index, sub, data))
         except pysoem.SdoError as exc:
             raise LinkError(f"{self.where}: SDO write 0x{index:04X}:{sub:02X} aborted 0x{exc.abort_code:08X} "
                             f"({exc.desc})") from None
@@ -174,7 +194,7 @@ class EthercatMaster:
         return entries
 
     # -- process data ----------------------------------------------------------------------------------------------
-    def start_operation(self, cycle_s: float, watchdog_ms: float) -> None:
+    def start_operation(self, cycle_s: float, watchdog_ms: float, exchange: Callable[[], object] | None = None) -> None:
         """PRE-OP -> SAFE-OP -> OP: cycle time into 0x1C32:02, the SM watchdog time, the IO map, the states."""
         try:
             self.sdo_write(SM_OUT_PARAM, 2, struct.pack("<I", round(cycle_s * 1e9)))
@@ -189,13 +209,15 @@ class EthercatMaster:
         self.require(pysoem.SAFEOP_STATE, "PRE-OP -> SAFE-OP")
         self.expected_wkc = self.master.expected_wkc
         self.outputs = bytes(len(self.slave.output))
-        self.go_op()
+        self.go_op(exchange)
 
-    def go_op(self) -> None:
+    def go_op(self, exchange: Callable[[], object] | None = None) -> None:
+        """SAFE-OP -> OP, exchanging process data meanwhile (a slave wants valid outputs first); `exchange`: the
+        caller's own cycle (lockstep: each cycle is drive time the caller keeps)."""
         self.request(pysoem.OP_STATE)
         deadline = time.monotonic() + self.state_timeout_us * 1e-6
         while time.monotonic() < deadline:
-            self.exchange()
+            (exchange or self.exchange)()
             if self.slave.state_check(pysoem.OP_STATE, 1000) == pysoem.OP_STATE:
                 return
         self.require(pysoem.OP_STATE, "SAFE-OP -> OP")

@@ -108,7 +108,7 @@ def test_identity_pdos_motion_and_drill(bus):
         assert 200 <= report["left_operation_enabled_ms"] <= 200 + report["margin_ms"]
         link.enable_velocity_mode()
         link.set_speed_ref(10.0)
-        t0 = link.sync()[0].t_s
+        t0 = link.sync()[-1].t_s
         for _ in range(60):
             sample = link.sync()[-1]
         assert sample.t_s - t0 == pytest.approx(0.6, abs=1e-6), "lockstep: one SM cycle = sync_period_s of drive time"
