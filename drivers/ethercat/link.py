@@ -35,6 +35,7 @@ FORMATS = {(o.CONTROLWORD, 16): "<H", (o.STATUSWORD, 16): "<H", (o.TARGET_VELOCI
 RX_PDO = {0x1600: [o.mapping_entry(o.CONTROLWORD, 0, 16), o.mapping_entry(o.TARGET_VELOCITY, 0, 32),
                    o.mapping_entry(o.MODES_OF_OPERATION, 0, 8)]}
 SPEED_EST = "speed_est_mech_rad_s"
+STALE_S = 0.05                  # real time: inputs older than this are not the drive's state
 
 
 def _format(index: int, bits: int) -> str:
@@ -93,6 +94,7 @@ class EthercatDriveLink(DriveLink):
         self.latest: dict[int, Any] = {}
         self._samples: list[LiveSample] = []
         self._pending: list[LiveSample] = []
+        self._last_good = time.monotonic()       # real time: when the cyclic thread last got valid inputs
         self._lock = threading.Lock()
         self._cycles = 0
         self._last_t: float | None = None
@@ -224,6 +226,7 @@ class EthercatDriveLink(DriveLink):
 
     def _on_inputs(self, inputs: bytes, wkc: int) -> None:
         if wkc == self.master.expected_wkc:
+            self._last_good = time.monotonic()
             sample = self._sample(inputs)
             with self._lock:
                 self._samples.append(sample)
@@ -288,6 +291,10 @@ class EthercatDriveLink(DriveLink):
             self._cycle()
         else:
             time.sleep(2 * self.cycle_s)
+            stale_s = time.monotonic() - self._last_good
+            if stale_s > max(STALE_S, 20 * self.cycle_s):
+                raise LinkError(f"{self.where}: no process data with a valid working counter for "
+                                f"{stale_s * 1e3:.0f} ms: {self._al_detail()}")
         return int(self.latest.get(o.STATUSWORD, 0))
 
     @property
