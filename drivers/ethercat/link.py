@@ -100,6 +100,7 @@ class EthercatDriveLink(DriveLink):
         self._last_t: float | None = None
         self._quick_stop_state: cia402.State | None = None
         self.time_base = "sync count"
+        self.parameters: tuple[str, ...] = ()
 
     # -- open / identity ----------------------------------------------------------------------------------------
     def open(self) -> DriveIdentity:
@@ -119,7 +120,20 @@ class EthercatDriveLink(DriveLink):
         self.scale = self._velocity_scale()
         self.report["units"] = self.scale.describe()
         self.identity = DriveIdentity(vendor, product, revision, serial, name, firmware, False)
+        self.parameters = self._parameter_names()
         return self.identity
+
+    def _od(self):
+        from drivers.contract.eds import load_od
+        path = Path(self.cfg.eds)
+        return load_od(path if path.is_absolute() else self.base_dir / path, 1), path
+
+    def _parameter_names(self) -> tuple[str, ...]:
+        """The drive's manufacturer parameters by name, from [drive] eds (the ESI does not name them)."""
+        if self.cfg.eds is None:
+            return ()
+        od, _ = self._od()
+        return tuple(od[i].name for i in o.EXT_PARAMETER_RANGE if i in od)
 
     def _check_esi(self, vendor: int, product: int, revision: int) -> None:
         if self.cfg.esi is None:
@@ -318,9 +332,7 @@ class EthercatDriveLink(DriveLink):
     def write_parameter(self, name: str, value: float) -> None:
         if self.cfg.eds is None:
             raise LinkError(f"{self.where}: writing {name!r} needs the drive's object names: give [drive] eds")
-        from drivers.contract.eds import load_od
-        path = Path(self.cfg.eds)
-        od = load_od(path if path.is_absolute() else self.base_dir / path, 1)
+        od, path = self._od()
         if name not in od or od[name].index not in o.MANUFACTURER_RANGE:
             raise LinkError(f"{path.name}: the drive has no manufacturer parameter named {name!r}")
         var = od[name]
