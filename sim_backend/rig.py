@@ -200,7 +200,7 @@ def _ethercat(stack: contextlib.ExitStack, rig: Rig) -> None:
     from sim_backend.ethercat.front import EthercatFront
     from sim_backend.ethercat.slave import Slave
 
-    front = EthercatFront(Slave(rig.device, rig.spec.ethercat_eds))
+    front = EthercatFront(Slave(rig.device, rig.spec.ethercat_eds, drive=rig.spec.drive))
     stack.callback(front.stop)
     rig.servers.append(front)
     rig.overrides.setdefault("drive", {})["interface"] = front.master_iface

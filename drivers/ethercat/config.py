@@ -19,3 +19,4 @@ class EthercatDriveConfig(DriveSection):
     cycle_s: float = key(0.001, kind="number", positive=True)         # free-run process-data cycle (real time)
     sdo_timeout_s: float = key(1.0, kind="number", positive=True)
     state_timeout_s: float = key(3.0, kind="number", positive=True)   # each AL state change
+    velocity_unit: str | None = key(None, kind="string")             # stated where the drive has no 0x60A9

@@ -24,7 +24,7 @@ from drivers.contract.comm_loss import EXTERNAL_HINT, CommLossConfig
 from drivers.contract.errors import ContentError, LinkError
 from drivers.contract.extension import carries_extension
 from drivers.contract.signals import SIGNAL_INDEX
-from drivers.contract.units import MRAD_PER_S, VelocityScale, decode_velocity_unit
+from drivers.contract.units import MRAD_PER_S, VelocityScale, decode_velocity_unit, parse_velocity_unit
 from drivers.ethercat.config import EthercatDriveConfig
 from drivers.ethercat.esi import match, read_esi
 from drivers.ethercat.master import EthercatMaster, al_text, state_name
@@ -164,9 +164,14 @@ class EthercatDriveLink(DriveLink):
         """The factor group where the drive has it (0x60A9, 0x608F, 0x6091); CiA 402 defaults where it does not."""
         m = self.master
         code = self._optional(lambda: int(m.read_u(o.SI_UNIT_VELOCITY, 0, "<I")), None)
-        if code is None:
-            raise LinkError(f"{self.where}: the drive reports no velocity unit (0x60A9): this link needs it")
-        unit = decode_velocity_unit(code)
+        if code is not None:
+            unit = decode_velocity_unit(code)
+        elif self.cfg.velocity_unit is not None:
+            unit = parse_velocity_unit(self.cfg.velocity_unit)
+            self.report["units_source"] = "stated in [drive] velocity_unit (the drive has no 0x60A9)"
+        else:
+            raise LinkError(f"{self.where}: the drive reports no velocity unit (0x60A9): state it as [drive] "
+                            f"velocity_unit (its manual says which, e.g. \"rpm\")")
         increments = None
         if unit.needs_encoder:
             num = self._optional(lambda: m.read_u(o.POSITION_ENCODER_RESOLUTION, 1, "<I"), 0)

@@ -66,14 +66,19 @@ def add_ethercat_objects(od: objectdictionary.ObjectDictionary, fixed_mapping: b
 class SlaveObjects:
     """get/set for the CoE server and the process data, over canopen's LocalNode object store."""
 
-    def __init__(self, device: SimulatedDevice, eds: str | Path, fixed_mapping: bool = False):
+    def __init__(self, device: SimulatedDevice, eds: str | Path, fixed_mapping: bool = False,
+                 drive: generic.DriveSpec | None = None):
+        """`drive`: a third-party drive's spec (units, rated values, comm-loss objects) as the CANopen node takes it."""
+        spec = drive or generic.DriveSpec()
         od = load_od(eds, 1)
+        generic.add_missing_standard_objects(od, spec.comm_loss_objects, spec.comm_loss_reaction)
+        device.cia402_comm_loss_reaction = spec.comm_loss_reaction
         generic.fill_defaults(od)
         add_ethercat_objects(od, fixed_mapping)
         self.od = od
         self.fixed_mapping = fixed_mapping
         self.node = canopen.LocalNode(1, od)
-        self.cia402 = Cia402Objects(device, lambda: None, generic.units(od, generic.DriveSpec()))
+        self.cia402 = Cia402Objects(device, lambda: None, generic.units(od, spec))
         self.handlers = [self.cia402]
         if generic.is_drivebench(od):
             self.handlers.append(ExtensionObjects(device, od))

@@ -36,13 +36,16 @@ class Quirks:
 
 
 class Slave:
-    def __init__(self, device: SimulatedDevice, eds: str | Path, quirks: Quirks = Quirks()):
+    def __init__(self, device: SimulatedDevice, eds: str | Path, quirks: Quirks = Quirks(), drive=None):
+        """`drive`: sim_backend.canopen.generic.DriveSpec of a third-party drive; None: drivebench's."""
         self.device = device
         self.quirks = quirks
-        self.objects = SlaveObjects(device, eds, quirks.fixed_mapping)
+        fixed = quirks.fixed_mapping or bool(drive is not None and drive.fixed_pdo_mapping)
+        self.objects = SlaveObjects(device, eds, fixed, drive)
         ident = self.objects.od[0x1018]
-        name = str(self.objects.od[0x1008].default)
-        self.identity = sii.SiiIdentity(ident[1].default, ident[2].default, ident[3].default, quirks.serial, name)
+        name = str(self.objects.od[0x1008].default) if 0x1008 in self.objects.od else "CiA 402 servo drive"
+        self.identity = sii.SiiIdentity(ident[1].default or 0, ident[2].default or 0, ident[3].default or 0,
+                                        quirks.serial, name)
         self.esc = Esc(sii.build_sii(self.identity, self._bytes(RX_ASSIGN), self._bytes(TX_ASSIGN)))
         self.esc.app = self
         self.coe = CoeServer(self.objects.get, self.objects.set, self.esc.post_mailbox, sii.MBX_SIZE)
