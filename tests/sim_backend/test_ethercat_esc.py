@@ -123,3 +123,40 @@ def test_fixed_mapping_refuses_writes():
         assert answer[2] == 0x80 and struct.unpack_from("<I", answer, 6)[0] == 0x06010002
     finally:
         device.stop_watchdogs()
+
+
+def test_process_data_to_op_and_the_sm_watchdog(slave):
+    """SM2/SM3 and two FMMUs as SOEM programs them, SAFE-OP, OP, LRW with working counter 3; then silence: the SM
+    watchdog (0x0420 x 100 us) takes the slave to SAFE-OP + ERROR 0x001B, and the LRW counts 1 (inputs only)."""
+    import time
+
+    to_preop(slave)
+    rx, tx = slave.objects.mapping(0x1C12), slave.objects.mapping(0x1C13)
+    out_len, in_len = sum(b for *_, b in rx) // 8, sum(b for *_, b in tx) // 8
+    sms = struct.pack("<HHBBBB", sii.PD_OUT_ADDR, out_len, 0x64, 0, 1, 0)
+    sms += struct.pack("<HHBBBB", sii.PD_IN_ADDR, in_len, 0x20, 0, 1, 0)
+    one(slave, f.FPWR, STATION, 0x0810, sms)
+    fmmus = struct.pack("<IHBBHBBB3x", 0, out_len, 0, 7, sii.PD_OUT_ADDR, 0, 2, 1)
+    fmmus += struct.pack("<IHBBHBBB3x", out_len, in_len, 0, 7, sii.PD_IN_ADDR, 0, 1, 1)
+    one(slave, f.FPWR, STATION, 0x0600, fmmus)
+    one(slave, f.FPWR, STATION, 0x0420, struct.pack("<H", 500))          # 50 ms
+    one(slave, f.FPWR, STATION, 0x0120, struct.pack("<H", 0x04))
+    assert u16(one(slave, f.FPRD, STATION, 0x0130, n=2).data) == 0x04
+    assert one(slave, f.LRW, 0, 0, n=out_len + in_len).wkc == 1, "SAFE-OP: inputs only"
+    one(slave, f.FPWR, STATION, 0x0120, struct.pack("<H", 0x08))
+    assert u16(one(slave, f.FPRD, STATION, 0x0130, n=2).data) == 0x08
+    image = b""
+    for word in (0x06, 0x07, 0x0F):
+        image = struct.pack("<HiB", word, 0, 3) + bytes(out_len - 7 + in_len)
+        d = one(slave, f.LRW, 0, 0, image)
+        assert d.wkc == 3
+    d = one(slave, f.LRW, 0, 0, image)
+    assert u16(d.data[out_len:]) & 0x6F == 0x27, "statusword in the TxPDO: operation enabled"
+    steps = slave.device.step_count
+    one(slave, f.LRW, 0, 0, image)
+    assert slave.device.step_count - steps == 10, "one 1 ms SM cycle of a 100 us control period per frame"
+    time.sleep(0.2)
+    status, _r, code = struct.unpack("<HHH", bytes(one(slave, f.FPRD, STATION, 0x0130, n=6).data))
+    assert (status, code) == (0x14, 0x001B)
+    assert slave.device.device.state.name in ("QUICK_STOP_ACTIVE", "SWITCH_ON_DISABLED"), "0x6007 = 3: quick stop"
+    assert one(slave, f.FPRD, STATION, 0x0440, n=2).data[0] & 1 == 0 and one(slave, f.LRW, 0, 0, image).wkc == 1
