@@ -284,3 +284,22 @@ def test_third_party_drive_over_simulated_ethercat_rig(tmp_path):
     assert done.returncode == 0 and record["verdict"] == "pass", done.stderr[-2000:]
     assert record["drive"]["identity"]["vendor_id"] == 0x555
     assert "speed_est_mech_rad_s" in record["measured_signals"] and "flux_est_wb" not in record["measured_signals"]
+
+
+def test_cli_bad_input_is_one_line_exit_2(bus, tmp_path):
+    """Through the CLI on a real-rig bench config: an ESI for another product, then a slave refusing SAFE-OP."""
+    bus.start_slave("--refuse-safeop", "0x001E")
+    config = tmp_path / "rig.toml"
+
+    def probe(extra: str, *args: str) -> tuple[int, list[str]]:
+        config.write_text(f'[bench]\nname = "lab"\ntiming = "realtime"\n\n[drive]\ntransport = "ethercat"\n'
+                          f'interface = "{bus.master}"\nconsumer_time_ms = 100\n{extra}')
+        done = subprocess.run([sys.executable, "-m", "bench", "probe", "--bench", str(config), *args], cwd=ROOT,
+                              capture_output=True, text=True, timeout=120)
+        return done.returncode, done.stderr.strip().splitlines()
+
+    code, lines = probe(f'esi = "{ROOT / "config/esi/drivebench-spim.xml"}"\n')
+    assert code == 2 and len(lines) == 1 and "drivebench-spim.xml describes" in lines[0] and "[drive] esi" in lines[0]
+    code, lines = probe("", "--drill")
+    assert code == 2 and len(lines) == 1
+    assert "PRE-OP -> SAFE-OP refused" in lines[0] and "AL status code 0x001E (Invalid input configuration)" in lines[0]
