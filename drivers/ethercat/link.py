@@ -20,7 +20,7 @@ import numpy as np
 from drivers.api import attempt_all, DriveIdentity, DriveLink, DriveStatus, LinkSettings, LiveSample
 from drivers.contract import cia402
 from drivers.contract import objects as o
-from drivers.contract.comm_loss import EXTERNAL_HINT, CommLossConfig
+from drivers.contract.comm_loss import CommLossConfig
 from drivers.contract.errors import ContentError, LinkError
 from drivers.contract.extension import carries_extension
 from drivers.contract.signals import SIGNAL_INDEX
