@@ -36,3 +36,6 @@ def _registry(configs: str, links: str) -> dict[str, Transport]:
 
 DRIVE_TRANSPORTS: dict[str, Transport] = _registry("drivebench.transports", "drivebench.transport_links")
 LOAD_TRANSPORTS: dict[str, Transport] = _registry("drivebench.load_transports", "drivebench.load_transport_links")
+if not DRIVE_TRANSPORTS:
+    raise ImportError("no drive transport is registered (entry-point group drivebench.transports): install drivebench "
+                      "(python3 dev.py setup, or pip install -e .) so its entry points are known")
