@@ -61,6 +61,7 @@ class RigSpec:
     exclusive: bool = False                        # served: one bench at a time, each from a restarted drive
     load_map: str | Path | None = None             # the dynamometer's register map; None: drivebench-sim.toml
     instruments: Any = None                        # sim_backend.instruments.InstrumentSpec: a lab's instruments
+    ethercat_eds: str | Path | None = None         # an EtherCAT CoE slave with this object dictionary (root)
 
 
 @dataclass
@@ -116,6 +117,8 @@ def build(spec: RigSpec, device: SimulatedDevice | None = None) -> Iterator[Rig]
             _serial(stack, rig)
         if spec.modbus is not None:
             _modbus(stack, rig)
+        if spec.ethercat_eds is not None:
+            _ethercat(stack, rig)
         _found_running(device, spec.drive)
         yield rig
 
@@ -193,6 +196,17 @@ def _serial(stack: contextlib.ExitStack, rig: Rig) -> None:
     rig.endpoints["serial"] = port
 
 
+def _ethercat(stack: contextlib.ExitStack, rig: Rig) -> None:
+    from sim_backend.ethercat.front import EthercatFront
+    from sim_backend.ethercat.slave import Slave
+
+    front = EthercatFront(Slave(rig.device, rig.spec.ethercat_eds, drive=rig.spec.drive))
+    stack.callback(front.stop)
+    rig.servers.append(front)
+    rig.overrides.setdefault("drive", {})["interface"] = front.master_iface
+    rig.endpoints["ethercat"] = f"{front.master_iface} (slave in netns {front.namespace})"
+
+
 def _modbus(stack: contextlib.ExitStack, rig: Rig) -> None:
     from sim_backend.modbus_server import start_modbus_rtu_pty, start_modbus_tcp
 
@@ -226,7 +240,8 @@ def rig_spec(sim: SimulatorConfig, *, seed: int, where: str, transport: str | No
     if serve is None:
         return RigSpec(**common, eds=eds if transport == "canopen" else None,
                        serial=sim.serial_line if transport == "serial" else None,
-                       modbus={"modbus-tcp": "tcp", "modbus-rtu": "rtu-pty"}.get(load_transport or ""))
+                       modbus={"modbus-tcp": "tcp", "modbus-rtu": "rtu-pty"}.get(load_transport or ""),
+                       ethercat_eds=eds if transport == "ethercat" else None)
     socketcand, serial_tcp, modbus_tcp = (endpoint(serve.canopen_socketcand), endpoint(serve.serial_tcp),
                                           endpoint(serve.modbus_tcp))
     return RigSpec(**common, eds=eds if socketcand else None, socketcand=socketcand,
@@ -268,7 +283,13 @@ def drive_spec(sim: SimulatorConfig) -> DriveSpec | None:
 @contextlib.contextmanager
 def start(bench_cfg: dict, seed: int) -> Iterator[dict]:
     """[services] starter: yields the endpoint overrides for the bench config."""
-    with build(spec_for_bench(bench_cfg, seed)) as rig:
+    spec = spec_for_bench(bench_cfg, seed)
+    if spec.ethercat_eds is not None:     # its own process: pysoem holds the GIL while SOEM waits for frames
+        from sim_backend.ethercat.rig_child import serve_out_of_process
+        with serve_out_of_process(bench_cfg, seed) as overrides:
+            yield overrides
+        return
+    with build(spec) as rig:
         yield rig.overrides
 
 
