@@ -11,7 +11,6 @@ import json
 import select
 import subprocess
 import sys
-import time
 from typing import Iterator
 
 READY_TIMEOUT_S = 180.0          # the child builds the drive model (compiled kernels) before it answers
@@ -20,7 +19,7 @@ GRACE_S = 10.0                   # after the bench is gone: the SM watchdog and 
 
 @contextlib.contextmanager
 def serve_out_of_process(bench_cfg: dict, seed: int) -> Iterator[dict]:
-    child = subprocess.Popen([sys.executable, "-m", "sim_backend.ethercat.rig_child"], stdin=subprocess.PIPE,
+    child = subprocess.Popen([sys.executable, "-m", "sim_backend.ethercat.child"], stdin=subprocess.PIPE,
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         child.stdin.write(json.dumps({"bench": bench_cfg, "seed": seed}, default=str) + "\n")
@@ -42,24 +41,3 @@ def serve_out_of_process(bench_cfg: dict, seed: int) -> Iterator[dict]:
         except subprocess.TimeoutExpired:
             child.kill()
             child.wait(timeout=5)
-
-
-def main() -> int:
-    from sim_backend.rig import build, spec_for_bench
-    request = json.loads(sys.stdin.readline())
-    spec = spec_for_bench(request["bench"], int(request["seed"]))
-    try:
-        with build(spec) as rig:
-            print(json.dumps(rig.overrides), flush=True)
-            sys.stdin.read()                 # until the bench closes the pipe or dies
-            deadline = time.monotonic() + GRACE_S
-            while time.monotonic() < deadline and rig.device.device.power_enabled:
-                time.sleep(0.05)
-    except Exception as exc:                 # one line to the bench, which names it
-        print(f"error: {exc}", flush=True)
-        return 2
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
