@@ -1,0 +1,198 @@
+"""A simulated scope/DAQ speaking the SCPI subset drivers/instruments/scope.py uses (see there).
+
+Inputs (fixed wiring of the simulated rig, docs/instruments.md):
+    CHAN1, CHAN2  winding voltages (PMSM u_a, u_b line-to-neutral; SPIM main, auxiliary), V
+    CHAN3, CHAN4  winding currents (PMSM i_a, i_b; SPIM main, auxiliary), A
+    CHAN5         the dynamometer encoder's index output (5 V for 20 us once a revolution), V
+    CHAN6         the torque transducer's shaft torque, N*m
+    CHAN7         DC-link voltage, V
+The plant gives one value per control period (100 us); the scope samples at its own rate between them: voltages
+held (an averaged inverter holds its voltage through the period), currents, torque and the DC link linearly
+interpolated. The scope's clock is the drive clock plus `clock_offset_s` (an instrument's clock is its own: the
+tests shift it to prove the bench places captures by what it sees, not by trust).
+Codes are int16, full scale +/-range per channel; beyond the range a sample is clipped at +/-32767.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import threading
+
+import numpy as np
+
+from sim_backend.terminals import TerminalBlock
+
+CHANNELS = 7
+CODE_FULL = 32767
+INDEX_WIDTH_S = 20e-6
+_NUM = r"([0-9.eE+-]+)"
+
+
+class SimScope:
+    def __init__(self, encoder_offset_rad: float = 0.0, max_rate_hz: float = 1e6, history_s: float = 4.0,
+                 clock_offset_s: float = 0.0, identity: str = "KEYSIGHT TECHNOLOGIES,DSOX4034A,SIM0002,07.50"):
+        self.identity = identity
+        self.clock_offset_s = clock_offset_s
+        self.encoder_offset_rad = encoder_offset_rad
+        self.max_rate_hz = max_rate_hz
+        self.history_s = history_s
+        self.rate_hz = 50_000.0
+        self.points = 1000
+        self.pretrigger = 0.1
+        self.ranges = [10.0] * CHANNELS
+        self.source = None
+        self.level = 0.0
+        self.wave_source = 1
+        self.errors: list[str] = []
+        self._lock = threading.Lock()
+        self._t = np.zeros(0)                  # per control period, drive clock
+        self._x = np.zeros((0, CHANNELS))      # held / interpolated channel values at those instants
+        self._angle = 0.0                      # shaft angle integrated from the plant's speed (the encoder's disc)
+        self._armed = False
+        self._trigger_t: float | None = None   # scope clock
+        self._record: tuple[np.ndarray, np.ndarray] | None = None
+
+    # ---- fed by the plant ----
+    def feed(self, b: TerminalBlock) -> None:
+        n = b.t_s.size
+        if n == 0:
+            return
+        dt = (b.t_s[-1] - b.t_s[0]) / (n - 1) if n > 1 else 1e-4
+        angles = self._angle + np.cumsum(b.speed_mech_rad_s) * dt + self.encoder_offset_rad
+        turns = np.floor(np.concatenate(([self._angle + self.encoder_offset_rad], angles)) / (2 * math.pi))
+        index = np.zeros(n)
+        crossing = np.nonzero(np.diff(turns) != 0)[0]
+        index[crossing] = 1.0
+        self._angle = float(angles[-1] - self.encoder_offset_rad)
+        x = np.column_stack((b.u_v[:, 0], b.u_v[:, 1], b.i_a[:, 0], b.i_a[:, 1], index, b.torque_shaft_nm,
+                             b.vdc_v))
+        with self._lock:
+            self._t = np.concatenate((self._t, b.t_s))
+            self._x = np.concatenate((self._x, x))
+            keep = self._t >= self._t[-1] - self.history_s
+            self._t, self._x = self._t[keep], self._x[keep]
+            self._check_trigger(dt)
+
+    def _check_trigger(self, dt: float) -> None:
+        if not self._armed:
+            return
+        if self._trigger_t is None:
+            if self.source is not None:
+                y = self._x[:, self.source - 1] - self.level
+                hit = np.nonzero((y[:-1] < 0) & (y[1:] >= 0))[0]
+                if hit.size:
+                    k = hit[-1]
+                    self._trigger_t = self._t[k] + dt * (-y[k] / (y[k + 1] - y[k])) + self.clock_offset_s
+        if self._trigger_t is not None:
+            post = self.points * (1.0 - self.pretrigger) / self.rate_hz
+            if self._t[-1] + self.clock_offset_s >= self._trigger_t + post:
+                self._record = self._sample()
+                self._armed = False
+
+    def _sample(self) -> tuple[np.ndarray, np.ndarray]:
+        pre = round(self.points * self.pretrigger)
+        t_scope = (np.arange(self.points) - pre) / self.rate_hz              # from the trigger
+        t_drive = t_scope + self._trigger_t - self.clock_offset_s
+        out = np.empty((self.points, CHANNELS))
+        held = np.clip(np.searchsorted(self._t, t_drive, side="right"), 0, self._t.size - 1)
+        dt = self._t[1] - self._t[0] if self._t.size > 1 else 1e-4
+        for c in range(CHANNELS):
+            if c in (0, 1):              # a period's voltage belongs to the period ending at _t[k]
+                out[:, c] = self._x[np.clip(np.searchsorted(self._t, t_drive, side="left"), 0, self._t.size - 1), c]
+            elif c == 4:                 # index pulse: INDEX_WIDTH_S from the period it fell in
+                starts = self._t[self._x[:, 4] > 0] - dt
+                on = np.zeros(self.points, dtype=bool)
+                for s in starts:
+                    on |= (t_drive >= s) & (t_drive < s + INDEX_WIDTH_S)
+                out[:, c] = np.where(on, 5.0, 0.0)
+            else:
+                out[:, c] = np.interp(t_drive, self._t, self._x[:, c])
+        del held
+        return t_scope, out
+
+    # ---- SCPI ----
+    def answer(self, command: str) -> str | bytes | None:
+        c = command.strip()
+        up = c.upper()
+        with self._lock:
+            if up == "*IDN?":
+                return self.identity
+            if up == "*OPC?":
+                return "0" if self._armed else "1"
+            if up == "*CLS":
+                self.errors.clear()
+                return None
+            if up in (":SYST:ERR?", ":SYSTEM:ERROR?"):
+                return self.errors.pop(0) if self.errors else '+0,"No error"'
+            if up in (":WAV:FORM WORD", ":WAVEFORM:FORMAT WORD", ":WAV:BYT LSBF", ":WAVEFORM:BYTEORDER LSBFIRST"):
+                return None
+            m = re.match(rf"^:ACQ(?:UIRE)?:SRAT(?:E)?\s+{_NUM}$", c, re.I)
+            if m:
+                rate = float(m.group(1))
+                if not 0 < rate <= self.max_rate_hz:
+                    self.errors.append(f'-222,"Data out of range: sample rate {rate:g}"')
+                else:
+                    self.rate_hz = rate
+                return None
+            m = re.match(rf"^:ACQ(?:UIRE)?:POIN(?:TS)?\s+{_NUM}$", c, re.I)
+            if m:
+                points = int(float(m.group(1)))
+                if not 2 <= points <= self.history_s * self.rate_hz:
+                    self.errors.append(f'-222,"Data out of range: points {points}"')
+                else:
+                    self.points = points
+                return None
+            m = re.match(rf"^:ACQ(?:UIRE)?:PRET(?:RIGGER)?\s+{_NUM}$", c, re.I)
+            if m:
+                self.pretrigger = min(max(float(m.group(1)), 0.0), 0.95)
+                return None
+            m = re.match(rf"^:CHAN(?:NEL)?(\d):RANG(?:E)?\s+{_NUM}$", c, re.I)
+            if m and 1 <= int(m.group(1)) <= CHANNELS:
+                self.ranges[int(m.group(1)) - 1] = float(m.group(2))
+                return None
+            m = re.match(r"^:TRIG(?:GER)?:EDGE:SOUR(?:CE)?\s+CHAN(\d)$", c, re.I)
+            if m:
+                self.source = int(m.group(1))
+                return None
+            m = re.match(rf"^:TRIG(?:GER)?:EDGE:LEV(?:EL)?\s+{_NUM}$", c, re.I)
+            if m:
+                self.level = float(m.group(1))
+                return None
+            if up in (":SING", ":SINGLE"):
+                self._armed, self._trigger_t, self._record = True, None, None
+                return None
+            if up in (":TRIG:FORC", ":TRIGGER:FORCE"):
+                if self._armed and self._trigger_t is None:     # now: the newest sample the scope has
+                    self._trigger_t = (self._t[-1] if self._t.size else 0.0) + self.clock_offset_s
+                return None
+            m = re.match(r"^:WAV(?:EFORM)?:SOUR(?:CE)?\s+CHAN(\d)$", c, re.I)
+            if m and 1 <= int(m.group(1)) <= CHANNELS:
+                self.wave_source = int(m.group(1))
+                return None
+            if up in (":WAV:PRE?", ":WAVEFORM:PREAMBLE?"):
+                return self._preamble()
+            if up in (":WAV:DATA?", ":WAVEFORM:DATA?"):
+                return self._data()
+            self.errors.append(f'-113,"Undefined header: {c[:40]}"')
+            return "0" if c.endswith("?") else None
+
+    def _yinc(self) -> float:
+        return self.ranges[self.wave_source - 1] / CODE_FULL
+
+    def _preamble(self) -> str:
+        if self._record is None:
+            self.errors.append('-230,"Data corrupt or stale: no record"')
+            return "1,1,0,1,0,0,0,0,0,0"
+        t, _ = self._record
+        xinc = 1.0 / self.rate_hz
+        return f"2,1,{t.size},1,{xinc:.9E},{t[0]:.9E},0,{self._yinc():.9E},0,0"
+
+    def _data(self) -> bytes:
+        if self._record is None:
+            values = np.zeros(0)
+        else:
+            values = self._record[1][:, self.wave_source - 1]
+        codes = np.clip(np.round(values / self._yinc()), -CODE_FULL, CODE_FULL).astype("<i2").tobytes()
+        length = str(len(codes))
+        return f"#{len(length)}{length}".encode("ascii") + codes
