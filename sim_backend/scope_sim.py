@@ -6,9 +6,9 @@ Inputs (fixed wiring of the simulated rig, docs/instruments.md):
     CHAN5         the dynamometer encoder's index output (5 V for 20 us once a revolution), V
     CHAN6         the torque transducer's shaft torque, N*m
     CHAN7         DC-link voltage, V
-The plant gives one value per control period (100 us); the scope samples at its own rate between them: voltages
-held (an averaged inverter holds its voltage through the period), currents, torque and the DC link linearly
-interpolated. The scope's clock is the drive clock plus `clock_offset_s` (an instrument's clock is its own: the
+The plant gives one value per control period (100 us): the period's mean (the averaged inverter has no PWM pulses);
+the scope samples at its own rate between them, each mean placed at its period's middle and linearly interpolated
+(what an input's anti-aliasing filter makes of the pulses, without its delay). The scope's clock is the drive clock plus `clock_offset_s` (an instrument's clock is its own: the
 tests shift it to prove the bench places captures by what it sees, not by trust).
 Codes are int16, full scale +/-range per channel; beyond the range a sample is clipped at +/-32767.
 """
@@ -49,6 +49,7 @@ class SimScope:
         self._t = np.zeros(0)                  # per control period, drive clock
         self._x = np.zeros((0, CHANNELS))      # held / interpolated channel values at those instants
         self._angle = 0.0                      # shaft angle integrated from the plant's speed (the encoder's disc)
+        self._index_t: list[float] = []        # drive times the encoder's index passed
         self._armed = False
         self._trigger_t: float | None = None   # scope clock
         self._record: tuple[np.ndarray, np.ndarray] | None = None
@@ -59,12 +60,14 @@ class SimScope:
         if n == 0:
             return
         dt = (b.t_s[-1] - b.t_s[0]) / (n - 1) if n > 1 else 1e-4
-        angles = self._angle + np.cumsum(b.speed_mech_rad_s) * dt + self.encoder_offset_rad
-        turns = np.floor(np.concatenate(([self._angle + self.encoder_offset_rad], angles)) / (2 * math.pi))
-        index = np.zeros(n)
-        crossing = np.nonzero(np.diff(turns) != 0)[0]
-        index[crossing] = 1.0
+        angles = self._angle + self.encoder_offset_rad + np.concatenate(([0.0], np.cumsum(b.speed_mech_rad_s) * dt))
+        turns = np.floor(angles / (2 * math.pi))
+        for k in np.nonzero(np.diff(turns) != 0)[0]:        # the index passes within period k: interpolated
+            edge = 2 * math.pi * max(turns[k], turns[k + 1])
+            frac = (edge - angles[k]) / (angles[k + 1] - angles[k])
+            self._index_t.append(float(b.t_s[k] - dt + frac * dt))
         self._angle = float(angles[-1] - self.encoder_offset_rad)
+        index = np.zeros(n)
         x = np.column_stack((b.u_v[:, 0], b.u_v[:, 1], b.i_a[:, 0], b.i_a[:, 1], index, b.torque_shaft_nm,
                              b.vdc_v))
         with self._lock:
@@ -72,6 +75,7 @@ class SimScope:
             self._x = np.concatenate((self._x, x))
             keep = self._t >= self._t[-1] - self.history_s
             self._t, self._x = self._t[keep], self._x[keep]
+            self._index_t = [s for s in self._index_t if s >= self._t[0] - 1.0]
             self._check_trigger(dt)
 
     def _check_trigger(self, dt: float) -> None:
@@ -95,20 +99,16 @@ class SimScope:
         t_scope = (np.arange(self.points) - pre) / self.rate_hz              # from the trigger
         t_drive = t_scope + self._trigger_t - self.clock_offset_s
         out = np.empty((self.points, CHANNELS))
-        held = np.clip(np.searchsorted(self._t, t_drive, side="right"), 0, self._t.size - 1)
-        dt = self._t[1] - self._t[0] if self._t.size > 1 else 1e-4
         for c in range(CHANNELS):
-            if c in (0, 1):              # a period's voltage belongs to the period ending at _t[k]
-                out[:, c] = self._x[np.clip(np.searchsorted(self._t, t_drive, side="left"), 0, self._t.size - 1), c]
-            elif c == 4:                 # index pulse: INDEX_WIDTH_S from the period it fell in
-                starts = self._t[self._x[:, 4] > 0] - dt
+            if c == 4:                 # index pulse: INDEX_WIDTH_S from the instant the index passed
                 on = np.zeros(self.points, dtype=bool)
-                for s in starts:
-                    on |= (t_drive >= s) & (t_drive < s + INDEX_WIDTH_S)
+                for s in self._index_t:
+                    if t_drive[0] - INDEX_WIDTH_S <= s <= t_drive[-1]:
+                        on |= (t_drive >= s) & (t_drive < s + INDEX_WIDTH_S)
                 out[:, c] = np.where(on, 5.0, 0.0)
-            else:
-                out[:, c] = np.interp(t_drive, self._t, self._x[:, c])
-        del held
+            else:                        # period means, placed at the period's middle
+                dt = self._t[1] - self._t[0] if self._t.size > 1 else 1e-4
+                out[:, c] = np.interp(t_drive, self._t - 0.5 * dt, self._x[:, c])
         return t_scope, out
 
     # ---- SCPI ----

@@ -39,8 +39,8 @@ class TerminalBlock:
     idc_a: np.ndarray             # (n,) averaged over the period
     speed_mech_rad_s: np.ndarray  # (n,)
     torque_shaft_nm: np.ndarray   # (n,)
-    angle_elec_rad: np.ndarray    # (n,) true rotor (PMSM magnet / SPIM stator-flux) angle: tests only
-    flux_wb: np.ndarray           # (n,) true flux magnitude: tests only
+    angle_elec_rad: np.ndarray    # (n,) true field angle (PMSM magnet, SPIM stator flux) at the period's START: tests
+    flux_wb: np.ndarray           # (n,) true flux magnitude (at the period's start): tests only
 
 
 class TappedModel:
