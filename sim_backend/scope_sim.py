@@ -6,6 +6,7 @@ Inputs (fixed wiring of the simulated rig, docs/instruments.md):
     CHAN5         the dynamometer encoder's index output (5 V for 20 us once a revolution), V
     CHAN6         the torque transducer's shaft torque, N*m
     CHAN7         DC-link voltage, V
+    CHAN8         the dynamometer drive's analog speed monitor (from its own high-resolution encoder, no gate), rad/s
 The plant gives one value per control period (100 us): the period's mean (the averaged inverter has no PWM pulses);
 the scope samples at its own rate between them, each mean placed at its period's middle and linearly interpolated
 (what an input's anti-aliasing filter makes of the pulses, without its delay). The scope's clock is the drive clock plus `clock_offset_s` (an instrument's clock is its own: the
@@ -23,7 +24,7 @@ import numpy as np
 
 from sim_backend.terminals import TerminalBlock
 
-CHANNELS = 7
+CHANNELS = 8
 CODE_FULL = 32767
 INDEX_WIDTH_S = 20e-6
 _NUM = r"([0-9.eE+-]+)"
@@ -69,7 +70,7 @@ class SimScope:
         self._angle = float(angles[-1] - self.encoder_offset_rad)
         index = np.zeros(n)
         x = np.column_stack((b.u_v[:, 0], b.u_v[:, 1], b.i_a[:, 0], b.i_a[:, 1], index, b.torque_shaft_nm,
-                             b.vdc_v))
+                             b.vdc_v, b.speed_mech_rad_s))
         with self._lock:
             self._t = np.concatenate((self._t, b.t_s))
             self._x = np.concatenate((self._x, x))

@@ -41,6 +41,11 @@ class RunEnding:
         return self.sync_period_s
 
     def _finish(self, abort_reason, error, interrupted, stop_errors) -> RunResult:
+        if self.lab is not None:             # after the safe stop: pull the captures, write instruments/
+            try:
+                self.recorder.note("lab_instruments", self.lab.finish())
+            except Exception as exc:         # the instruments never cost the record
+                self.recorder.note("lab_instruments", {"errors": [f"{type(exc).__name__}: {exc}"]})
         trip = self.supervisor.trip
         if trip is not None:
             self.recorder.note("supervisor_trip", trip.as_dict())

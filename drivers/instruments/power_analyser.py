@@ -101,11 +101,11 @@ class WtPowerAnalyser:
         for (channel, fn, _el), value in zip(self.items, raw):
             reason = None
             if abs(value) >= NO_DATA * 0.9995 and abs(value) <= NO_DATA * 1.0005:
-                reason = f"{channel}: no data"
+                reason = f"{channel.channel}: no data"
             elif abs(value) >= OVER_RANGE * 0.999 or not math.isfinite(value):
-                reason = f"{channel}: over-range (OL) on the {channel_range(channel)} range"
+                reason = f"{channel.channel}: over-range (OL) on the {channel_range(channel)} range"
             elif fn in ("U", "I") and abs(value) > channel.range:
-                reason = f"{channel}: {value:g} {channel.unit} beyond its {channel.range:g} {channel.unit} range"
+                reason = f"{channel.channel}: {value:g} {channel.unit} beyond its {channel.range:g} {channel.unit} range"
             if reason:
                 why[channel.signal] = reason
                 values[channel.signal] = math.nan
