@@ -204,14 +204,12 @@ def _frequency(x: np.ndarray, dt: float) -> float:
     h = 0.2 * math.sqrt(float(np.mean(y * y)))
     if h == 0.0:
         return 0.0
-    crossings = []
-    low = y[0] < -h
-    for k in range(1, y.size):
-        if low and y[k] >= 0.0 and y[k - 1] < 0.0:
-            crossings.append(k - 1 + y[k - 1] / (y[k - 1] - y[k]))
-            low = False
-        elif y[k] < -h:
-            low = True
-    if len(crossings) < 2:
+    state = np.where(y > h, 1, np.where(y < -h, -1, 0))
+    at = np.nonzero(state)[0]
+    rises = at[1:][(state[at][1:] == 1) & (state[at][:-1] == -1)]       # above +h after being below -h
+    zeros = np.nonzero((y[:-1] < 0.0) & (y[1:] >= 0.0))[0]
+    if rises.size < 2 or zeros.size == 0:
         return 0.0
-    return float((len(crossings) - 1) / ((crossings[-1] - crossings[0]) * dt))
+    k = zeros[np.clip(np.searchsorted(zeros, rises) - 1, 0, zeros.size - 1)]   # the last upward zero before each
+    crossings = k + y[k] / (y[k] - y[k + 1])
+    return float((crossings.size - 1) / ((crossings[-1] - crossings[0]) * dt))

@@ -4,7 +4,8 @@ A bench config's `[simulator.lab_instruments]` asks for them (checked here, `fil
 
     [simulator.lab_instruments]
     analyser = true                  # sim_backend.analyser_sim.SimPowerAnalyser (Yokogawa WT subset)
-    scope = true                     # sim_backend.scope_sim.SimScope (7 inputs, see there)
+    scope = true                     # sim_backend.scope_sim.SimScope (9 inputs, see there), 4 s of memory
+    daq = true                       # a second SimScope as a DAQ recording a whole run (30 s of memory)
     reading_pct = 0.05               # analyser accuracy: +/-(reading_pct % of reading + range_pct % of range)
     range_pct = 0.05
     scope_clock_offset_s = 0.0       # the scope's own clock against the drive's
@@ -20,13 +21,14 @@ import math
 from dataclasses import dataclass, fields
 from typing import Any
 
-_BOOLS = ("analyser", "scope")
+_BOOLS = ("analyser", "scope", "daq")
 
 
 @dataclass(frozen=True)
 class LabSpec:
     analyser: bool = True
     scope: bool = True
+    daq: bool = False
     reading_pct: float = 0.05
     range_pct: float = 0.05
     scope_clock_offset_s: float = 0.0
@@ -63,12 +65,14 @@ def start_lab(stack, model: Any, spec: LabSpec, seed: int, names: dict[str, list
         analyser = SimPowerAnalyser(windings, seed, AnalyserSpec(spec.reading_pct, spec.range_pct))
         model.listeners.append(analyser.feed)
         servers.append(_serve(stack, ScpiServer(analyser), spec, names.get("power_analyser", []), resources))
-    if spec.scope:
-        scope = SimScope(encoder_offset_rad=float(getattr(model, "offset_rad", 0.0)),
-                         clock_offset_s=spec.scope_clock_offset_s)
-        model.listeners.append(scope.feed)
-        servers.append(_serve(stack, ScpiServer(scope), spec, names.get("scope", []) + names.get("daq", []),
-                              resources))
+    encoder = getattr(model, "instruments", None)
+    common = dict(encoder_offset_rad=float(getattr(model, "offset_rad", 0.0)), clock_offset_s=spec.scope_clock_offset_s,
+                  counts_per_rev=int(encoder.encoder_counts_per_rev) if encoder is not None else 4096)
+    for kind, wanted, memory_s in (("scope", spec.scope, 4.0), ("daq", spec.daq, 30.0)):
+        if wanted:
+            scope = SimScope(history_s=memory_s, **common)
+            model.listeners.append(scope.feed)
+            servers.append(_serve(stack, ScpiServer(scope), spec, names.get(kind, []), resources))
     return servers, resources
 
 

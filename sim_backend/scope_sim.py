@@ -7,6 +7,8 @@ Inputs (fixed wiring of the simulated rig, docs/instruments.md):
     CHAN6         the torque transducer's shaft torque, N*m
     CHAN7         DC-link voltage, V
     CHAN8         the dynamometer drive's analog speed monitor (from its own high-resolution encoder, no gate), rad/s
+    CHAN9         a counter input on the dynamometer encoder (A, B, Z): the shaft angle since the last index, rad
+                  (whole counts, 2 pi / counts_per_rev; a DAQ's angular-position counter with Z reset)
 The plant gives one value per control period (100 us): the period's mean (the averaged inverter has no PWM pulses);
 the scope samples at its own rate between them, each mean placed at its period's middle and linearly interpolated
 (what an input's anti-aliasing filter makes of the pulses, without its delay). The scope's clock is the drive clock plus `clock_offset_s` (an instrument's clock is its own: the
@@ -24,7 +26,7 @@ import numpy as np
 
 from sim_backend.terminals import TerminalBlock
 
-CHANNELS = 8
+CHANNELS = 9
 CODE_FULL = 32767
 INDEX_WIDTH_S = 20e-6
 _NUM = r"([0-9.eE+-]+)"
@@ -32,10 +34,12 @@ _NUM = r"([0-9.eE+-]+)"
 
 class SimScope:
     def __init__(self, encoder_offset_rad: float = 0.0, max_rate_hz: float = 1e6, history_s: float = 4.0,
+                 counts_per_rev: int = 4096,
                  clock_offset_s: float = 0.0, identity: str = "KEYSIGHT TECHNOLOGIES,DSOX4034A,SIM0002,07.50"):
         self.identity = identity
         self.clock_offset_s = clock_offset_s
         self.encoder_offset_rad = encoder_offset_rad
+        self.counts_per_rev = counts_per_rev
         self.max_rate_hz = max_rate_hz
         self.history_s = history_s
         self.rate_hz = 50_000.0
@@ -49,6 +53,8 @@ class SimScope:
         self._lock = threading.Lock()
         self._t = np.zeros(0)                  # per control period, drive clock
         self._x = np.zeros((0, CHANNELS))      # held / interpolated channel values at those instants
+        self._chunks: list[tuple[np.ndarray, np.ndarray]] = []     # the memory, block by block
+        self._last_t = 0.0
         self._angle = 0.0                      # shaft angle integrated from the plant's speed (the encoder's disc)
         self._index_t: list[float] = []        # drive times the encoder's index passed
         self._armed = False
@@ -69,29 +75,37 @@ class SimScope:
             self._index_t.append(float(b.t_s[k] - dt + frac * dt))
         self._angle = float(angles[-1] - self.encoder_offset_rad)
         index = np.zeros(n)
+        step = 2 * math.pi / self.counts_per_rev          # the counter at each period's end, since the index
+        counter = np.floor(np.mod(angles[1:], 2 * math.pi) / step) * step
         x = np.column_stack((b.u_v[:, 0], b.u_v[:, 1], b.i_a[:, 0], b.i_a[:, 1], index, b.torque_shaft_nm,
-                             b.vdc_v, b.speed_mech_rad_s))
-        with self._lock:
-            self._t = np.concatenate((self._t, b.t_s))
-            self._x = np.concatenate((self._x, x))
-            keep = self._t >= self._t[-1] - self.history_s
-            self._t, self._x = self._t[keep], self._x[keep]
-            self._index_t = [s for s in self._index_t if s >= self._t[0] - 1.0]
-            self._check_trigger(dt)
+                             b.vdc_v, b.speed_mech_rad_s, counter))
+        with self._lock:                 # memory as blocks: a DAQ's 30 s must not be copied every SYNC
+            previous = self._chunks[-1] if self._chunks else None
+            self._chunks.append((b.t_s.copy(), x))
+            while self._chunks and self._chunks[0][0][-1] < b.t_s[-1] - self.history_s:
+                self._chunks.pop(0)
+            self._last_t = float(b.t_s[-1])
+            self._index_t = [s for s in self._index_t if s >= self._chunks[0][0][0] - 1.0]
+            self._check_trigger(dt, previous)
 
-    def _check_trigger(self, dt: float) -> None:
+    def _check_trigger(self, dt: float, previous) -> None:
         if not self._armed:
             return
-        if self._trigger_t is None:
-            if self.source is not None:
-                y = self._x[:, self.source - 1] - self.level
-                hit = np.nonzero((y[:-1] < 0) & (y[1:] >= 0))[0]
-                if hit.size:
-                    k = hit[-1]
-                    self._trigger_t = self._t[k] + dt * (-y[k] / (y[k + 1] - y[k])) + self.clock_offset_s
+        if self._trigger_t is None and self.source is not None:
+            t_new, x_new = self._chunks[-1]
+            if previous is not None:
+                t_new = np.concatenate((previous[0][-1:], t_new))
+                x_new = np.concatenate((previous[1][-1:], x_new))
+            y = x_new[:, self.source - 1] - self.level
+            hit = np.nonzero((y[:-1] < 0) & (y[1:] >= 0))[0]
+            if hit.size:
+                k = hit[0]
+                self._trigger_t = t_new[k] + dt * (-y[k] / (y[k + 1] - y[k])) + self.clock_offset_s
         if self._trigger_t is not None:
             post = self.points * (1.0 - self.pretrigger) / self.rate_hz
-            if self._t[-1] + self.clock_offset_s >= self._trigger_t + post:
+            if self._last_t + self.clock_offset_s >= self._trigger_t + post:
+                self._t = np.concatenate([c[0] for c in self._chunks])
+                self._x = np.concatenate([c[1] for c in self._chunks])
                 self._record = self._sample()
                 self._armed = False
 
@@ -101,15 +115,18 @@ class SimScope:
         t_drive = t_scope + self._trigger_t - self.clock_offset_s
         out = np.empty((self.points, CHANNELS))
         for c in range(CHANNELS):
-            if c == 4:                 # index pulse: INDEX_WIDTH_S from the instant the index passed
+            if c == 8:                   # the counter holds its count between edges: the last period's end
+                k = np.searchsorted(self._t, t_drive, side="right") - 1
+                out[:, c] = self._x[np.clip(k, 0, self._t.size - 1), c]
+            elif c == 4:                 # index pulse: INDEX_WIDTH_S from the instant the index passed
                 on = np.zeros(self.points, dtype=bool)
                 for s in self._index_t:
                     if t_drive[0] - INDEX_WIDTH_S <= s <= t_drive[-1]:
                         on |= (t_drive >= s) & (t_drive < s + INDEX_WIDTH_S)
                 out[:, c] = np.where(on, 5.0, 0.0)
-            else:                        # period means, placed at the period's middle
+            else:                        # period means at the period's middle; speed and torque: at its start
                 dt = self._t[1] - self._t[0] if self._t.size > 1 else 1e-4
-                out[:, c] = np.interp(t_drive, self._t - 0.5 * dt, self._x[:, c])
+                out[:, c] = np.interp(t_drive, self._t - (dt if c in (5, 7) else 0.5 * dt), self._x[:, c])
         return t_scope, out
 
     # ---- SCPI ----
@@ -165,7 +182,7 @@ class SimScope:
                 return None
             if up in (":TRIG:FORC", ":TRIGGER:FORCE"):
                 if self._armed and self._trigger_t is None:     # now: the newest sample the scope has
-                    self._trigger_t = (self._t[-1] if self._t.size else 0.0) + self.clock_offset_s
+                    self._trigger_t = self._last_t + self.clock_offset_s
                 return None
             m = re.match(r"^:WAV(?:EFORM)?:SOUR(?:CE)?\s+CHAN(\d)$", c, re.I)
             if m and 1 <= int(m.group(1)) <= CHANNELS:

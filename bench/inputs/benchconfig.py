@@ -30,12 +30,12 @@ from drivers.contract.load_map import read_load_map
 from drivers.contract.sections import Section, key
 from drivers.contract.simulator import SimulatorConfig
 from drivers.contract.eds import DeviceDescription, read_eds
-from drivers.contract.instruments import InstrumentConfig, read_instruments
+from drivers.contract.instruments import InstrumentConfig, RigTruthsConfig, read_instruments, read_rig_truths
 from drivers.reference import ReferenceConfig
 from drivers.sections import DriveSection, LoadSection
 from drivers.transports import DRIVE_TRANSPORTS, LOAD_TRANSPORTS
 
-_TOP_KEYS = ("bench", "services", "drive", "load", "reference", "simulator", "instruments")
+_TOP_KEYS = ("bench", "services", "drive", "load", "reference", "simulator", "instruments", "rig_truths")
 
 
 @dataclass(frozen=True)
@@ -72,6 +72,7 @@ class BenchConfig:
     reference: ReferenceConfig = field(default_factory=ReferenceConfig)
     simulator: SimulatorConfig | None = None
     instruments: tuple[InstrumentConfig, ...] = ()           # [[instruments]]: a lab's analyser, scope, DAQ
+    rig_truths: RigTruthsConfig | None = None                 # [rig_truths]: measured field angle and flux
 
     @property
     def services_start(self) -> str | None:
@@ -152,12 +153,14 @@ def load_bench_config(path: str | Path, for_probe: bool = False) -> BenchConfig:
     if sim_table is not None:
         simulator = SimulatorConfig.read(sim_table, problems, root=root)
     instruments = read_instruments(raw.get("instruments"), problems)
+    rig_truths = read_rig_truths(raw.get("rig_truths"), instruments, problems)
     if for_probe:
         problems.lines = [line for line in problems.lines if not _probe_tells(line, problems.file)]
     problems.raise_if_any()
     return BenchConfig(path=str(path.resolve()), bench=section, drive=drive, load=load,
                        services=services or ServicesSection(), reference=reference or ReferenceConfig(),
-                       simulator=simulator, instruments=instruments)
+                       simulator=simulator, instruments=instruments,
+                       rig_truths=rig_truths)
 
 
 def _probe_tells(line: str, file: str) -> bool:
@@ -194,7 +197,8 @@ def measurable_signals(cfg: BenchConfig) -> frozenset[str]:
                                 lambda index: description.has(index) and bool(description.od[index].default),
                                 description.drivebench_kind is not None)
     reference = ReferenceConfig(cfg.reference_source)
-    return (own - reference.not_from_drive()) | frozenset(reference.signals(bool(cfg.load)))
+    truths = frozenset(cfg.rig_truths.signals()) if cfg.rig_truths is not None else frozenset()
+    return (own - reference.not_from_drive()) | frozenset(reference.signals(bool(cfg.load))) | truths
 
 
 def _stamp(path: str) -> tuple[int, int]:

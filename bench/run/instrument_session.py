@@ -46,13 +46,16 @@ class _Analyser:
 class InstrumentSession:
     def __init__(self, instruments: tuple[InstrumentConfig, ...], run_dir: Path, realtime: bool,
                  sync_period_s: float, control_period_s: float | None, moment_s: float | None,
-                 drive_time: Callable[[], float], warn: Callable[[str], None] | None = None):
+                 drive_time: Callable[[], float], warn: Callable[[str], None] | None = None,
+                 record_s: float = 0.0, truths: Any = None):
         self.instruments = instruments
         self.dir = run_dir / "instruments"
         self.realtime = realtime
         self.sync_period_s = sync_period_s
         self.control_period_s = control_period_s or sync_period_s
         self.moment_s = moment_s
+        self.record_s = record_s             # a DAQ records the whole run: this long from the first SYNC
+        self.truths = truths                 # [rig_truths]: the field angle and flux from the DAQ's record
         self.drive_time = drive_time
         self.warn = warn or (lambda line: None)
         self.errors: list[str] = []
@@ -60,6 +63,7 @@ class InstrumentSession:
         self.analysers: list[_Analyser] = []
         self.scopes: list[tuple[InstrumentConfig, Any]] = []
         self.forced_at: float | None = None
+        self.daq_forced_at: float | None = None
         self.captures: dict[str, dict[str, Any]] = {}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -84,12 +88,21 @@ class InstrumentSession:
                 self.analysers.append(_Analyser(cfg, driver, next_t=1.0 / cfg.poll_hz))
                 continue
             try:
-                if self.moment_s is not None:
+                if cfg.kind == "daq":
+                    driver.arm(self.record_s, 0.0)
+                elif self.moment_s is not None:
                     driver.arm(CAPTURE_S, PRETRIGGER)
                 self.scopes.append((cfg, driver))
             except InstrumentError as exc:
                 self._fault(str(exc))
                 driver.close()
+        for cfg, scope in self.scopes:      # a DAQ records from now, the drive clock's start (t = 0)
+            if cfg.kind == "daq":
+                try:
+                    scope.force()
+                    self.daq_forced_at = 0.0
+                except InstrumentError as exc:
+                    self._fault(str(exc))
         if self.realtime and self.analysers:
             self._thread = threading.Thread(target=self._poll_loop, name="analyser-poll", daemon=True)
             self._thread.start()
@@ -98,8 +111,9 @@ class InstrumentSession:
         """After each SYNC, on the run loop: the scope's forced trigger; in lockstep the analyser's due readings."""
         if self.scopes and self.forced_at is None and self.moment_s is not None and t_drive >= self.moment_s - 1e-9:
             self.forced_at = t_drive
-            for cfg, scope in list(self.scopes):
-                self._guard(cfg, scope.force)
+            for cfg, scope in self.scopes:
+                if cfg.kind != "daq":
+                    self._guard(cfg, scope.force)
         if not self.realtime:
             for a in self.analysers:
                 if a.alive and t_drive >= a.next_t - 1e-9:
@@ -169,7 +183,8 @@ class InstrumentSession:
         import pyarrow as pa
         import pyarrow.parquet as pq
 
-        if self.forced_at is None:
+        forced_at = self.daq_forced_at if cfg.kind == "daq" else self.forced_at
+        if forced_at is None:
             return {"state": "not captured: the run ended before its marked moment" if self.moment_s is not None
                     else "not captured: the scenario has no marked moment (no step, load step or injection)"}
         try:
@@ -179,15 +194,29 @@ class InstrumentSession:
             self._fault(str(exc))
             return {"state": f"not captured: {exc}"}
         uncertainty = self.sync_period_s if self.realtime else self.control_period_s
-        t_drive = cap.t_s + self.forced_at
+        t_drive = cap.t_s + forced_at
         path = self.dir / f"{cfg.name}.parquet"
         pq.write_table(pa.table({"t_s": t_drive, **cap.signals}), path)
         self.captures[cfg.name] = {"t_s": t_drive, **cap.signals}
         return {"file": str(path.relative_to(self.dir.parent)), "samples": int(t_drive.size),
                 "sample_rate_hz": round(cap.sample_rate_hz, 3), "t0_drive_s": float(t_drive[0]),
-                "marked_moment_s": self.moment_s, "forced_at_drive_s": self.forced_at,
+                "marked_moment_s": 0.0 if cfg.kind == "daq" else self.moment_s, "forced_at_drive_s": forced_at,
                 "placement_uncertainty_s": uncertainty, "not_judged": cap.not_judged,
                 "units": {c.signal: c.unit for c in cfg.channels}}
+
+
+    def truth_rows(self, t_rows: np.ndarray, pos_est: np.ndarray | None) -> dict[str, np.ndarray]:
+        """The measured pos_err_elec_rad (and SPIM flux_true_wb) on the telemetry's rows, from the DAQ's record;
+        {} when the rig has no [rig_truths] or its DAQ gave no record (then those criteria stay not judged)."""
+        from bench.run.rig_truths import field_angle_rows, measured_pos_err
+
+        record = self.captures.get(self.truths.daq) if self.truths is not None else None
+        if record is None or pos_est is None or not t_rows.size:
+            return {}
+        rows = field_angle_rows(self.truths, record["t_s"], record, t_rows)
+        angle = rows.pop("field_angle_elec_rad")
+        rows["pos_err_elec_rad"] = measured_pos_err(angle, pos_est)
+        return rows
 
 
 def marked_moment(scenario: Any) -> float | None:

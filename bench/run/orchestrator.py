@@ -259,7 +259,8 @@ class _Run(RunArming, RunSteps, RunJournal, RunTrips, RunEnding):
             from bench.run.instrument_session import InstrumentSession, marked_moment
             self.lab = InstrumentSession(self.cfg.instruments, self.recorder.run_dir, self.realtime,
                                          self.sync_period_s, self.drive.control_period_s,
-                                         marked_moment(self.scenario), lambda: self._t_drive, self.warn)
+                                         marked_moment(self.scenario), lambda: self._t_drive, self.warn,
+                                         record_s=float(self.scenario.duration_s), truths=self.cfg.rig_truths)
 
     # -- the run ------------------------------------------------------------------------------------------
 

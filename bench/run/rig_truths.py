@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -129,3 +130,38 @@ def power_flow(input_w: float, terminal_w: float, shaft_w: float) -> PowerFlow:
     eff = (lambda out, inp: 100.0 * out / inp if inp > 0 and math.isfinite(out) else math.nan)
     return PowerFlow(input_w, terminal_w, shaft_w, input_w - terminal_w, terminal_w - shaft_w,
                      eff(shaft_w, terminal_w), eff(shaft_w, input_w))
+
+
+def field_angle_rows(truths: Any, t_daq: np.ndarray, signals: dict[str, np.ndarray],
+                     t_rows: np.ndarray) -> dict[str, np.ndarray]:
+    """The rig's measured field angle (and SPIM flux) on the telemetry's rows from a DAQ record of the run
+    ([rig_truths], drivers.contract.instruments.RigTruthsConfig); NaN outside the record or where it clipped."""
+    out: dict[str, np.ndarray] = {}
+    inside = (t_rows >= t_daq[0]) & (t_rows <= t_daq[-1]) if t_daq.size else np.zeros(t_rows.size, dtype=bool)
+    if truths.method == "encoder":
+        enc = signals["encoder_angle_mech_rad"]
+        theta = np.unwrap(truths.get("encoder_index_elec_rad") + int(truths.get("pole_pairs")) * enc)
+        good = np.isfinite(theta)
+        angle = np.interp(t_rows, t_daq[good], theta[good]) if good.any() else np.full(t_rows.size, np.nan)
+    else:
+        u_d, u_q, i_d, i_q = (signals[n] for n in ("u_main_v", "u_aux_v", "i_main_a", "i_aux_a"))
+        dt = np.diff(t_daq, prepend=t_daq[0])
+        # from the record's start at standstill with the windings dead: the flux starts at zero, no constant to remove
+        psi_d = np.cumsum((u_d - truths.get("rs_main_ohm") * i_d) * dt)
+        psi_q = np.cumsum((u_q - truths.get("rs_aux_ohm") * i_q) * dt)
+        field = spim_field_flux(psi_d, psi_q, i_q, truths.get("lsd_h"), truths.get("lsq_h"), truths.get("msrd_h"),
+                                truths.get("msrq_h"))
+        good = np.isfinite(field)
+        if not good.all():               # an integral is lost from its first clipped sample on
+            inside &= t_rows < t_daq[np.argmin(good)]
+        angle = np.interp(t_rows, t_daq[good], np.unwrap(np.angle(field[good]))) if good.any() \
+            else np.full(t_rows.size, np.nan)
+        flux = np.interp(t_rows, t_daq[good], np.abs(field[good])) if good.any() else np.full(t_rows.size, np.nan)
+        out["flux_true_wb"] = np.where(inside, flux, np.nan)
+    out["field_angle_elec_rad"] = np.where(inside, angle, np.nan)
+    return out
+
+
+def measured_pos_err(field_angle: np.ndarray, pos_est: np.ndarray) -> np.ndarray:
+    """pos_err_elec_rad as the drive defines it: the true field angle minus the estimated, wrapped."""
+    return wrap(field_angle - pos_est)

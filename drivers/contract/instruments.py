@@ -131,3 +131,64 @@ def _channels(problems: Problems, table: Any, where: str) -> tuple[Channel, ...]
         signals.add(signal)
         out.append(Channel(str(channel), signal, unit, float(rng), float(scale)))
     return tuple(out)
+
+
+TRUTH_METHODS = ("encoder", "stator_flux")
+_TRUTH_KEYS = {"method": "string", "daq": "string", "pole_pairs": "integer", "encoder_index_elec_rad": "number",
+               "encoder_index_uncertainty_rad": "number", "aligned_utc": "string", "rs_main_ohm": "number",
+               "rs_aux_ohm": "number", "lsd_h": "number", "lsq_h": "number", "msrd_h": "number", "msrq_h": "number"}
+_NEEDS = {"encoder": ("pole_pairs", "encoder_index_elec_rad"),
+          "stator_flux": ("rs_main_ohm", "rs_aux_ohm", "lsd_h", "lsq_h", "msrd_h", "msrq_h")}
+DAQ_SIGNALS = {"encoder": ("encoder_angle_mech_rad",), "stator_flux": ("u_main_v", "u_aux_v", "i_main_a", "i_aux_a")}
+
+
+@dataclass(frozen=True)
+class RigTruthsConfig:
+    """[rig_truths]: how the bench measures the field angle (pos_err_elec_rad) and the flux on this rig, from a DAQ
+    that records the whole run (docs/instruments.md).
+
+    method = "encoder"      PMSM: the dynamometer encoder's angle since its index (DAQ signal encoder_angle_mech_rad)
+                            plus encoder_index_elec_rad, the rotor's electrical angle at the index, recorded by the
+                            alignment step (bench.run.rig_truths.align) with its uncertainty and date
+    method = "stator_flux"  SPIM: the stator flux integral(v - R_s i) dt of each winding (DAQ signals u_main_v,
+                            u_aux_v, i_main_a, i_aux_a), symmetrised with the stated inductances (paper eqs. (15)-(16))
+    """
+
+    method: str
+    daq: str
+    values: tuple[tuple[str, Any], ...]
+
+    def get(self, name: str, default: Any = None) -> Any:
+        return dict(self.values).get(name, default)
+
+    def signals(self) -> tuple[str, ...]:
+        return ("pos_err_elec_rad",) if self.method == "encoder" else ("pos_err_elec_rad", "flux_true_wb")
+
+
+def read_rig_truths(table: Any, instruments: tuple[InstrumentConfig, ...], problems: Problems) -> RigTruthsConfig | None:
+    if table is None:
+        return None
+    if not isinstance(table, dict):
+        problems.add("rig_truths", "must be a table")
+        return None
+    before = len(problems.lines)
+    problems.unknown_keys(table, tuple(_TRUTH_KEYS), "rig_truths")
+    method = problems.string(table, "method", "rig_truths", choices=TRUTH_METHODS)
+    daq = problems.string(table, "daq", "rig_truths")
+    for key, kind in _TRUTH_KEYS.items():
+        if key in table and kind in ("number", "integer"):
+            getattr(problems, kind)(table, key, "rig_truths")
+    if method is not None:
+        for key in _NEEDS[method]:
+            if key not in table:
+                problems.add(f"rig_truths.{key}", f"missing: method {method!r} needs it")
+    entry = next((i for i in instruments if i.name == daq), None)
+    if daq is not None and (entry is None or entry.kind not in ("daq", "scope")):
+        problems.add("rig_truths.daq", f"{daq!r} is not a scope or DAQ of this bench's [[instruments]]")
+    elif entry is not None and method is not None:
+        missing = [s for s in DAQ_SIGNALS[method] if entry.channel(s) is None]
+        if missing:
+            problems.add("rig_truths.daq", f"{daq!r} records no {', '.join(missing)} (method {method!r} needs them)")
+    if len(problems.lines) > before:
+        return None
+    return RigTruthsConfig(method, daq, tuple(sorted((k, v) for k, v in table.items() if k not in ("method", "daq"))))

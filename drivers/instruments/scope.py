@@ -27,7 +27,7 @@ from drivers.contract.instruments import InstrumentConfig
 from drivers.instruments.scpi import InstrumentError, ScpiSession
 
 CLIP_CODE = 32767
-_CHANNEL = re.compile(r"^CHAN([1-8])$")
+_CHANNEL = re.compile(r"^CHAN([1-9]|1[0-6])$")
 
 
 @dataclass
@@ -50,7 +50,7 @@ class ScpiScope:
     def open(cls, cfg: InstrumentConfig) -> "ScpiScope":
         for c in cfg.channels:
             if not _CHANNEL.match(c.channel.upper()):
-                raise InstrumentError(f"instrument {cfg.name!r}: channel {c.channel!r}: expected CHAN1..CHAN8")
+                raise InstrumentError(f"instrument {cfg.name!r}: channel {c.channel!r}: expected CHAN1..CHAN16")
         session = ScpiSession(cfg.name, cfg.resource, cfg.timeout_s, cls.error_query)
         self = cls(cfg, session)
         try:

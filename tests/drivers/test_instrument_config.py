@@ -26,7 +26,7 @@ def _with(tmp_path: Path, old: str, new: str) -> Path:
 def test_the_instruments_rigs_name_an_analyser_and_a_scope():
     cfg = load_bench_config(REPO / "config/benches/sim-pmsm-instruments.toml")
     kinds = {i.kind: i for i in cfg.instruments}
-    assert set(kinds) == {"power_analyser", "scope"}
+    assert set(kinds) == {"power_analyser", "scope", "daq"} and cfg.rig_truths.daq == "daq"
     assert kinds["power_analyser"].channel("p_dc_w").channel == "P4"
     assert kinds["scope"].sample_rate_hz >= 20_000 and len(kinds["scope"].channels) >= 4
     with pytest.raises(dataclasses.FrozenInstanceError):
