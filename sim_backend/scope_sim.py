@@ -72,7 +72,9 @@ class SimScope:
         for k in np.nonzero(np.diff(turns) != 0)[0]:        # the index passes within period k: interpolated
             edge = 2 * math.pi * max(turns[k], turns[k + 1])
             frac = (edge - angles[k]) / (angles[k + 1] - angles[k])
-            self._index_t.append(float(b.t_s[k] - dt + frac * dt))
+            # the plant's per-period speeds are at each period's start: their running sum is the shaft's angle half a
+            # period earlier than the period's end (exact at constant speed)
+            self._index_t.append(float(b.t_s[k] - 1.5 * dt + frac * dt))
         self._angle = float(angles[-1] - self.encoder_offset_rad)
         index = np.zeros(n)
         step = 2 * math.pi / self.counts_per_rev          # the counter at each period's end, since the index
@@ -115,8 +117,9 @@ class SimScope:
         t_drive = t_scope + self._trigger_t - self.clock_offset_s
         out = np.empty((self.points, CHANNELS))
         for c in range(CHANNELS):
-            if c == 8:                   # the counter holds its count between edges: the last period's end
-                k = np.searchsorted(self._t, t_drive, side="right") - 1
+            if c == 8:                   # the counter holds its count between edges (sum of speeds: see feed)
+                dt = self._t[1] - self._t[0] if self._t.size > 1 else 1e-4
+                k = np.searchsorted(self._t - 0.5 * dt, t_drive, side="right") - 1
                 out[:, c] = self._x[np.clip(k, 0, self._t.size - 1), c]
             elif c == 4:                 # index pulse: INDEX_WIDTH_S from the instant the index passed
                 on = np.zeros(self.points, dtype=bool)
@@ -179,6 +182,15 @@ class SimScope:
                 return None
             if up in (":SING", ":SINGLE"):
                 self._armed, self._trigger_t, self._record = True, None, None
+                return None
+            if up == ":STOP":              # end the acquisition: a triggered record keeps what it has so far
+                if self._armed and self._trigger_t is not None and self._chunks:
+                    self._t = np.concatenate([c[0] for c in self._chunks])
+                    self._x = np.concatenate([c[1] for c in self._chunks])
+                    have = int((self._last_t + self.clock_offset_s - self._trigger_t) * self.rate_hz)
+                    self.points = max(2, min(self.points, round(self.points * self.pretrigger) + have))
+                    self._record = self._sample()
+                self._armed = False
                 return None
             if up in (":TRIG:FORC", ":TRIGGER:FORCE"):
                 if self._armed and self._trigger_t is None:     # now: the newest sample the scope has

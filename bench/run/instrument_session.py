@@ -88,8 +88,8 @@ class InstrumentSession:
                 self.analysers.append(_Analyser(cfg, driver, next_t=1.0 / cfg.poll_hz))
                 continue
             try:
-                if cfg.kind == "daq":
-                    driver.arm(self.record_s, 0.0)
+                if cfg.kind == "daq":            # the whole run and its last rows (the stop follows)
+                    driver.arm(self.record_s + 2 * self.sync_period_s + 0.05, 0.0)
                 elif self.moment_s is not None:
                     driver.arm(CAPTURE_S, PRETRIGGER)
                 self.scopes.append((cfg, driver))
@@ -188,7 +188,10 @@ class InstrumentSession:
             return {"state": "not captured: the run ended before its marked moment" if self.moment_s is not None
                     else "not captured: the scenario has no marked moment (no step, load step or injection)"}
         try:
-            scope.wait(FETCH_TIMEOUT_S)
+            if cfg.kind == "daq":            # recording since t = 0: what it has when the run has ended
+                scope.stop()
+            else:
+                scope.wait(FETCH_TIMEOUT_S)
             cap = scope.fetch()
         except Exception as exc:          # InstrumentError, or a record that never completed
             self._fault(str(exc))

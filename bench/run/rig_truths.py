@@ -145,10 +145,9 @@ def field_angle_rows(truths: Any, t_daq: np.ndarray, signals: dict[str, np.ndarr
         angle = np.interp(t_rows, t_daq[good], theta[good]) if good.any() else np.full(t_rows.size, np.nan)
     else:
         u_d, u_q, i_d, i_q = (signals[n] for n in ("u_main_v", "u_aux_v", "i_main_a", "i_aux_a"))
-        dt = np.diff(t_daq, prepend=t_daq[0])
         # from the record's start at standstill with the windings dead: the flux starts at zero, no constant to remove
-        psi_d = np.cumsum((u_d - truths.get("rs_main_ohm") * i_d) * dt)
-        psi_q = np.cumsum((u_q - truths.get("rs_aux_ohm") * i_q) * dt)
+        psi_d = _integral(t_daq, u_d - truths.get("rs_main_ohm") * i_d)
+        psi_q = _integral(t_daq, u_q - truths.get("rs_aux_ohm") * i_q)
         field = spim_field_flux(psi_d, psi_q, i_q, truths.get("lsd_h"), truths.get("lsq_h"), truths.get("msrd_h"),
                                 truths.get("msrq_h"))
         good = np.isfinite(field)
@@ -160,6 +159,11 @@ def field_angle_rows(truths: Any, t_daq: np.ndarray, signals: dict[str, np.ndarr
         out["flux_true_wb"] = np.where(inside, flux, np.nan)
     out["field_angle_elec_rad"] = np.where(inside, angle, np.nan)
     return out
+
+
+def _integral(t: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """Trapezoidal running integral, 0 at the first sample."""
+    return np.concatenate(([0.0], np.cumsum(0.5 * (e[1:] + e[:-1]) * np.diff(t))))
 
 
 def measured_pos_err(field_angle: np.ndarray, pos_est: np.ndarray) -> np.ndarray:

@@ -6,6 +6,7 @@
     :ACQuire:PRETrigger <fraction>             part of the record before the trigger
     :TRIGger:EDGE:SOURce CHAN<n> ; :TRIGger:EDGE:LEVel <v> ; :TRIGger:EDGE:SLOPe POSitive|NEGative
     :SINGle ; :TRIGger:FORCe ; *OPC?           arm, trigger now, wait until the record is complete
+    :STOP                                      end the acquisition: a triggered record keeps what it has
     :WAVeform:SOURce CHAN<n> ; :WAVeform:FORMat WORD ; :WAVeform:BYTeorder LSBFirst
     :WAVeform:PREamble?                        format,type,points,count,xinc,xorigin,xref,yinc,yorigin,yref
     :WAVeform:DATA?                            int16 samples as an IEEE 488.2 definite-length block
@@ -79,6 +80,10 @@ class ScpiScope:
     def force(self) -> None:
         """Trigger now; returns once the instrument has taken the command (a query behind it answered)."""
         self.session.configure([":TRIGger:FORCe"])
+
+    def stop(self) -> None:
+        """End the acquisition now (:STOP): a triggered record keeps the samples it has."""
+        self.session.configure([":STOP"])
 
     def wait(self, timeout_s: float) -> None:
         """Until the record is complete (*OPC? answers 1), each query within the instrument's timeout."""
