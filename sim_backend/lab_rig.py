@@ -10,6 +10,7 @@ A bench config's `[simulator.lab_instruments]` asks for them (checked here, `fil
     range_pct = 0.05
     scope_clock_offset_s = 0.0       # the scope's own clock against the drive's
     slow_s = 0.0                     # every answer this much later (a busy instrument)
+    drop_after = 0                   # the analyser drops its connection after this many answers (0: never)
 
 The rig builder starts one ScpiServer per instrument and hands the bench each `[[instruments]]` entry's resource
 (`TCPIP::127.0.0.1::<port>::SOCKET`) by its kind, as it hands the CAN channel and the Modbus port.
@@ -33,6 +34,7 @@ class LabSpec:
     range_pct: float = 0.05
     scope_clock_offset_s: float = 0.0
     slow_s: float = 0.0
+    drop_after: int = 0              # the analyser drops its connection after this many answers (0: never)
 
     @classmethod
     def from_table(cls, table: Any, where: str = "simulator.lab_instruments") -> "LabSpec":
@@ -65,6 +67,7 @@ def start_lab(stack, model: Any, spec: LabSpec, seed: int, names: dict[str, list
         analyser = SimPowerAnalyser(windings, seed, AnalyserSpec(spec.reading_pct, spec.range_pct))
         model.listeners.append(analyser.feed)
         servers.append(_serve(stack, ScpiServer(analyser), spec, names.get("power_analyser", []), resources))
+        servers[-1].quirks.drop_after = spec.drop_after or None
     encoder = getattr(model, "instruments", None)
     common = dict(encoder_offset_rad=float(getattr(model, "offset_rad", 0.0)), clock_offset_s=spec.scope_clock_offset_s,
                   counts_per_rev=int(encoder.encoder_counts_per_rev) if encoder is not None else 4096)

@@ -83,3 +83,46 @@ def test_the_measured_position_error_and_flux_agree_with_the_simulators_truth(tm
         assert np.nanmax(rel) < 0.02, np.nanmax(rel)
         line += f" spim_flux_max_diff_pct={100 * np.nanmax(rel):.3f}"
     print(line)
+
+
+def _faulty_bench(tmp_path: Path, lab_lines: str, timeout_s: float | None = None) -> Path:
+    text = (REPO / "config/benches/sim-pmsm-instruments.toml").read_text().replace('"config/', f'"{REPO}/config/')
+    head, tail = text.rsplit("\n[simulator.lab_instruments]", 1)
+    text = f"{head}\n[simulator.lab_instruments]\n{lab_lines}{tail}"
+    if timeout_s is not None:
+        text = text.replace("timeout_s = 2.0\npoll_hz", f"timeout_s = {timeout_s}\npoll_hz")
+        text = text.replace("timeout_s = 2.0\nsample_rate_hz", f"timeout_s = {timeout_s}\nsample_rate_hz")
+        text = text.replace("timeout_s = 5.0\nsample_rate_hz", f"timeout_s = {timeout_s}\nsample_rate_hz")
+    path = tmp_path / "faulty.toml"
+    path.write_text(text)
+    return path
+
+
+def test_silent_instruments_give_lines_and_not_judged_never_a_pass_and_the_drive_stops(tmp_path):
+    from bench.inputs.prepared import prepare_run
+
+    bench = _faulty_bench(tmp_path, "slow_s = 1.0", timeout_s=0.2)
+    result = run_scenario(prepare_run(REPO / "scenarios/pmsm-rig/fig10-startup-position-error.toml", bench, seed=1),
+                          out_root=tmp_path / "r", rerun_mode="off")
+    record = json.loads((result.run_dir / "record.json").read_text())
+    errors = record["lab_instruments"]["errors"]
+    assert len(errors) == 3 and all("\n" not in e and "no answer within 0.2 s" in e for e in errors), errors
+    position = [c for c in record["criteria"] if c["signal"] == "pos_err_elec_rad"]
+    assert position and all(c["status"] == "not_judged" for c in position)
+    assert result.verdict != "pass"
+    assert [c for c in record["criteria"] if c["signal"] != "pos_err_elec_rad" and c["status"] == "pass"]
+    assert not record["safe_stop"]["errors"]                  # the drive disabled, the load at zero, as always
+
+
+def test_an_analyser_dropping_its_connection_mid_run_ends_its_data_there(tmp_path):
+    from bench.inputs.prepared import prepare_run
+
+    bench = _faulty_bench(tmp_path, "drop_after = 10", timeout_s=0.5)
+    result = run_scenario(prepare_run(REPO / "scenarios/pmsm-rig/fig10-startup-position-error.toml", bench, seed=1),
+                          out_root=tmp_path / "r", rerun_mode="off")
+    record = json.loads((result.run_dir / "record.json").read_text())
+    lab = record["lab_instruments"]
+    assert len(lab["errors"]) == 1 and "'analyser'" in lab["errors"][0] and "its data ends at" in lab["errors"][0]
+    assert 0 < lab["analysers"]["analyser"]["readings"] < 15
+    assert result.verdict == "pass"                            # the DAQ's position error is judged as before
+    assert not record["safe_stop"]["errors"]
