@@ -126,3 +126,30 @@ def test_an_analyser_dropping_its_connection_mid_run_ends_its_data_there(tmp_pat
     assert 0 < lab["analysers"]["analyser"]["readings"] < 15
     assert result.verdict == "pass"                            # the DAQ's position error is judged as before
     assert not record["safe_stop"]["errors"]
+
+
+@pytest.mark.slow
+def test_a_capture_is_placed_by_its_trigger_not_by_the_instruments_clock(tmp_path):
+    """The scope's clock shifted by 37 ms: the capture lands at the same drive time, and against the plain simulated
+    run's shaft speed (same scenario and seed) its best-fitting shift is within the stated placement uncertainty."""
+    from bench.inputs.prepared import prepare_run
+
+    captures = []
+    for offset in (0.0, 0.037):
+        bench = _faulty_bench(tmp_path, f"scope_clock_offset_s = {offset}")
+        result = run_scenario(prepare_run(STEP, bench, seed=1), out_root=tmp_path / str(offset), rerun_mode="off")
+        c = json.loads((result.run_dir / "record.json").read_text())["lab_instruments"]["captures"]["scope"]
+        captures.append((c, pq.read_table(result.run_dir / c["file"]).to_pydict()))
+    (c0, cap0), (c1, cap1) = captures
+    assert cap0["t_s"] == cap1["t_s"] and cap0["speed_scope_mech_rad_s"] == cap1["speed_scope_mech_rad_s"]
+    plain = run_scenario(prepare_run(STEP, REPO / "config/benches/sim-pmsm.toml", seed=1), out_root=tmp_path / "p",
+                         rerun_mode="off")
+    tel = pq.read_table(plain.run_dir / "telemetry.parquet").to_pydict()
+    t, speed = np.array(cap0["t_s"]), np.array(cap0["speed_scope_mech_rad_s"])
+    rows = (np.array(tel["t_s"]) >= t[0]) & (np.array(tel["t_s"]) <= t[-1])
+    t_rows, truth = np.array(tel["t_s"])[rows], np.array(tel["speed_true_mech_rad_s"])[rows]
+    shifts = np.arange(-2e-3, 2e-3 + 1e-9, 1e-5)
+    cost = [float(np.mean((np.interp(t_rows, t + s, speed) - truth) ** 2)) for s in shifts]
+    best = float(shifts[int(np.argmin(cost))])
+    assert abs(best) <= c0["placement_uncertainty_s"] + 1e-5, best
+    print(f"RESULT capture_best_shift_s={best:.6f} stated_s={c0['placement_uncertainty_s']}")
