@@ -25,7 +25,7 @@ def _rise_time(t, x, t0, target, lo=0.1, hi=0.9):
     return float(t_hi - t_lo)
 
 
-@pytest.mark.parametrize("rig", ["pmsm", "spim"])
+@pytest.mark.parametrize("rig", ["pmsm", pytest.param("spim", marks=pytest.mark.slow)])
 def test_a_run_records_the_analyser_and_a_capture_on_the_drive_clock(tmp_path, rig):
     result = run_scenario(STEP, REPO / f"config/benches/sim-{rig}-instruments.toml", out_root=tmp_path / "i",
                           rerun_mode="off", seed=1)
