@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -121,7 +122,9 @@ class InstrumentSession:
 
     def _poll_loop(self) -> None:
         period = min(1.0 / a.cfg.poll_hz for a in self.analysers)
-        while not self._stop.wait(period):
+        due = time.monotonic() + period             # on a fixed grid: a slow answer does not lower the rate
+        while not self._stop.wait(max(0.0, due - time.monotonic())):
+            due += period
             for a in self.analysers:
                 if a.alive:
                     self._poll(a, self.drive_time())
