@@ -26,6 +26,7 @@ The settings are the bench config's [simulator.instruments] table (read by sim_b
     torque_bandwidth_hz = 100.0
     torque_noise_nm = 0.005
     dyno_inertia_kgm2 = 5e-4
+    encoder_offset_rad = 1.234      # optional: where the index sits on the shaft (a rig's, fixed); left out: drawn
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ class InstrumentSpec:
     torque_bandwidth_hz: float = 100.0
     torque_noise_nm: float = 0.005
     dyno_inertia_kgm2: float = 0.0          # 0: the transducer reads the dynamometer's torque alone
+    encoder_offset_rad: float = -1.0        # the index's place on the shaft, fixed for the rig; < 0: drawn from the seed
 
     @classmethod
     def from_table(cls, table: Any, where: str = "simulator.instruments") -> "InstrumentSpec":
@@ -85,6 +87,8 @@ class InstrumentedModel:
         self._counts_per_rad = spec.encoder_counts_per_rev / (2.0 * math.pi)
         # where the encoder's index sits against the rotor: unknown to the bench, fixed for the rig
         self.offset_rad = float(self._rng.uniform(0.0, 2.0 * math.pi))
+        if spec.encoder_offset_rad >= 0.0:                        # a rig's fixed index (the draw is still made)
+            self.offset_rad = float(spec.encoder_offset_rad)
         self._angle_rad = 0.0                                     # shaft angle, integrated from the plant's speed
         self._counts = np.full(self._gate_steps + 1, self._count_of(np.array([0.0]))[0])   # last gate + 1
         self._alpha = 1.0 - math.exp(-2.0 * math.pi * spec.torque_bandwidth_hz * dt)

@@ -62,6 +62,8 @@ class RigSpec:
     load_map: str | Path | None = None             # the dynamometer's register map; None: drivebench-sim.toml
     instruments: Any = None                        # sim_backend.instruments.InstrumentSpec: a lab's instruments
     ethercat_eds: str | Path | None = None         # an EtherCAT CoE slave with this object dictionary (root)
+    lab: Any = None                                # sim_backend.lab_rig.LabSpec: SCPI power analyser and scope
+    instrument_names: tuple = ()                   # (kind, name) of the bench's [[instruments]]
 
 
 @dataclass
@@ -87,6 +89,9 @@ class Rig:
 def rig_model(spec: RigSpec) -> DriveModel:
     """The rig's drive model, seen through its instruments where the spec has them."""
     model = make_model(spec.motor, spec.seed)
+    if spec.lab is not None:
+        from sim_backend.terminals import TappedModel
+        model = TappedModel(model)
     if spec.instruments is None:
         return model
     # only an instruments rig imports it: its scipy.signal import took 0.5-1.9 s of the first run on every rig
@@ -119,6 +124,8 @@ def build(spec: RigSpec, device: SimulatedDevice | None = None) -> Iterator[Rig]
             _modbus(stack, rig)
         if spec.ethercat_eds is not None:
             _ethercat(stack, rig)
+        if spec.lab is not None:
+            _lab(stack, rig)
         _found_running(device, spec.drive)
         yield rig
 
@@ -229,14 +236,28 @@ def _modbus(stack: contextlib.ExitStack, rig: Rig) -> None:
     stack.callback(stop)
 
 
+def _lab(stack: contextlib.ExitStack, rig: Rig) -> None:
+    from sim_backend.lab_rig import start_lab
+
+    names: dict[str, list[str]] = {}
+    for kind, name in rig.spec.instrument_names:
+        names.setdefault(kind, []).append(name)
+    servers, resources = start_lab(stack, rig.device.model, rig.spec.lab, rig.spec.seed, names)
+    rig.servers.extend(servers)
+    rig.overrides["instruments"] = resources
+    rig.endpoints.update({f"scpi:{name}": resource for name, resource in resources.items()})
+
+
 def rig_spec(sim: SimulatorConfig, *, seed: int, where: str, transport: str | None = None,
              eds: str | Path | None = None, node_id: int = 1, load_transport: str | None = None, load_map: str | Path | None = None,
-             wire_faults: bool = False, serve: SimulatorServeConfig | None = None) -> RigSpec:
+             wire_faults: bool = False, serve: SimulatorServeConfig | None = None,
+             instrument_names: tuple = ()) -> RigSpec:
     """The one place a rig is described from a bench config's [simulator] (with the [drive], [load] and [bench] keys
     the rig needs): in process (the [services] starter, front ends by the bench's transports) or served
     (`sim serve`, front ends on [simulator.serve]'s endpoints)."""
     common = dict(motor=sim.motor, seed=seed, drive=drive_spec(sim), node_id=node_id, wire_faults=wire_faults,
-                  load_map=load_map, instruments=_instruments(sim, where))
+                  load_map=load_map, instruments=_instruments(sim, where), lab=_lab_spec(sim, where),
+                  instrument_names=tuple(instrument_names))
     if serve is None:
         return RigSpec(**common, eds=eds if transport == "canopen" else None,
                        serial=sim.serial_line if transport == "serial" else None,
@@ -260,7 +281,8 @@ def spec_for_bench(bench_cfg: dict, seed: int) -> RigSpec:
     return rig_spec(sim, seed=seed, where=where, transport=drive.get("transport"), eds=drive.get("eds"),
                     node_id=int(drive.get("node_id") or 1), load_transport=load.get("transport"),
                     load_map=load.get("map") if load.get("transport") else None,
-                    wire_faults=bool((bench_cfg.get("bench") or {}).get("wire_faults", False)))
+                    wire_faults=bool((bench_cfg.get("bench") or {}).get("wire_faults", False)),
+                    instrument_names=tuple((i["kind"], i["name"]) for i in bench_cfg.get("instruments") or ()))
 
 
 def _instruments(sim: SimulatorConfig, where: str):
@@ -269,6 +291,14 @@ def _instruments(sim: SimulatorConfig, where: str):
         return None
     from sim_backend.instruments import InstrumentSpec
     return InstrumentSpec.from_table(sim.instruments, f"{where}: simulator.instruments")
+
+
+def _lab_spec(sim: SimulatorConfig, where: str):
+    """[simulator.lab_instruments], checked, or None."""
+    if sim.lab_instruments is None:
+        return None
+    from sim_backend.lab_rig import LabSpec
+    return LabSpec.from_table(sim.lab_instruments, f"{where}: simulator.lab_instruments")
 
 
 def drive_spec(sim: SimulatorConfig) -> DriveSpec | None:

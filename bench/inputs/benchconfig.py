@@ -30,11 +30,12 @@ from drivers.contract.load_map import read_load_map
 from drivers.contract.sections import Section, key
 from drivers.contract.simulator import SimulatorConfig
 from drivers.contract.eds import DeviceDescription, read_eds
+from drivers.contract.instruments import InstrumentConfig, RigTruthsConfig, read_instruments, read_rig_truths
 from drivers.reference import ReferenceConfig
 from drivers.sections import DriveSection, LoadSection
 from drivers.transports import DRIVE_TRANSPORTS, LOAD_TRANSPORTS
 
-_TOP_KEYS = ("bench", "services", "drive", "load", "reference", "simulator")
+_TOP_KEYS = ("bench", "services", "drive", "load", "reference", "simulator", "instruments", "rig_truths")
 
 
 @dataclass(frozen=True)
@@ -70,6 +71,8 @@ class BenchConfig:
     services: ServicesSection = field(default_factory=ServicesSection)
     reference: ReferenceConfig = field(default_factory=ReferenceConfig)
     simulator: SimulatorConfig | None = None
+    instruments: tuple[InstrumentConfig, ...] = ()           # [[instruments]]: a lab's analyser, scope, DAQ
+    rig_truths: RigTruthsConfig | None = None                 # [rig_truths]: measured field angle and flux
 
     @property
     def services_start(self) -> str | None:
@@ -86,15 +89,19 @@ class BenchConfig:
                                "load": dict(self.load), "reference": {"source": self.reference_source}}
         if self.simulator is not None:
             out["simulator"] = dict(self.simulator)
+        if self.instruments:
+            out["instruments"] = [i.as_dict() for i in self.instruments]
         return out
 
     def with_overrides(self, overrides: Mapping[str, Mapping[str, Any]]) -> "BenchConfig":
         """The config with a starter's endpoint overrides ({"drive": {...}, "load": {...}}) merged in."""
-        unknown = set(overrides) - {"drive", "load"}
+        unknown = set(overrides) - {"drive", "load", "instruments"}
         if unknown:
-            raise ValueError(f"a [services] starter may override drive and load only, not {sorted(unknown)}")
+            raise ValueError(f"a [services] starter may override drive, load and instruments only, not {sorted(unknown)}")
+        resources = dict(overrides.get("instruments") or {})     # instrument name -> the resource it serves at
+        instruments = tuple(replace(i, resource=resources.get(i.name, i.resource)) for i in self.instruments)
         return replace(self, drive=_overridden(self.drive, overrides.get("drive")),
-                       load=_overridden(self.load, overrides.get("load")))
+                       load=_overridden(self.load, overrides.get("load")), instruments=instruments)
 
 
 def _overridden(section: Mapping[str, Any], values: Mapping[str, Any] | None) -> Mapping[str, Any]:
@@ -145,12 +152,15 @@ def load_bench_config(path: str | Path, for_probe: bool = False) -> BenchConfig:
     sim_table = problems.table(raw, "simulator", "", required=False)
     if sim_table is not None:
         simulator = SimulatorConfig.read(sim_table, problems, root=root)
+    instruments = read_instruments(raw.get("instruments"), problems)
+    rig_truths = read_rig_truths(raw.get("rig_truths"), instruments, problems)
     if for_probe:
         problems.lines = [line for line in problems.lines if not _probe_tells(line, problems.file)]
     problems.raise_if_any()
     return BenchConfig(path=str(path.resolve()), bench=section, drive=drive, load=load,
                        services=services or ServicesSection(), reference=reference or ReferenceConfig(),
-                       simulator=simulator)
+                       simulator=simulator, instruments=instruments,
+                       rig_truths=rig_truths)
 
 
 def _probe_tells(line: str, file: str) -> bool:
@@ -187,7 +197,8 @@ def measurable_signals(cfg: BenchConfig) -> frozenset[str]:
                                 lambda index: description.has(index) and bool(description.od[index].default),
                                 description.drivebench_kind is not None)
     reference = ReferenceConfig(cfg.reference_source)
-    return (own - reference.not_from_drive()) | frozenset(reference.signals(bool(cfg.load)))
+    truths = frozenset(cfg.rig_truths.signals()) if cfg.rig_truths is not None else frozenset()
+    return (own - reference.not_from_drive()) | frozenset(reference.signals(bool(cfg.load))) | truths
 
 
 def _stamp(path: str) -> tuple[int, int]:

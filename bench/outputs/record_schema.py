@@ -50,6 +50,7 @@ class RunRecord(TypedDict, total=False):
     comm_loss: dict[str, Any]       # the bench-death drill before motion (bench.run.drill): verified, drive, load
     comm_loss_unverified: str       # one line where the config states an external stop chain instead
     drive_warnings: list[dict[str, Any]]   # statusword bit 7 changes: t_s, warning, utc
+    lab_instruments: dict[str, Any]  # [[instruments]]: identities, errors, analyser files, captures (instrument_session)
     sync: dict[str, Any]            # SYNC intervals at the bench (p50/p99/max ms, late, skipped), time base, placement
     # at the end
     trips: list[dict[str, Any]]

@@ -254,6 +254,20 @@ class _Run(RunArming, RunSteps, RunJournal, RunTrips, RunEnding):
         self._rerun_note = {"mode": self.rerun_mode, "url": self.rerun_url, "sinks": self.rerun.sinks}
         self._rerun_stride: int | None = None
         self.recorder.note("rerun", self._rerun_note)
+        self.lab = None                      # the rig's [[instruments]] (bench.run.instrument_session)
+        if self.cfg.rig_truths is not None:
+            truths = self.cfg.rig_truths
+            how = ("the dynamometer encoder's angle since its index, aligned by the recorded step" if
+                   truths.method == "encoder" else "the stator flux integral(v - R_s i) dt of the measured windings")
+            self.recorder.note("instruments", {**self.recorder.record["instruments"], **{
+                name: f"{truths.daq!r} (DAQ record of the run): {how}; judged on instruments/truths.parquet"
+                for name in truths.signals()}})
+        if self.cfg.instruments:
+            from bench.run.instrument_session import InstrumentSession, marked_moment
+            self.lab = InstrumentSession(self.cfg.instruments, self.recorder.run_dir, self.realtime,
+                                         self.sync_period_s, self.drive.control_period_s,
+                                         marked_moment(self.scenario), lambda: self._t_drive, self.warn,
+                                         record_s=float(self.scenario.duration_s), truths=self.cfg.rig_truths)
 
     # -- the run ------------------------------------------------------------------------------------------
 

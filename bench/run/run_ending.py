@@ -40,7 +40,29 @@ class RunEnding:
             return control * int(self.cfg.drive["trace_decimation"]) if control else None
         return self.sync_period_s
 
+    def _lab_truths(self, t, columns, measured):
+        """The rig's measured field angle and flux (bench.run.instrument_session) put on the rows to judge, and
+        saved as instruments/truths.parquet; the measured set grows by what was derived."""
+        try:
+            rows = self.lab.truth_rows(t, columns.get("pos_est_elec_rad"))
+        except Exception as exc:             # the instruments never cost the record: those criteria stay not judged
+            self.recorder.note("lab_instruments", {**self.recorder.record.get("lab_instruments", {}),
+                                                   "truths_error": f"{type(exc).__name__}: {exc}"})
+            return measured
+        if not rows:
+            return measured
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+        pq.write_table(pa.table({TIME_COLUMN: t, **rows}), self.recorder.run_dir / "instruments" / "truths.parquet")
+        columns.update(rows)
+        return measured if measured is None else measured | frozenset(rows)
+
     def _finish(self, abort_reason, error, interrupted, stop_errors) -> RunResult:
+        if self.lab is not None:             # after the safe stop: pull the captures, write instruments/
+            try:
+                self.recorder.note("lab_instruments", self.lab.finish())
+            except Exception as exc:         # the instruments never cost the record
+                self.recorder.note("lab_instruments", {"errors": [f"{type(exc).__name__}: {exc}"]})
         trip = self.supervisor.trip
         if trip is not None:
             self.recorder.note("supervisor_trip", trip.as_dict())
@@ -82,9 +104,14 @@ class RunEnding:
         specs = self.scenario.criteria
         first = min((s.window_s[0] - float(s.params.get("smooth_s") or 0.0) for s in specs), default=0.0) - 1.0
         needed = {name for spec in specs for name in signals_of(spec)}
+        measured = self.measured
+        if self.lab is not None and self.lab.truths is not None:
+            needed.add("pos_est_elec_rad")
         columns = self.recorder.read_back(needed, t_min=first, t_max=duration + 1e-9)
         t = columns.pop(TIME_COLUMN)
-        judged = judge_run(self.scenario, t, columns, measured=self.measured, row_period_s=row_period,
+        if self.lab is not None and self.lab.truths is not None:
+            measured = self._lab_truths(t, columns, measured)
+        judged = judge_run(self.scenario, t, columns, measured=measured, row_period_s=row_period,
                            tolerance=tolerance, abort_reason=abort_reason, error=error, stop_errors=stop_errors,
                            holes=holes)
         del columns, t

@@ -30,6 +30,8 @@ class RunSteps:
         next_progress = 0.0
         last_sample_wall = time.monotonic()
         k = 0
+        if self.lab is not None:           # opened and armed before motion; a fault is a line, never a stop
+            self.lab.start()
         if self.reference_signals:     # the shaft as the reference sensor reads it at t = 0, before the first SYNC
             self._reference_readings.append((0.0, values_from_load(self._load_call(self.load.feedback))))
         self._command(0.0, injections, applied)
@@ -67,6 +69,8 @@ class RunSteps:
                     # commands for the coming SYNC period take the profile's values at its start, and go out now:
                     # in real time a step is on the wire within the SYNC period it falls in
                     self._command(t_drive, injections, applied)
+                if self.lab is not None:
+                    self.lab.tick(t_drive)
             else:
                 silent_s = time.monotonic() - last_sample_wall
                 if self.realtime and silent_s > self._feedback_lost_s:

@@ -78,6 +78,7 @@ class SimulatorConfig(Section):
     event_tpdos_only: bool | None = key(None, kind="boolean")
     boot_delay_s: float | None = key(None, kind="number", min=0)
     instruments: dict | None = key(None, kind="table")              # an instruments rig (sim_backend.instruments)
+    lab_instruments: dict | None = key(None, kind="table")          # SCPI analyser and scope (sim_backend.lab_rig)
     serve: SimulatorServeConfig | None = key(None, kind="table")
 
     GENERIC = ("velocity_unit", "velocity_side", "encoder_increments_per_rev", "gear_ratio", "rated_current_a",
