@@ -21,9 +21,8 @@ import click
 
 from drivers.contract.checks import find_repo_root
 from drivers.contract.errors import InputError
-from drivers.contract.exits import EXIT_ERROR, EXIT_FAIL, EXIT_PASS, guarded
+from drivers.contract.exits import EXIT_FAIL, EXIT_PASS, guarded
 
-SPEED_TRUE_OBJECT = 0x2010       # drivebench extension: EXT_SIGNAL_BASE + index of speed_true_mech_rad_s
 
 
 def _port(cfg: Any, base_dir: Path) -> Any:

@@ -19,7 +19,8 @@ def document(run: Any, bench: str, settings: dict, reference: str, software: dic
     results = [r.as_dict() for r in run.results]
     counts = {k: sum(r["outcome"] == k for r in results) for k in ("pass", "note", "fail", "not_run")}
     return {"schema": SCHEMA, "bench": bench, "identity": run.identity, "started_utc": run.started_utc,
-            "duration_s": run.duration_s, "verdict": "fail" if counts["fail"] else "pass", "counts": counts,
+            "duration_s": run.duration_s, "drive_time_s": run.drive_time_s,
+            "verdict": "fail" if counts["fail"] else "pass", "counts": counts,
             "reference_sensor": reference, "settings": settings, "software": software,
             "safe_end": run.safe_end, "not_restored": run.restore, "tests": results}
 
@@ -44,7 +45,8 @@ def markdown(doc: dict) -> str:
     findings = [(t["name"], f) for t in doc["tests"] for f in t["findings"]]
     if findings:
         lines += ["## Findings", ""] + [f"- `{name}`: {f}" for name, f in findings] + [""]
-    lines += ["## Tests", "", "| test | CiA reference | outcome | time [s] | drive at the end |", "|---|---|---|---|---|"]
+    lines += ["## Tests", "", "| test | CiA reference | outcome | time [s] | drive at the end |",
+              "|---|---|---|---|---|"]
     for t in doc["tests"]:
         lines.append(f"| `{t['name']}` | {t['clause']} | {t['outcome']} | {t['duration_s']} | {t['safe_end']} |")
     for t in doc["tests"]:

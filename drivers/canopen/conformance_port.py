@@ -162,7 +162,7 @@ class CanopenConformancePort:
         return int.from_bytes(self.read_bytes(index, subindex), "little", signed=signed)
 
     def write_bytes(self, index: int, subindex: int, data: bytes) -> None:
-        self._transfer("write", index, subindex, lambda: self.node.sdo.download(index, subindex, data, force_segment=False))
+        self._transfer("write", index, subindex, lambda: self.node.sdo.download(index, subindex, data))
 
     def write(self, index: int, subindex: int, value: int, size: int, signed: bool = False) -> None:
         if index == o.CONTROLWORD:

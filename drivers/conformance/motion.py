@@ -69,10 +69,12 @@ class Context:
         return self.last
 
     # -- state machine --------------------------------------------------------------------------------------
-    def command(self, word: int, wanted: set[State], timeout_s: float = 0.5) -> tuple[State | None, float]:
-        """Controlword, then the statusword until the drive is in `wanted` (cycles pass meanwhile). (state, ms)."""
+    def command(self, word: int | None, wanted: set[State], timeout_s: float = 0.5) -> tuple[State | None, float]:
+        """Controlword (None: none, only wait), then the statusword until the drive is in `wanted` (cycles pass
+        meanwhile). (state, ms)."""
         started = time.monotonic()
-        self.port.set_command(controlword=word)
+        if word is not None:
+            self.port.set_command(controlword=word)
         state = self.state()
         for _ in range(max(1, math.ceil(timeout_s / self.period_s))):
             if state in wanted or time.monotonic() - started > WALL_FACTOR * timeout_s + 1.0:

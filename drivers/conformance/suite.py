@@ -74,6 +74,7 @@ class SuiteRun:
     started_utc: str = ""
     duration_s: float = 0.0
     safe_end: str = ""
+    drive_time_s: float = 0.0           # process-data cycles x period (lockstep: the drive's own time)
 
 
 def snapshot(ctx: Context) -> dict[tuple[int, int], tuple[int, int, bool]]:
@@ -154,4 +155,5 @@ def run_suite(ctx: Context, only: tuple[str, ...] = (), progress: Callable[[Test
         run.results.append(restored)
         run.restore = [f for f in restored.findings]
         run.duration_s = round(time.monotonic() - started, 2)
+        run.drive_time_s = round(ctx.cycles * ctx.period_s, 3)
     return run

@@ -61,7 +61,8 @@ def quick_stop_options(ctx: Context, r: TestResult) -> None:
             r.measured[f"0x605A={code}"] = stop
             expected = (S.SWITCH_ON_DISABLED if code in TO_DISABLED else S.QUICK_STOP_ACTIVE) if code else None
             r.check(f"quick stop, 0x605A = {code}: standstill on {ctx.reference_name}",
-                    f"within {ctx.settings.stop_timeout_s:g} s", f"{stop['stop_time_s']} s, {stop['stop_distance_rad']} rad",
+                    f"within {ctx.settings.stop_timeout_s:g} s",
+                    f"{stop['stop_time_s']} s, {stop['stop_distance_rad']} rad",
                     stop["standstill"], None if stop["stop_time_s"] is None else stop["stop_time_s"] * 1e3)
             r.check(f"quick stop, 0x605A = {code}: state at standstill",
                     expected.label if expected else "QUICK STOP ACTIVE or SWITCH ON DISABLED",
