@@ -79,12 +79,17 @@ def run_conformance(bench_path: str, out_root: Path, only: tuple[str, ...] = (),
             run = run_suite(ctx, only, progress)
         finally:
             port.close()
+            load_end = "no load machine on this rig"
             if load is not None:
                 try:
                     load.zero_and_disable()
+                    load_end = "zero torque, disabled"
+                except Exception as exc:        # said in the report, never masking the suite's own error
+                    load_end = f"could not confirm zero torque: {exc}"
                 finally:
                     load.close()
     doc = document(run, cfg.bench.name, settings.__dict__, reference_name, software_identity())
+    doc["load_end"] = load_end
     return doc, keep(doc, out_root)
 
 

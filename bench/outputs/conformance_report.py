@@ -39,7 +39,7 @@ def markdown(doc: dict) -> str:
              f"software {ident.get('software_version') or '?'}; {doc['started_utc']}; {doc['duration_s']} s", "",
              f"**{doc['verdict'].upper()}**: {c['pass']} pass, {c['note']} note, {c['fail']} fail, "
              f"{c['not_run']} not run. Reference sensor: {doc['reference_sensor']}. Drive at the end: "
-             f"{doc['safe_end']}.", ""]
+             f"{doc['safe_end']}; load machine: {doc.get('load_end', '?')}.", ""]
     if doc["not_restored"]:
         lines += ["## Not restored", ""] + [f"- {line}" for line in doc["not_restored"]] + [""]
     findings = [(t["name"], f) for t in doc["tests"] for f in t["findings"]]
