@@ -156,10 +156,8 @@ class Context:
                 self.command(0x00, {State.SWITCH_ON_DISABLED, State.FAULT})
             elif state not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                 self.command(0x00, {State.SWITCH_ON_DISABLED})
-            while turning and self.cycles < 10**9:          # coasting with the power off: wait, bounded
-                stop = self.measure_stop()
-                turning = not stop["standstill"]
-                break
+            if turning:                                     # coasting with the power off: wait, bounded
+                self.measure_stop()
             final = self.statusword()
             speed = self.speed()
             line = f"{state_name(final)}, shaft {'?' if speed is None else f'{speed:.2f}'} rad/s"
