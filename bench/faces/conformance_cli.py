@@ -90,6 +90,7 @@ def run_conformance(bench_path: str, out_root: Path, only: tuple[str, ...] = (),
                     load.close()
     doc = document(run, cfg.bench.name, settings.__dict__, reference_name, software_identity())
     doc["load_end"] = load_end
+    doc["bench_config"] = str(Path(bench_path).resolve())
     return doc, keep(doc, out_root)
 
 

@@ -91,6 +91,26 @@ def keep(doc: dict, root: Path) -> Path:
     return folder / f"{stamp}.json"
 
 
+def latest_for_bench(root: Path, bench_config: str | Path) -> dict[str, Any] | None:
+    """The newest kept report (latest.json of any drive folder under root) run with this bench config, summarised for
+    the service's rig page; None when there is none. Reads files only."""
+    wanted = str(Path(bench_config).resolve())
+    best = None
+    for path in Path(root).glob("*/latest.json"):
+        try:
+            doc = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        if doc.get("bench_config") == wanted and (best is None or doc["started_utc"] > best[0]["started_utc"]):
+            best = (doc, path)
+    if best is None:
+        return None
+    doc, path = best
+    return {"verdict": doc["verdict"], "counts": doc["counts"], "started_utc": doc["started_utc"],
+            "drive": doc["identity"].get("identity", {}).get("device_name"), "report": str(path.with_suffix(".md")),
+            "findings": [f for t in doc["tests"] for f in t["findings"]][:10]}
+
+
 def compare(a: dict, b: dict) -> dict[str, Any]:
     """Test by test: outcome in A and B, and every measured time that both have."""
     ta, tb = {t["name"]: t for t in a["tests"]}, {t["name"]: t for t in b["tests"]}
