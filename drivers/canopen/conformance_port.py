@@ -23,6 +23,7 @@ from drivers.canopen.config import CanopenDriveConfig
 from drivers.canopen.dispatch import HandlingNetwork, frame_dispatch
 from drivers.canopen.profile import ProfileConfig, resolve
 from drivers.canopen.sdo import SdoAccess
+from drivers.canopen.sync import SyncProducer
 from drivers.conformance.port import CycleAnswer, ObjectAbort, PortError, ProcessDataPdo
 from drivers.contract import objects as o
 from drivers.contract.comm_loss import CommLossConfig
@@ -52,6 +53,7 @@ class CanopenConformancePort:
         self._has: dict[tuple[int, int], bool] = {}
         self._lock = threading.Condition()
         self._frames: dict[int, bytes] = {}
+        self._counts: dict[int, int] = {}
         self._tpdos: list[pdos.Tpdo] = []
         self._rpdo: pdos.Rpdo | None = None
         self._snapshot: pdos.PdoSnapshot | None = None
@@ -63,6 +65,9 @@ class CanopenConformancePort:
         self._consumer_restore: list[tuple[int, int, int]] = []
         self._silent: set[int] = set()
         self.bus_off_reason = ""
+        self._sync: SyncProducer | None = None       # real time: SYNC (and the command RPDO) from a thread
+        self._send_command = True
+        self._sync_errors: list[str] = []
 
     # -- connection ------------------------------------------------------------------------------------------
     def open(self) -> dict[str, Any]:
@@ -125,6 +130,7 @@ class CanopenConformancePort:
         return int.from_bytes(self.read_bytes(index, sub), "little")
 
     def close(self) -> None:
+        self._stop_sync()
         if self._heartbeat_task is not None:
             self._heartbeat_task.stop()
             self._heartbeat_task = None
@@ -193,6 +199,8 @@ class CanopenConformancePort:
         for tpdo in tpdos:
             self.network.subscribe(tpdo.cob, self._on_tpdo)
         self.node.nmt.state = "OPERATIONAL"
+        if self.timing != "lockstep":
+            self._start_sync()
         return [ProcessDataPdo(t.number, tuple((e.index, e.subindex, e.bits) for e in t.entries),
                                not t.event_driven, t.event_timer_ms) for t in tpdos]
 
@@ -208,26 +216,74 @@ class CanopenConformancePort:
                 self.write(o.TARGET_VELOCITY, 0, target, 4, signed=True)
 
     def cycle(self, sync: bool = True, command: bool = True) -> CycleAnswer:
+        if self.timing != "lockstep":
+            return self._realtime_cycle(sync, command)
         with self._lock:
-            self._frames = {}
+            self._frames, self._counts = {}, {}
         if command and self._rpdo is not None:
             frame = self._rpdo.pack({o.CONTROLWORD: self._controlword, o.TARGET_VELOCITY: self._target,
                                      o.MODES_OF_OPERATION: self._mode()})
             self.network.send_message(self._rpdo.cob, frame)
         if not sync:
-            if self.timing != "lockstep":
-                time.sleep(self.period_s)
             return CycleAnswer()
         self.network.send_message(o.SYNC, b"")
         expected = {t.cob for t in self._tpdos if not t.event_driven} - self._silent
-        deadline = time.monotonic() + max(MISSING_GRACE_S, 2 * self.period_s if self.timing != "lockstep" else 0)
+        deadline = time.monotonic() + MISSING_GRACE_S
         with self._lock:
             while not expected <= set(self._frames) and time.monotonic() < deadline:
                 self._lock.wait(max(0.0, deadline - time.monotonic()))
             frames = dict(self._frames)
         self._silent |= expected - set(frames)          # not waited for again until it comes back
         self._silent -= set(frames)
-        answer = CycleAnswer()
+        with self._lock:
+            counts = dict(self._counts)
+        return self._decode(frames, 1, counts)
+
+    def _realtime_cycle(self, sync: bool, command: bool) -> CycleAnswer:
+        """Real time: SYNC comes from the producer thread on its own schedule; a cycle is one period of it and
+        what arrived meanwhile. No SYNC: the producer stops until the next cycle that wants one; no command: the
+        thread leaves the RPDO out."""
+        self._send_command = command
+        if not sync:
+            self._stop_sync()
+            time.sleep(self.period_s)
+            return CycleAnswer()
+        if self._sync is None:
+            self._start_sync()
+        with self._lock:
+            self._frames, self._counts = {}, {}
+            before = self._sync.count
+        time.sleep(self.period_s)
+        with self._lock:
+            frames, counts = dict(self._frames), dict(self._counts)
+        if self._sync_errors:
+            raise PortError(f"{self.where}: {self._sync_errors[-1]}")
+        return self._decode(frames, self._sync.count - before, counts)
+
+    def _start_sync(self) -> None:
+        self._sync = SyncProducer(self._send_sync, self.period_s, self._sync_errors.append)
+        self._sync.start()
+
+    def _stop_sync(self) -> None:
+        if self._sync is not None:
+            self._sync.stop()
+            self._sync = None
+
+    def _send_sync(self, data: bytes) -> None:
+        """The SYNC thread's frames: the command RPDO (where one carries the target), then SYNC; nothing else waits
+        in front of them."""
+        rpdo = self._rpdo
+        frame = None
+        if rpdo is not None and self._send_command:
+            frame = rpdo.pack({o.CONTROLWORD: self._controlword, o.TARGET_VELOCITY: self._target,
+                               o.MODES_OF_OPERATION: self._mode_value})
+        with self.network.send_lock:
+            if frame is not None:
+                self.network.bus.send(can.Message(arbitration_id=rpdo.cob, data=frame, is_extended_id=False))
+            self.network.bus.send(can.Message(arbitration_id=o.SYNC, data=data, is_extended_id=False))
+
+    def _decode(self, frames: dict[int, bytes], syncs: int, counts: dict[int, int]) -> CycleAnswer:
+        answer = CycleAnswer(syncs=syncs, counts={t.number: counts.get(t.cob, 0) for t in self._tpdos})
         for tpdo in self._tpdos:
             data = frames.get(tpdo.cob)
             if data is None:
@@ -239,8 +295,6 @@ class CanopenConformancePort:
                         answer.statusword = value
                     elif entry.role == "_velocity":
                         answer.velocity_raw = value
-        if self.timing != "lockstep":
-            time.sleep(self.period_s)
         return answer
 
     @staticmethod
@@ -272,6 +326,7 @@ class CanopenConformancePort:
             self.node.nmt.state = "OPERATIONAL"
 
     def restore_process_data(self) -> list[str]:
+        self._stop_sync()
         if self._snapshot is None:
             return []
         self.node.nmt.state = "PRE-OPERATIONAL"
@@ -364,6 +419,7 @@ class CanopenConformancePort:
     def _on_tpdo(self, can_id, data, timestamp) -> None:
         with self._lock:
             self._frames[can_id] = bytes(data)
+            self._counts[can_id] = self._counts.get(can_id, 0) + 1
             self._lock.notify_all()
 
 

@@ -17,6 +17,7 @@ from drivers.contract import objects as o
 from drivers.contract.cia402 import POWERED_STATES, Mode, State, decode, state_name, supported_modes
 
 HALT_BIT = 0x0100
+STANDSTILL_FRACTION = 0.02
 WALL_FACTOR = 20.0           # a wait of T drive seconds may take at most this x T (+1 s) of wall time
 
 
@@ -120,10 +121,12 @@ class Context:
 
     def measure_stop(self, done: Callable[[], bool] | None = None) -> dict[str, Any]:
         """After a stop command: cycles until the reference sensor says standstill (or `done`), with the time and the
-        angle the shaft turned meanwhile (sum of |speed| x period: the distance on the reference sensor)."""
-        threshold = self.settings.standstill_mech_rad_s
+        angle the shaft turned meanwhile (sum of |speed| x period: the distance on the reference sensor). Standstill:
+        |speed| at most the bench's standstill threshold or 2 % of the speed the stop began from, whichever is larger
+        (a shaft the drive let go at its own threshold may drift slowly on a reference sensor)."""
         distance, n, speed = 0.0, 0, self.speed()
         start_speed = speed
+        threshold = max(self.settings.standstill_mech_rad_s, STANDSTILL_FRACTION * abs(start_speed or 0.0))
         limit = math.ceil(self.settings.stop_timeout_s / self.period_s)
         started = time.monotonic()
         while n < limit and time.monotonic() - started < WALL_FACTOR * self.settings.stop_timeout_s:
@@ -138,6 +141,7 @@ class Context:
                 "stop_time_s": round(n * self.period_s, 4) if stopped else None,
                 "stop_distance_rad": round(distance, 4), "standstill": stopped,
                 "speed_at_end_mech_rad_s": None if speed is None else round(speed, 3),
+                "standstill_below_mech_rad_s": round(threshold, 3),
                 "state_at_end": state_name(self.statusword())}
 
     def safe_end(self) -> str:

@@ -30,9 +30,11 @@ class PortError(LinkError):
 class CycleAnswer:
     """What one process-data cycle brought: the drive's cyclic frames by PDO number, decoded where known."""
 
-    frames: dict[int, bytes] = field(default_factory=dict)
+    frames: dict[int, bytes] = field(default_factory=dict)      # the last frame of each PDO in the cycle
     statusword: int | None = None
     velocity_raw: int | None = None
+    syncs: int = 0                                               # SYNCs sent in the cycle (lockstep: 1)
+    counts: dict[int, int] = field(default_factory=dict)        # frames received per PDO number in the cycle
 
 
 @dataclass(frozen=True)
@@ -46,6 +48,7 @@ class ProcessDataPdo:
 class ConformancePort(Protocol):
     where: str
     period_s: float                                 # process-data cycle
+    timing: str                                     # "lockstep" (a simulator: drive time per cycle) | "realtime"
 
     # connection --------------------------------------------------------------------------------------------
     def open(self) -> dict[str, Any]:
