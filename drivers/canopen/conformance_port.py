@@ -210,10 +210,8 @@ class CanopenConformancePort:
     def set_command(self, controlword: int | None = None, target: int | None = None) -> None:
         if controlword is not None:
             self.write(o.CONTROLWORD, 0, controlword, 2)
-        if target is not None:
-            self._target = target
-            if self._rpdo is None:
-                self.write(o.TARGET_VELOCITY, 0, target, 4, signed=True)
+        if target is not None:             # by SDO too: the object holds it now, whatever cycles follow
+            self.write(o.TARGET_VELOCITY, 0, target, 4, signed=True)
 
     def cycle(self, sync: bool = True, command: bool = True) -> CycleAnswer:
         if self.timing != "lockstep":

@@ -91,8 +91,23 @@ class Context:
         self.port.set_command(target=0)
         self.port.write(o.MODES_OF_OPERATION, 0, int(self.mode), 1, signed=True)
 
+    def wait_rest(self) -> bool:
+        """Cycles until the reference sensor says standstill (the bench's threshold), bounded by the stop timeout in
+        drive time: never enable onto a turning shaft (a sensorless drive may not catch it), never call a coasting shaft
+        stopped."""
+        started = time.monotonic()
+        for _ in range(math.ceil(self.settings.stop_timeout_s / self.period_s)):
+            speed = self.speed()
+            if speed is None or abs(speed) <= self.settings.standstill_mech_rad_s:
+                return True
+            if time.monotonic() - started > WALL_FACTOR * self.settings.stop_timeout_s:
+                break
+            self.cycle()
+        return False
+
     def enable(self) -> State | None:
-        """SWITCH ON DISABLED -> OPERATION ENABLED at target 0 (transitions 2, 3, 4)."""
+        """SWITCH ON DISABLED -> OPERATION ENABLED at target 0 (transitions 2, 3, 4), the shaft at rest first."""
+        self.wait_rest()
         self.select_mode()
         for word, wanted in ((0x06, State.READY_TO_SWITCH_ON), (0x07, State.SWITCHED_ON),
                              (0x0F, State.OPERATION_ENABLED)):
@@ -157,11 +172,11 @@ class Context:
                 if state is State.OPERATION_ENABLED and turning:
                     self.command(0x02, {State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED})
                     self.measure_stop()
+                self.wait_rest()                            # still powered: the drive holds zero until rest
                 self.command(0x00, {State.SWITCH_ON_DISABLED, State.FAULT})
             elif state not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                 self.command(0x00, {State.SWITCH_ON_DISABLED})
-            if turning:                                     # coasting with the power off: wait, bounded
-                self.measure_stop()
+            self.wait_rest()                                # coasting with the power off: wait, bounded
             final = self.statusword()
             speed = self.speed()
             line = f"{state_name(final)}, shaft {'?' if speed is None else f'{speed:.2f}'} rad/s"

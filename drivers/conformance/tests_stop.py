@@ -68,6 +68,7 @@ def quick_stop_options(ctx: Context, r: TestResult) -> None:
                     expected.label if expected else "QUICK STOP ACTIVE or SWITCH ON DISABLED",
                     end.label if end else "?", end is expected if expected else end in (S.QUICK_STOP_ACTIVE,
                                                                                       S.SWITCH_ON_DISABLED))
+            ctx.wait_rest()                  # 5-7: the drive holds zero; the power goes off at rest, not coasting
             ctx.command(0x00, {S.SWITCH_ON_DISABLED})
     finally:
         if original is not None:
