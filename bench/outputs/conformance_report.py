@@ -22,7 +22,7 @@ def document(run: Any, bench: str, settings: dict, reference: str, software: dic
             "duration_s": run.duration_s, "drive_time_s": run.drive_time_s,
             "verdict": "fail" if counts["fail"] else "pass", "counts": counts,
             "reference_sensor": reference, "settings": settings, "software": software,
-            "safe_end": run.safe_end, "not_restored": run.restore, "tests": results}
+            "safe_end": run.safe_end, "liveness": run.liveness, "not_restored": run.restore, "tests": results}
 
 
 def drive_key(doc: dict) -> str:
@@ -39,7 +39,8 @@ def markdown(doc: dict) -> str:
              f"software {ident.get('software_version') or '?'}; {doc['started_utc']}; {doc['duration_s']} s", "",
              f"**{doc['verdict'].upper()}**: {c['pass']} pass, {c['note']} note, {c['fail']} fail, "
              f"{c['not_run']} not run. Reference sensor: {doc['reference_sensor']}. Drive at the end: "
-             f"{doc['safe_end']}; load machine: {doc.get('load_end', '?')}.", ""]
+             f"{doc['safe_end']}; load machine: {doc.get('load_end', '?')}. Bench heartbeat in the drive during the "
+             f"suite: {doc.get('liveness', '?')}.", ""]
     if doc["not_restored"]:
         lines += ["## Not restored", ""] + [f"- {line}" for line in doc["not_restored"]] + [""]
     findings = [(t["name"], f) for t in doc["tests"] for f in t["findings"]]

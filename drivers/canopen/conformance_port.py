@@ -32,7 +32,8 @@ from drivers.contract.errors import ContentError
 
 NMT_RESET = {"node": 0x81, "communication": 0x82}
 BOOT_WAIT_S = 10.0           # a drive still booting when the suite connects: how long it may take
-MISSING_GRACE_S = 0.02       # a cycle's frames that did not come: waited for this long, then noted missing
+MISSING_GRACE_S = 0.5        # lockstep: a TPDO not yet in is waited for this long (a loaded host), then noted missing and
+                             # not waited for again until it comes back
 
 
 class CanopenConformancePort:

@@ -30,7 +30,7 @@ TESTS: tuple[tuple[str, str, str, Callable[[Context, TestResult], None]], ...] =
     ("identity", f"{CIA301} 7.5.2.1 (0x1000), 7.5.2.22 (0x1018)", "device type 402 and identity", state.identity),
     ("modes", f"{CIA402} 0x6502 / 0x6060 / 0x6061", "supported velocity modes agree with what 0x6060 accepts",
      state.modes),
-    ("transitions", f"{CIA402} state machine, transitions 2-12", "transitions the drive must take",
+    ("transitions", f"{CIA402} state machine, transitions 2-12 (16 observed)", "transitions the drive must take",
      state.transitions),
     ("refused_transitions", f"{CIA402} state machine (undefined commands)", "commands the drive must refuse",
      state.refused_transitions),
@@ -76,6 +76,7 @@ class SuiteRun:
     duration_s: float = 0.0
     safe_end: str = ""
     drive_time_s: float = 0.0           # process-data cycles x period (lockstep: the drive's own time)
+    liveness: str = ""                  # the bench's heartbeat in the drive for the whole suite, or why not
 
 
 def snapshot(ctx: Context) -> dict[tuple[int, int], tuple[int, int, bool]]:
@@ -129,7 +130,12 @@ def run_suite(ctx: Context, only: tuple[str, ...] = (), progress: Callable[[Test
     consumer = ctx.settings.consumer_time_ms
     try:
         ctx.pdos = ctx.port.start_process_data()
-        ctx.port.arm_liveness(consumer)
+        try:
+            ctx.port.arm_liveness(consumer)
+            run.liveness = f"armed: the drive watches the bench ({consumer} ms)"
+        except ObjectAbort as exc:
+            run.liveness = (f"NOT ARMED ({exc}): if the bench dies mid-test, nothing in the drive stops the motor; "
+                            f"comm_loss_reaction says why")
         for name, clause, title, test in TESTS:
             if only and name not in only and name != "found_state":
                 continue

@@ -119,6 +119,25 @@ def _from_disabled(ctx: Context, sequence: tuple[int, ...]) -> bool:
 
 def transitions(ctx: Context, r: TestResult) -> None:
     ctx.select_mode()
+    option = ctx.optional(o.QUICK_STOP_OPTION, signed=True)
+    try:
+        if option is not None:                  # 6: the drive stays in QUICK STOP ACTIVE, so T12 and T16 are reachable
+            ctx.port.write(o.QUICK_STOP_OPTION, 0, 6, 2, signed=True)
+    except ObjectAbort:
+        pass
+    try:
+        _transitions(ctx, r)
+        if _from_disabled(ctx, (0x06, 0x07, 0x0F, 0x02)) and ctx.state() is S.QUICK_STOP_ACTIVE:
+            state, ms = ctx.command(0x0F, {S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE})
+            r.check("T16 enable operation from QUICK STOP ACTIVE (0x605A 5-8; optional)", "observed",
+                    state.label if state else "?", None, ms)
+        ctx.command(0x00, {S.SWITCH_ON_DISABLED})
+    finally:
+        if option is not None:
+            ctx.port.write(o.QUICK_STOP_OPTION, 0, option, 2, signed=True)
+
+
+def _transitions(ctx: Context, r: TestResult) -> None:
     for name, sequence, word, expected in TRANSITIONS:
         if not _from_disabled(ctx, sequence):
             r.check(name, "reached its start state", state_name(ctx.statusword()), False)
@@ -131,7 +150,6 @@ def transitions(ctx: Context, r: TestResult) -> None:
         state, ms = ctx.command(word, wanted)
         r.check(f"{name} (0x6040 = 0x{word:04X})", " or ".join(s.label for s in wanted),
                 state.label if state else state_name(ctx.statusword()), state in wanted, ms)
-    ctx.command(0x00, {S.SWITCH_ON_DISABLED})
 
 
 REFUSED = (
