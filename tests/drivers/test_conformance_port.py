@@ -125,3 +125,25 @@ def test_bad_input_is_one_line_and_exit_2(args, text):
                           cwd=REPO, timeout=120)
     assert proc.returncode == 2 and text in proc.stderr and "Traceback" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_a_drive_that_takes_a_reserved_quick_stop_code_fails_sdo_aborts_and_gets_its_own_back(tmp_path, monkeypatch):
+    import sim_backend.canopen.drive_objects as objects
+
+    monkeypatch.setattr(objects, "QUICK_STOP_OPTIONS", range(-32768, 32768))
+    doc = _doc(tmp_path, ("sdo_aborts",))
+    outcomes = {t["name"]: t for t in doc["tests"]}
+    assert outcomes["sdo_aborts"]["outcome"] == "fail"
+    finding = outcomes["sdo_aborts"]["findings"][0]
+    assert "0x605A = 0x7FFF" in finding and "accepted" in finding
+    assert outcomes["restored"]["outcome"] == "pass"          # 0x605A written back and read back
+
+
+def test_a_drive_that_ignores_0x6007_on_nmt_reset_communication_fails_that_test(tmp_path, monkeypatch):
+    from sim_backend.device import SimulatedDevice
+
+    monkeypatch.setattr(SimulatedDevice, "connection_aborted", lambda self, what: None)
+    doc = _doc(tmp_path, ("nmt_reset_communication", "nmt_reset_node"))
+    outcomes = {t["name"]: t["outcome"] for t in doc["tests"]}
+    assert outcomes["nmt_reset_communication"] == "fail" and outcomes["nmt_reset_node"] == "pass"
+    assert doc["safe_end"].startswith("SWITCH ON DISABLED") and outcomes["restored"] == "pass"
