@@ -119,6 +119,9 @@ def test_a_drive_that_ignores_halt_fails_halt_and_is_still_stopped(tmp_path, mon
 @pytest.mark.parametrize("args, text", [
     (["--bench", "no/such.toml"], "no/such.toml"),
     (["--bench", str(E35), "--only", "nonsense"], "--only: unknown test 'nonsense'"),
+    (["--bench", str(E35), "--compare", "no/such.json"], "no/such.json: not a conformance report"),
+    (["--bench", str(E35), "--compare", str(E35)], "not a conformance report"),
+    (["--bench", str(REPO / "README.md")], "README.md"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args, text):
     proc = subprocess.run([sys.executable, "-m", "bench", "conformance", *args], capture_output=True, text=True,
