@@ -74,7 +74,8 @@ def run_conformance(bench_path: str, out_root: Path, only: tuple[str, ...] = (),
             settings = Settings(consumer_time_ms=int(drive.get("consumer_time_ms") or 500),
                                 abort_option=int(drive.get("abort_option") or 3),
                                 standstill_mech_rad_s=float(drive.get("standstill_mech_rad_s") or 0.5),
-                                stop_timeout_s=float(drive.get("stop_timeout_s") or 5.0))
+                                stop_timeout_s=float(drive.get("stop_timeout_s") or 5.0),
+                                fault_reset=live.bench.fault_reset)
             ctx = Context(port, reference, reference_name, settings, boot=opened["boot"], identity=opened)
             run = run_suite(ctx, only, progress)
         finally:

@@ -31,6 +31,7 @@ class Settings:
     abort_option: int = 3
     gap_periods: int = 10
     continuity_periods: int = 150
+    fault_reset: str = "never"           # [bench] fault_reset: a fault a test left is reset ("once") or ends the suite
 
 
 @dataclass

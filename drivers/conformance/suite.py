@@ -18,6 +18,7 @@ from drivers.conformance.motion import Context
 from drivers.conformance.port import ObjectAbort, PortError
 from drivers.conformance.result import TestResult
 from drivers.contract import objects as o
+from drivers.contract.cia402 import State
 
 CIA301, CIA402 = "CiA 301", "CiA 402-2"
 
@@ -95,6 +96,24 @@ def _rearm(ctx: Context, consumer_ms: int) -> None:
     ctx.port.arm_liveness(consumer_ms)
 
 
+def _fault_left(ctx: Context, r: TestResult) -> str | None:
+    """A test that left the drive in FAULT (not one it provoked and reset itself): with [bench] fault_reset = "once" the
+    fault is reset (said in the test's line); with "never" the suite stops there: a person looks at the drive first.
+    Returns why the suite stops, or None."""
+    if not r.safe_end.startswith("FAULT"):
+        return None
+    code = ctx.optional(o.ERROR_CODE)
+    what = f"the drive is in FAULT after {r.name} (0x603F = {'?' if code is None else f'0x{code:04X}'})"
+    if ctx.settings.fault_reset != "once":
+        r.fail(f"{what}; [bench] fault_reset = \"never\": the suite stops, a person looks at the drive first")
+        return f"{what} and [bench] fault_reset is \"never\": a person looks at the drive first"
+    ctx.command(0x00, {State.FAULT})
+    state, _ = ctx.command(0x80, {State.SWITCH_ON_DISABLED})
+    ctx.port.set_command(controlword=0x00)
+    r.safe_end += f"; {what}, reset ({state.label if state else '?'})"
+    return None
+
+
 def restore_and_check(ctx: Context, saved: dict) -> TestResult:
     r = TestResult("restored", "drivebench (destructive-safe suite)", "parameters and mapping restored, read back")
     for error in ctx.port.restore_process_data() + ctx.port.disarm_liveness():
@@ -157,9 +176,17 @@ def run_suite(ctx: Context, only: tuple[str, ...] = (), progress: Callable[[Test
                 r.duration_s = round(time.monotonic() - t0, 3)
             if "may still turn" in r.safe_end:
                 r.fail(r.safe_end)
+            stop = _fault_left(ctx, r)
             run.results.append(r)
             if progress is not None:
                 progress(r)
+            if stop:
+                for later in [t for t in TESTS if t[0] not in {x.name for x in run.results}]:
+                    if not only or later[0] in only:
+                        skipped = TestResult(later[0], later[1], later[2])
+                        skipped.not_run(stop)
+                        run.results.append(skipped)
+                break
     finally:
         run.safe_end = ctx.safe_end()
         restored = restore_and_check(ctx, saved)

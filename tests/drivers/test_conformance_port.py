@@ -150,3 +150,21 @@ def test_a_drive_that_ignores_0x6007_on_nmt_reset_communication_fails_that_test(
     outcomes = {t["name"]: t["outcome"] for t in doc["tests"]}
     assert outcomes["nmt_reset_communication"] == "fail" and outcomes["nmt_reset_node"] == "pass"
     assert doc["safe_end"].startswith("SWITCH ON DISABLED") and outcomes["restored"] == "pass"
+
+
+def test_a_fault_a_test_leaves_ends_the_suite_when_the_bench_never_resets_faults(tmp_path, monkeypatch):
+    import sim_backend.cia402_device as device
+
+    real = device.next_state
+
+    def stuck(state, word, previous, fault_active):      # a fault nothing resets
+        return state if state is State.FAULT else real(state, word, previous, fault_active)
+    monkeypatch.setattr(device, "next_state", stuck)
+    doc = _doc(tmp_path, ("fault_reset_edge", "halt", "sdo_aborts"))       # sim-generic-e35: fault_reset = "never"
+    outcomes = {t["name"]: t for t in doc["tests"]}
+    assert outcomes["fault_reset_edge"]["outcome"] == "fail"
+    assert outcomes["fault_reset_edge"]["safe_end"].startswith("FAULT")
+    assert any("fault_reset = \"never\"" in f for f in outcomes["fault_reset_edge"]["findings"])
+    for name in ("halt", "sdo_aborts"):
+        assert outcomes[name]["outcome"] == "not_run" and "FAULT after fault_reset_edge" in outcomes[name]["detail"]
+    assert doc["safe_end"].startswith("FAULT") and "may still turn" not in doc["safe_end"]
