@@ -190,6 +190,7 @@ def _fault_and_reset(ctx: Context, r: TestResult) -> None:
     if ctx.enable() is not S.OPERATION_ENABLED:
         r.check("enable before the fault", "OPERATION ENABLED", state_name(ctx.statusword()), False)
         return
+    ctx.port.take_emcy()
     ctx.port.set_command(controlword=0x8F)      # bit 7 high before the fault: its level must not reset it later
     with Timer() as t:
         ctx.port.network_stop()                 # no SDO in NMT STOPPED: the state is read once operational again
@@ -201,6 +202,7 @@ def _fault_and_reset(ctx: Context, r: TestResult) -> None:
                    ms):
         return
     r.measured["error_code_0x603F"] = ctx.optional(o.ERROR_CODE)
+    r.measured["emcy_with_the_fault"] = [f"0x{c:04X}" for c, _ in ctx.port.take_emcy()]
     for name, word in (("fault-reset bit held high (no rising edge)", 0x8F), ("enable operation in FAULT", 0x0F)):
         ctx.port.set_command(controlword=word)
         ctx.cycle()
@@ -210,5 +212,7 @@ def _fault_and_reset(ctx: Context, r: TestResult) -> None:
     state, ms = ctx.command(0x80, {S.SWITCH_ON_DISABLED})
     r.check("T15 fault reset, rising edge of bit 7 (0x0000 -> 0x0080)", "SWITCH ON DISABLED",
             state.label if state else "?", state is S.SWITCH_ON_DISABLED, ms)
+    ctx.cycle()
+    r.measured["emcy_after_the_reset"] = [f"0x{c:04X}" for c, _ in ctx.port.take_emcy()]   # CiA 301: 0x0000 expected
     ctx.port.set_command(controlword=0x00)
 
