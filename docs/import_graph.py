@@ -36,7 +36,7 @@ GROUPS: tuple[tuple[str, str, str, tuple[str, ...]], ...] = (
      ("bench/outputs/",)),
     ("cli", "face: CLI (drivebench, probe checklist)", "bench",
      ("bench/__init__.py", "bench/__main__.py", "bench/faces/__init__.py", "bench/faces/cli.py",
-      "bench/faces/checklist.py")),
+      "bench/faces/checklist.py", "bench/faces/conformance_cli.py")),
     ("service", "face: HTTP service (queue, DB, runner)", "bench", ("bench/service/",)),
     ("campaigns", "face: campaigns", "bench", ("bench/faces/campaign",)),
     ("pytest", "face: pytest plugin", "bench", ("bench/faces/pytest_plugin.py",)),

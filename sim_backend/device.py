@@ -27,6 +27,8 @@ from sim_backend.trace import TraceRecorder
 
 STANDSTILL_MECH_RAD_S = 0.5     # quick stop options 1-3: switch on disabled once the estimate is below this
 QUICK_STOP_TO_DISABLED = (1, 2, 3)
+QUICK_STOP_OPTIONS = (0, 1, 2, 3, 5, 6, 7)   # 0x605A codes this drive has (4 and 8: current/voltage limit, not)
+HALT_BIT = 0x0100
 VELOCITY_MODES = (Mode.PROFILE_VELOCITY, Mode.CYCLIC_SYNC_VELOCITY)   # the firmware follows the target in either
 
 
@@ -129,6 +131,23 @@ class SimulatedDevice:
             self._watchdogs.stop()
             self._watchdogs = None
 
+    def connection_aborted(self, what: str) -> None:
+        """CiA 402 0x6007 on an NMT stop / reset communication / reset application while powered (CiA 402-2 0x6007:
+        bus-off, heartbeat, NMT stopped, reset application, reset communication)."""
+        with self.lock:
+            if not self.device.power_enabled:
+                return
+            option = self.abort_connection_option
+            self.faults.self_stops.append(f"drive: {what}, 0x6007 = {option}")
+            if option == 1:
+                self.device.fault(EMCY_HEARTBEAT)
+            elif option == 2:
+                self.device.write_controlword(Command.DISABLE_VOLTAGE)
+            elif option == 3 and self.device.state is State.OPERATION_ENABLED:
+                self.device.write_controlword(Command.QUICK_STOP)
+                self._quick_stop_done_at_standstill()
+            self._apply_outputs()
+
     def _master_lost(self, silent_s: float) -> None:
         """CiA 402 0x6007 abort connection option: the drive's own reaction to a lost master."""
         option = self.abort_connection_option
@@ -178,7 +197,8 @@ class SimulatedDevice:
 
     def _apply_outputs(self) -> None:
         self.model.set_enabled(self.device.power_enabled)
-        running = self.device.state is State.OPERATION_ENABLED and self.mode_of_operation in VELOCITY_MODES
+        running = (self.device.state is State.OPERATION_ENABLED and self.mode_of_operation in VELOCITY_MODES
+                   and not self.device.controlword & HALT_BIT)      # halt (bit 8): brake to zero, stay enabled
         self.model.set_speed_ref(self.target_speed_mech_rad_s if running else 0.0)
 
     def advance(self, n_steps: int) -> np.ndarray:

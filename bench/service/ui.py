@@ -194,6 +194,7 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
     @app.get("/rigs/{name}", response_class=HTMLResponse)
     def rig_page(request: Request, name: str):
         from bench.service.probes import last_probe
+        from bench.outputs.conformance_report import latest_for_bench
         from bench.service.rig_page import current_run, drive_of_last_run, last_finished, rig_scenarios
 
         s = svc()
@@ -205,7 +206,8 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
         return page(request, "rig.html", rig=rig, bench_shown=shown, runs=runs,
                     current=current_run(s, name), last=last_finished(s, name),
                     probe=last_probe(s.db, name), run_drive=drive_of_last_run(runs),
-                    scenarios=rig_scenarios(s.settings.scenario_root, rig["bench"]))
+                    scenarios=rig_scenarios(s.settings.scenario_root, rig["bench"]),
+                    conformance=latest_for_bench(s.settings.scenario_root.parent / "conformance", rig["bench"]))
 
     @app.post("/ui/rigs/{name}/reserve")
     def ui_reserve(request: Request, name: str, hours: float = Form(...), reason: str = Form("")):

@@ -18,7 +18,7 @@ from drivers.contract.cia402 import FAULT_RESET_BIT, State
 from drivers.contract.signals import SIGNAL_INDEX, SIGNAL_NAMES
 from drivers.contract.units import decode_velocity_unit, MRAD_PER_S, VelocityScale
 from drivers.contract.errors import ContentError
-from sim_backend.device import SimulatedDevice
+from sim_backend.device import QUICK_STOP_OPTIONS, SimulatedDevice
 
 log = logging.getLogger(__name__)
 
@@ -124,7 +124,8 @@ class Cia402Objects:
                 dev.write_controlword(value)
             self._on_controlword()
         elif index == o.MODES_OF_OPERATION:
-            if self.supported_modes is not None and value and not self.supported_modes >> (value - 1) & 1:
+            if self.supported_modes is not None and value and not (0 < value <= 32 and
+                                                                   self.supported_modes >> (value - 1) & 1):
                 raise SdoAbortedError(o.ABORT_INVALID_VALUE)
             with dev.lock:
                 dev.mode_of_operation = value
@@ -140,6 +141,8 @@ class Cia402Objects:
                 raise SdoAbortedError(o.ABORT_INVALID_VALUE) from None
             self.units.velocity = scale
         elif index == o.QUICK_STOP_OPTION:
+            if value not in QUICK_STOP_OPTIONS:
+                raise SdoAbortedError(o.ABORT_INVALID_VALUE)
             with dev.lock:
                 dev.quick_stop_option = value
         elif index == o.ABORT_CONNECTION_OPTION:

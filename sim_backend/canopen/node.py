@@ -63,7 +63,7 @@ class SimCanopenNode:
         self.od = od
         self.node = DriveLocalNode(node_id, od)
         self.cia402 = Cia402Objects(device, self._emcy_reset_if_cleared, generic.units(od, spec),
-                                    supported_modes=CSV_ONLY_MODES if spec.csv_only else None)
+                                    supported_modes=CSV_ONLY_MODES if spec.csv_only else _eds_modes(od))
         if generic.is_drivebench(od):
             self.extension: ExtensionObjects | None = ExtensionObjects(device, od)
             self._handlers = (self.cia402, self.extension)
@@ -101,6 +101,7 @@ class SimCanopenNode:
         nmt.start_heartbeat = self.heartbeat.set_period_ms
         nmt.stop_heartbeat = lambda: self.heartbeat.set_period_ms(0)
         nmt.update_heartbeat = lambda: None   # the producer reads the state when it sends
+        nmt.on_command = self._on_nmt_command
         self._boot_timer: threading.Timer | None = None
         if spec.boot_delay_s > 0:             # still booting: not on the bus (no SDO, no SYNC) until the boot-up
             self._boot_timer = threading.Timer(spec.boot_delay_s, self._boot)
@@ -113,6 +114,34 @@ class SimCanopenNode:
         """On the bus: SDO server, NMT and SYNC answered; boot-up message, then PRE-OPERATIONAL with heartbeat."""
         self.network.add_node(self.node)
         self.network.subscribe(o.SYNC, self._on_sync)
+        self.node.nmt.send_command(NMT_START_BOOT_UP)
+        self.node.nmt.send_command(NMT_ENTER_PRE_OPERATIONAL)
+
+    def _on_nmt_command(self, can_id, data, timestamp) -> None:
+        """NMT as a drive does it: stop / reset communication / reset node while powered apply 0x6007 (CiA 402); a
+        reset restores the communication objects (0x1000-0x1FFF; reset node: every object) to their power-on values
+        and ends with the boot-up message, then PRE-OPERATIONAL. canopen's NmtSlave only changes the state."""
+        if len(data) < 2 or data[1] not in (self.node_id, 0):
+            return
+        command = data[0]
+        if command in (0x02, 0x81, 0x82):
+            self.device.connection_aborted({0x02: "NMT stop", 0x81: "NMT reset node",
+                                            0x82: "NMT reset communication"}[command])
+        if command not in (0x81, 0x82):
+            type(self.node.nmt).on_command(self.node.nmt, can_id, data, timestamp)
+            return
+        if command == 0x81:
+            self.device.write_controlword(0)            # the application restarts: power stage off
+            self.node.data_store.clear()
+            for index in (o.QUICK_STOP_OPTION, o.ABORT_CONNECTION_OPTION):
+                if index in self.od and self.od[index].default is not None:
+                    self.cia402.write(index, 0, self.od[index], int(self.od[index].default))
+        else:
+            for index in [i for i in self.node.data_store if 0x1000 <= i < 0x2000]:
+                del self.node.data_store[index]
+        self.consumer.configure([])
+        self.steps_per_sync = self._read_steps_per_sync()
+        self._rebuild_pdos()
         self.node.nmt.send_command(NMT_START_BOOT_UP)
         self.node.nmt.send_command(NMT_ENTER_PRE_OPERATIONAL)
 
@@ -153,7 +182,8 @@ class SimCanopenNode:
             return
         if index == o.COMM_CYCLE_PERIOD:
             steps = value * 1e-6 / self.device.model.control_period_s
-            if value == 0 or abs(steps - round(steps)) > 1e-6:
+            own = value in (od.default, od.value)          # a drive takes its own power-on value back
+            if (value == 0 or abs(steps - round(steps)) > 1e-6) and not own:
                 raise SdoAbortedError(o.ABORT_INVALID_VALUE)
         elif index in PDO_PARAMETERS:
             self.pdos.check_write(index, subindex, value)
@@ -257,6 +287,13 @@ class SimCanopenNode:
             self._boot_timer.cancel()
         self.heartbeat.close()
         self.network.disconnect()
+
+
+def _eds_modes(od: objectdictionary.ObjectDictionary) -> int | None:
+    """0x6502 as the EDS gives it: the modes 0x6060 accepts (None: no 0x6502, every mode accepted)."""
+    if o.SUPPORTED_DRIVE_MODES in od and od[o.SUPPORTED_DRIVE_MODES].default:
+        return int(od[o.SUPPORTED_DRIVE_MODES].default)
+    return None
 
 
 class _ErrorLogger(can.Listener):
