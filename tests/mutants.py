@@ -326,7 +326,7 @@ CHEAT_MUTANTS = [
            "> 0.1 elec rad or the speeds by > 2 mech rad/s", MODE=WATCHDOG, ALPHA=0.1, THRESH=2.0),
     _cheat("pmsm", TRANSIENT, "watchdog_0.3rad", "estimator snapped to the encoder when the angles differ by "
            "> 0.3 elec rad or the speeds by > 5 mech rad/s", MODE=WATCHDOG, ALPHA=0.3, THRESH=5.0),
-    _cheat("pmsm", REGION, "encoder_above_2.5A", "encoder in the loops while |i_sy| > 2.5 A (high load)",
+    _cheat("pmsm", REGION, "encoder_above_2.5A", "encoder in the loops while abs(i_sy) > 2.5 A (high load)",
            MODE=HIGH_LOAD, THRESH=2.5),
     _cheat("pmsm", TEST_AWARE_CLASS, "honest_after_first_write",
            "encoder in the loops until the first hook or parameter write, the MRAS after it", MODE=TEST_AWARE),
@@ -348,7 +348,7 @@ CHEAT_MUTANTS = [
            WINDOW=0.5),
     _cheat("spim", TRANSIENT, "watchdog_1rads", "speed estimate and slip snapped to the tachometer when they "
            "differ by > 1 rad/s", MODE=WATCHDOG, THRESH=1.0),
-    _cheat("spim", REGION, "tach_above_2A", "tachometer in the speed loop while |i_sq| > 2 A (high load)",
+    _cheat("spim", REGION, "tach_above_2A", "tachometer in the speed loop while abs(i_sq) > 2 A (high load)",
            MODE=HIGH_LOAD, THRESH=2.0),
     _cheat("spim", REGION, "tach_below_100rpm", "tachometer in the speed loop below 100 r/min (very low speed)",
            MODE=LOW_SPEED, ALPHA=1.0, THRESH=10.472),
