@@ -5,6 +5,9 @@ there. The full sweeps (honest seeds 1-20, every cheat on seeds 1-5) are `python
 
 from __future__ import annotations
 
+import hashlib
+import json
+
 import pytest
 
 from bench.signatures.run import run_drawn
@@ -22,6 +25,10 @@ def test_the_honest_firmware_passes_its_drawn_signature_and_one_cheat_per_class_
     honest = run_drawn(drive, 1, tmp_path)
     assert honest.verdict == "pass" and not honest.failed, honest.failed
     assert (honest.run_dir / "drawn.toml").is_file() and (honest.run_dir / "drawn.json").is_file()
+    record = json.loads((honest.run_dir / "record.json").read_text())
+    assert record["signature_draws"]["points"] == json.loads(json.dumps(honest.points))   # the draws, in the record
+    assert record["verdict"] == "pass" and record["seed"] == 1
+    assert hashlib.sha256((honest.run_dir / "drawn.toml").read_bytes()).hexdigest() == record["scenario"]["sha256"]
     weak = {}
     for name in ONE_PER_CLASS[drive]:
         mutant = next(m for m in CHEAT_MUTANTS if m.drive == drive and m.name == name)
