@@ -32,7 +32,8 @@ from bench.inputs.scenario import load_scenario  # noqa: E402
 from bench.signatures.draws import draw  # noqa: E402
 from bench.signatures.run import run_drawn  # noqa: E402
 
-FIXED = sorted(REPO.glob("scenarios/pmsm-rig/sig-shaft-*.toml")) + sorted(REPO.glob("scenarios/spim-rig/sig-shaft-*.toml"))
+FIXED = [*sorted(REPO.glob("scenarios/pmsm-rig/sig-shaft-*.toml")),
+         *sorted(REPO.glob("scenarios/spim-rig/sig-shaft-*.toml"))]
 
 # what a criterion judges, for the kill table (the names carry the drawn values)
 LABELS = [

@@ -9,9 +9,9 @@ starts and ends at steady state:
 with D the reference step (mech rad/s), R the firmware's reference ramp, dT_L the load-torque change, B the viscous
 friction, and the PI's k_i = J^ w_c^2 z / K_t^ (K_t^ = K_t: the torque current change is (dT_L + B D)/K_t).
 
-SPIM (ISFOC paper): the slip PI makes the model q-current of eq. (33), with the firmware's tau_r^ = L_r / R_r^, equal the
-measured one, which the machine sets with its true tau_r; the speed loop holds w^ = (w_s - w^_sl)/n_p at the reference,
-so the shaft runs (w^_sl - w_sl)/n_p faster (i_sq = T_e / (n_p phi), eq. 27).
+SPIM (ISFOC paper): the slip PI makes the model q-current of eq. (33), with the firmware's tau_r^ = L_r / R_r^,
+equal the measured one, which the machine sets with its true tau_r; the speed loop holds w^ = (w_s - w^_sl)/n_p at
+the reference, so the shaft runs (w^_sl - w_sl)/n_p faster (i_sq = T_e / (n_p phi), eq. 27).
 """
 
 from __future__ import annotations
@@ -48,7 +48,8 @@ class PmsmData:
     def shaft_angle(self, kick: float, step: float, load_change: float) -> float:
         """int (w - w*_step) dt over a window from before to after the events, mech rad."""
         ki_kt = self.inertia_fw * self.speed_bw ** 2 * self.zero_fraction
-        return kick / self.pole_pairs - step * abs(step) / (2.0 * self.ramp) - (load_change + self.viscous * step) / ki_kt
+        ramp_lag = step * abs(step) / (2.0 * self.ramp)
+        return kick / self.pole_pairs - ramp_lag - (load_change + self.viscous * step) / ki_kt
 
 
 @dataclass(frozen=True)
