@@ -38,7 +38,7 @@ GROUPS: tuple[tuple[str, str, str, tuple[str, ...]], ...] = (
      ("bench/__init__.py", "bench/__main__.py", "bench/faces/__init__.py", "bench/faces/cli.py",
       "bench/faces/checklist.py", "bench/faces/conformance_cli.py")),
     ("service", "face: HTTP service (queue, DB, runner)", "bench", ("bench/service/",)),
-    ("campaigns", "face: campaigns", "bench", ("bench/faces/campaign",)),
+    ("campaigns", "face: campaigns, drawn signatures", "bench", ("bench/faces/campaign", "bench/signatures/")),
     ("pytest", "face: pytest plugin", "bench", ("bench/faces/pytest_plugin.py",)),
     ("sim_drives", "simulated drives: plant, inverter, firmware, instruments", "sim_backend",
      ("sim_backend/pmsm/", "sim_backend/spim/", "sim_backend/drive.py", "sim_backend/drive_model.py",

@@ -38,6 +38,7 @@ class RunRecord(TypedDict, total=False):
     rerun: dict[str, Any]
     data_source: str                # "trace" (the drive's recorder) or "pdo"
     trace_signals: list[str]
+    signature_draws: dict[str, Any]  # a drawn signature's points and predictions (bench/signatures/run.py)
     trace_decimation: int
     live_signals: list[str]
     measured_signals: list[str]
