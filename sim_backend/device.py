@@ -58,6 +58,11 @@ class SimulatedDevice:
     load_watchdog: Watchdog = field(default_factory=lambda: Watchdog("load machine"))
     _watchdogs: WatchdogThread | None = None
     on_master_lost: list = field(default_factory=list)     # front ends' own reactions (CANopen: 0x1029)
+    # vendor quirks (sim_backend.canopen.generic.DriveSpec): bit 9 (remote) drops after this much OPERATION ENABLED
+    # drive time, or is 0 from power-on; a drive in local control ignores the controlword and keeps its target
+    remote_drops_after_s: float | None = None
+    local_control: bool = False
+    _enabled_steps: int = 0
 
     @property
     def time_s(self) -> float:
@@ -70,7 +75,8 @@ class SimulatedDevice:
         with self.lock:
             self.model = model
             self.trace.clear()
-            self.device = Cia402Device()
+            self.device = Cia402Device(remote=not self.local_control)
+            self._enabled_steps = 0
             self.mode_of_operation = Mode.PROFILE_VELOCITY
             self.target_speed_mech_rad_s = 0.0
             self.load = LoadMachineRegisters()
@@ -84,8 +90,26 @@ class SimulatedDevice:
     def write_controlword(self, word: int) -> None:
         with self.lock:
             self.faults.log(ControlwordWritten(word))
+            if not self.device.remote:
+                return                       # local control: the bench's controlword is not obeyed
             self.device.write_controlword(word, fault_active=self._fault_code() != 0)
             self._apply_outputs()
+
+    def set_target(self, speed_mech_rad_s: float) -> None:
+        """0x60FF / the serial SPEED command: ignored in local control (the drive keeps its last target)."""
+        with self.lock:
+            if self.device.remote:
+                self.target_speed_mech_rad_s = speed_mech_rad_s
+
+    def _remote_drop(self, n_steps: int) -> None:
+        if self.remote_drops_after_s is None or not self.device.remote:
+            return
+        if self.device.state is State.OPERATION_ENABLED:
+            self._enabled_steps += n_steps
+            if self._enabled_steps * self.model.control_period_s >= self.remote_drops_after_s:
+                self.device.remote = False
+                self.faults.self_stops.append(f"drive: statusword bit 9 (remote) dropped at t={self.time_s:.3f} s: "
+                                              f"local control, target {self.target_speed_mech_rad_s:g} rad/s kept")
 
     def reset_fault(self) -> None:
         with self.lock:
@@ -184,6 +208,7 @@ class SimulatedDevice:
     def advance(self, n_steps: int) -> np.ndarray:
         """Run n control periods; feed the trace recorder; detect faults. Returns the telemetry block."""
         with self.lock:
+            self._remote_drop(n_steps)
             self._apply_outputs()
             block = self.model.step(n_steps)
             self.trace.push(self.step_count + 1, block, self.device.power_enabled)

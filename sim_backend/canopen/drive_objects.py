@@ -129,8 +129,7 @@ class Cia402Objects:
             with dev.lock:
                 dev.mode_of_operation = value
         elif index == o.TARGET_VELOCITY:
-            with dev.lock:
-                dev.target_speed_mech_rad_s = self.units.velocity.to_rad_s(value)
+            dev.set_target(self.units.velocity.to_rad_s(value))
         elif index == o.SI_UNIT_VELOCITY:
             try:
                 unit = decode_velocity_unit(value)

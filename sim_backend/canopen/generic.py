@@ -17,7 +17,9 @@ device does.
 
 Quirks real drives have, as options: `csv_only` (0x6502 = 0x100, 0x6060 = 3 aborted with 0x06090030),
 `event_tpdos_only` (0x18xx sub 2 refuses 0-240; TPDOs go out on change and every event timer 0x18xx sub 5 of drive
-time), `boot_delay_s` (no answer at all until the boot-up message 0x700 + id, data 00).
+time), `boot_delay_s` (no answer at all until the boot-up message 0x700 + id, data 00), `remote_drops_after_s`
+(statusword bit 9 drops mid-run, the drive keeps its target and ignores the controlword; its comm-loss reaction still
+acts), `local_control` (bit 9 = 0 from power-on).
 """
 
 from __future__ import annotations
@@ -53,6 +55,9 @@ class DriveSpec:
     csv_only: bool = False                    # 0x6502 = 0x100: cyclic synchronous velocity, no profile velocity
     event_tpdos_only: bool = False            # TPDO transmission types 0-240 (SYNC) refused: 254/255 + event timer
     boot_delay_s: float = 0.0                 # silent this long after power-up, then the NMT boot-up message
+    remote_drops_after_s: float | None = None # statusword bit 9 drops after this much OPERATION ENABLED drive time;
+                                              # from then on controlword and target are ignored (local control)
+    local_control: bool = False               # bit 9 = 0 from power-on: the controlword is ignored
 
 
 def is_drivebench(od: objectdictionary.ObjectDictionary) -> bool:

@@ -56,6 +56,9 @@ class SimCanopenNode:
         self.spec = spec
         self.added_objects = generic.add_missing_standard_objects(od, spec.comm_loss_objects, spec.comm_loss_reaction)
         device.cia402_comm_loss_reaction = spec.comm_loss_reaction
+        device.remote_drops_after_s = spec.remote_drops_after_s
+        device.local_control = spec.local_control
+        device.device.remote = not spec.local_control
         self._tpdo_stop = (None if spec.tpdo_stops_after_s is None else
                            (spec.tpdo_stops_after_s, spec.tpdo_stops))   # after this much operational drive time
         self._operational_since: float | None = None
