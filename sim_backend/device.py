@@ -15,6 +15,8 @@ import numpy as np
 
 from drivers.contract import parameters
 from drivers.contract.objects import EMCY_HEARTBEAT, EMCY_OVERCURRENT
+
+EMCY_TEMPERATURE_WARNING = 0x4310     # CiA 301 device temperature: a warning a drive sends and runs on
 from drivers.contract.cia402 import Command, Mode, State
 from drivers.contract.parameters import ParamKind
 from drivers.contract.signals import SIGNAL_NAMES
@@ -62,6 +64,8 @@ class SimulatedDevice:
     # drive time, or is 0 from power-on; a drive in local control ignores the controlword and keeps its target
     remote_drops_after_s: float | None = None
     local_control: bool = False
+    warning_emcy_after_s: float | None = None   # EMCY 0x4310 + bit 7 after this much OPERATION ENABLED drive time
+    comm_loss_delay_s: float = 0.0              # the comm-loss reaction this much after the consumer time
     _enabled_steps: int = 0
 
     @property
@@ -102,10 +106,15 @@ class SimulatedDevice:
                 self.target_speed_mech_rad_s = speed_mech_rad_s
 
     def _remote_drop(self, n_steps: int) -> None:
+        if self.device.state is State.OPERATION_ENABLED:
+            self._enabled_steps += n_steps
+        enabled_s = self._enabled_steps * self.model.control_period_s
+        if self.warning_emcy_after_s is not None and not self.device.warning and enabled_s >= self.warning_emcy_after_s:
+            self.device.warning = True
+            self.pending_emcy.append(EMCY_TEMPERATURE_WARNING)
         if self.remote_drops_after_s is None or not self.device.remote:
             return
         if self.device.state is State.OPERATION_ENABLED:
-            self._enabled_steps += n_steps
             if self._enabled_steps * self.model.control_period_s >= self.remote_drops_after_s:
                 self.device.remote = False
                 self.faults.self_stops.append(f"drive: statusword bit 9 (remote) dropped at t={self.time_s:.3f} s: "
@@ -155,6 +164,19 @@ class SimulatedDevice:
 
     def _master_lost(self, silent_s: float) -> None:
         """CiA 402 0x6007 abort connection option: the drive's own reaction to a lost master."""
+        if self.comm_loss_delay_s > 0:
+            timer = threading.Timer(self.comm_loss_delay_s, self._master_lost_late, (silent_s + self.comm_loss_delay_s,))
+            timer.daemon = True
+            timer.start()
+            return
+        self._react_to_master_lost(silent_s)
+
+    def _master_lost_late(self, silent_s: float) -> None:
+        with self.lock:
+            if self.master_watchdog.tripped:
+                self._react_to_master_lost(silent_s)
+
+    def _react_to_master_lost(self, silent_s: float) -> None:
         option = self.abort_connection_option
         what = {1: "fault", 2: "disable voltage", 3: "quick stop"}.get(option, "no action")
         self.pending_emcy.append(EMCY_HEARTBEAT)

@@ -8,6 +8,7 @@ import time
 from datetime import datetime, timezone
 
 from bench.run.load_emulation import SPEED_SIGNAL
+from bench.run.supervisor import is_warning
 from bench.run.run_periods import FETCH_PERIOD_S, LOAD_POLL_PERIOD_S, PROGRESS_PERIOD_S, STALL_TIMEOUT_S, STATUS_PERIOD_S
 from drivers.contract.errors import LinkError
 from drivers.api import LiveSample
@@ -77,7 +78,7 @@ class RunSteps:
 
             if t_drive >= next_status:
                 status = self.drive.status()
-                self._note_warning(t_drive, status.warning)
+                self._note_warning(t_drive, status.warning, status)
                 self.supervisor.feed_status(t_drive, status)
                 next_status = t_drive + STATUS_PERIOD_S
             if t_drive >= next_load_poll and self.load is not None:
@@ -107,8 +108,14 @@ class RunSteps:
             return self.supervisor.trip.message + self._drive_fault_behind(self.supervisor.trip)
         return None
 
-    def _note_warning(self, t_s: float, on: bool) -> None:
-        """The statusword's warning bit (CiA 402 bit 7): every change, as an event in the record."""
+    def _note_warning(self, t_s: float, on: bool, status=None) -> None:
+        """The statusword's warning bit (CiA 402 bit 7): every change, as an event in the record; with the warning
+        EMCYs that came while the drive ran on (bench.run.supervisor.is_warning)."""
+        if status is not None and status.emcy and is_warning(status):
+            self.drive_warnings.extend({"t_s": t_s, "warning": on, "emcy": f"0x{code:04X} {text}",
+                                        "utc": datetime.now(timezone.utc).isoformat(timespec="milliseconds")}
+                                       for code, text in status.emcy if code)
+            self.recorder.note("drive_warnings", self.drive_warnings)
         if on == self._warning:
             return
         self._warning = on

@@ -64,13 +64,19 @@ def check_sample(limits: SupervisorLimits, t_s: float, values: dict[str, float])
     return None
 
 
+def is_warning(status: DriveStatus) -> bool:
+    """An EMCY with the statusword's warning bit (7) set and the drive still OPERATION ENABLED: the drive warns and
+    runs on (docs/rig.md); recorded and shown, not a trip. A fault shows in the state machine."""
+    return status.warning and not status.fault and status.state == "OPERATION ENABLED"
+
+
 def check_status(t_s: float | None, status: DriveStatus) -> Trip | None:
     when = "" if t_s is None else f" at t={t_s:.4f} s"
     if status.fault:
         return Trip("fault", t_s, {}, f"drive fault{when} (state {status.state})"
                     + "".join(f"; EMCY 0x{code:04X} {text}" for code, text in status.emcy))
     errors = [(code, text) for code, text in status.emcy if code != 0]  # 0x0000 = error reset
-    if errors:
+    if errors and not is_warning(status):
         code, text = errors[0]
         return Trip("emcy", t_s, {"emcy_code": float(code)}, f"EMCY 0x{code:04X} {text}{when}")
     if status.control_lost:

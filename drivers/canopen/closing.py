@@ -14,15 +14,21 @@ from drivers.contract.errors import LinkError
 
 log = logging.getLogger(__name__)
 
+GUARD_TIME = 0x100C
 NMT_COMMANDS = {"stop": "STOPPED", "reset": "RESET"}   # [drive] last_resort_nmt
 
 
 def set_producer_heartbeat(link: Any, period_ms: int) -> None:
     """0x1017 at `period_ms`, the drive's own value kept for close (item: 0x1017 is restored like the rest)."""
     sdo = link.sdo
-    if not sdo.has(o.PRODUCER_HEARTBEAT):
+    before = sdo.read_standard(o.PRODUCER_HEARTBEAT, 0)      # the device's word, not the EDS's
+    if before is None:
+        if sdo.read_standard(GUARD_TIME, 0) is not None:
+            raise LinkError(f"{link.where}: the drive has node guarding (0x100C guard time, 0x100D life time factor) "
+                            f"and no heartbeat (0x1016 consumer, 0x1017 producer): drivebench's comm-loss mechanism is "
+                            f"the CiA 301 heartbeat, proved by its drill, and node guarding is not supported; enable "
+                            f"the drive's heartbeat (its manual or firmware: 0x1016/0x1017) to run it")
         return
-    before = sdo.read_standard(o.PRODUCER_HEARTBEAT, 0)
     sdo.write(o.PRODUCER_HEARTBEAT, 0, period_ms)
     if before is not None and before != period_ms:
         link.report["producer_heartbeat_0x1017"] = {"drive_had_ms": before, "bench_set_ms": period_ms}

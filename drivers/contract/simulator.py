@@ -79,13 +79,19 @@ class SimulatorConfig(Section):
     boot_delay_s: float | None = key(None, kind="number", min=0)
     remote_drops_after_s: float | None = key(None, kind="number", min=0)
     local_control: bool | None = key(None, kind="boolean")
+    mode_display_delay_s: float | None = key(None, kind="number", min=0)
+    warning_emcy_after_s: float | None = key(None, kind="number", min=0)
+    target_sdo_only_enabled: bool | None = key(None, kind="boolean")
+    node_guarding: bool | None = key(None, kind="boolean")
+    comm_loss_delay_s: float | None = key(None, kind="number", min=0)
     instruments: dict | None = key(None, kind="table")              # an instruments rig (sim_backend.instruments)
     serve: SimulatorServeConfig | None = key(None, kind="table")
 
     GENERIC = ("velocity_unit", "velocity_side", "encoder_increments_per_rev", "gear_ratio", "rated_current_a",
                "rated_torque_nm", "fixed_pdo_mapping", "comm_loss_reaction", "found_running_mech_rad_s",
                "tpdo_stops_after_s", "tpdo_stops", "csv_only", "event_tpdos_only", "boot_delay_s",
-               "remote_drops_after_s", "local_control")
+               "remote_drops_after_s", "local_control", "mode_display_delay_s", "warning_emcy_after_s",
+               "target_sdo_only_enabled", "node_guarding", "comm_loss_delay_s")
 
     @classmethod
     def read(cls, table: dict, problems: Problems, where: str | None = None, root: Path | None = None,

@@ -19,7 +19,9 @@ Quirks real drives have, as options: `csv_only` (0x6502 = 0x100, 0x6060 = 3 abor
 `event_tpdos_only` (0x18xx sub 2 refuses 0-240; TPDOs go out on change and every event timer 0x18xx sub 5 of drive
 time), `boot_delay_s` (no answer at all until the boot-up message 0x700 + id, data 00), `remote_drops_after_s`
 (statusword bit 9 drops mid-run, the drive keeps its target and ignores the controlword; its comm-loss reaction still
-acts), `local_control` (bit 9 = 0 from power-on).
+acts), `local_control` (bit 9 = 0 from power-on), `mode_display_delay_s` (0x6061 late), `warning_emcy_after_s` (a
+warning EMCY while enabled), `target_sdo_only_enabled` (0x60FF by SDO aborted 0x08000022 unless enabled),
+`node_guarding` (0x100C/0x100D instead of 0x1016/0x1017), `comm_loss_delay_s` (a late comm-loss reaction).
 """
 
 from __future__ import annotations
@@ -58,6 +60,12 @@ class DriveSpec:
     remote_drops_after_s: float | None = None # statusword bit 9 drops after this much OPERATION ENABLED drive time;
                                               # from then on controlword and target are ignored (local control)
     local_control: bool = False               # bit 9 = 0 from power-on: the controlword is ignored
+    mode_display_delay_s: float = 0.0         # 0x6061 shows a new 0x6060 this long (wall time) after it is written
+    warning_emcy_after_s: float | None = None # EMCY 0x4310 (temperature warning) + statusword bit 7 after this much
+                                              # OPERATION ENABLED drive time; the drive stays enabled
+    target_sdo_only_enabled: bool = False     # 0x60FF by SDO aborted 0x08000022 outside OPERATION ENABLED (RPDO ok)
+    node_guarding: bool = False               # 0x100C/0x100D node guarding, no 0x1016/0x1017 heartbeat objects
+    comm_loss_delay_s: float = 0.0            # its comm-loss reaction comes this much later than its consumer time
 
 
 def is_drivebench(od: objectdictionary.ObjectDictionary) -> bool:

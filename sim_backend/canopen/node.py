@@ -59,6 +59,15 @@ class SimCanopenNode:
         device.remote_drops_after_s = spec.remote_drops_after_s
         device.local_control = spec.local_control
         device.device.remote = not spec.local_control
+        device.warning_emcy_after_s = spec.warning_emcy_after_s
+        device.comm_loss_delay_s = spec.comm_loss_delay_s
+        if spec.node_guarding:              # node guarding instead of heartbeat: no 0x1016, no 0x1017 (after boot)
+            if o.CONSUMER_HEARTBEAT in od:
+                del od[o.CONSUMER_HEARTBEAT]
+            for index, name, data_type in ((0x100C, "Guard time", o.UNSIGNED16), (0x100D, "Life time factor",
+                                                                                    o.UNSIGNED8)):
+                if index not in od:
+                    od.add_object(generic._var(name, index, 0, data_type, "rw", 0))
         self._tpdo_stop = (None if spec.tpdo_stops_after_s is None else
                            (spec.tpdo_stops_after_s, spec.tpdo_stops))   # after this much operational drive time
         self._operational_since: float | None = None
@@ -78,8 +87,11 @@ class SimCanopenNode:
                 if o.TPDO_COMM + n in od and 2 in od[o.TPDO_COMM + n].subindices:
                     var = od[o.TPDO_COMM + n][2]
                     var.default = var.value = 255
+        self.cia402.mode_display_delay_s = spec.mode_display_delay_s
+        self.cia402.target_sdo_only_enabled = spec.target_sdo_only_enabled
         self.pdos = PdoEngine(od, self._raw, self.node.get_data, self.node.set_data, self._fast_getter,
                               fixed_mapping=spec.fixed_pdo_mapping, event_only=spec.event_tpdos_only)
+        self.cia402.from_rpdo = lambda: self.pdos.applying
         self.node.add_read_callback(self._on_read)
         self.node.add_write_callback(self._on_write)
         if self.extension is not None:
@@ -118,6 +130,8 @@ class SimCanopenNode:
         self.network.subscribe(o.SYNC, self._on_sync)
         self.node.nmt.send_command(NMT_START_BOOT_UP)
         self.node.nmt.send_command(NMT_ENTER_PRE_OPERATIONAL)
+        if self.spec.node_guarding and o.PRODUCER_HEARTBEAT in self.od:   # canopen's NMT read it at the boot
+            del self.od[o.PRODUCER_HEARTBEAT]
 
     def _handle_inline(self, msg: can.Message) -> None:
         """A frame handled in its sender's thread (InlineReceiveQueue): what the receive thread's notifier does."""
