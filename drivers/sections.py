@@ -42,6 +42,8 @@ class DriveSection(Section):
     stop_timeout_s: float = cia402.STOP_TIMEOUT_S                 # how long a stop may take
     # manufacturer statusword bits (8, 14, 15) the drive sets while it obeys the bench, watched with bit 9 (remote)
     enable_bits: tuple[int, ...] | None = key(None, check=enable_bits_problem)
+    # the drive's own velocity filter time constant on its reported speed (0x606C), for the first-motion unit check
+    velocity_filter_s: float | None = key(None, kind="number", min=0, max=2.0)
 
 
 @dataclass(frozen=True)

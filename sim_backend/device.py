@@ -8,6 +8,7 @@ lock serialises them (each server runs in its own thread).
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass, field
 
@@ -66,6 +67,8 @@ class SimulatedDevice:
     local_control: bool = False
     warning_emcy_after_s: float | None = None   # EMCY 0x4310 + bit 7 after this much OPERATION ENABLED drive time
     comm_loss_delay_s: float = 0.0              # the comm-loss reaction this much after the consumer time
+    velocity_filter_s: float = 0.0              # 0x606C's first-order filter (a drive's reported speed lags)
+    speed_reported: float = 0.0                 # the estimate through that filter, rad/s
     _enabled_steps: int = 0
 
     @property
@@ -233,6 +236,7 @@ class SimulatedDevice:
             self._remote_drop(n_steps)
             self._apply_outputs()
             block = self.model.step(n_steps)
+            self._filter_reported(block[:, SIGNAL_NAMES.index("speed_est_mech_rad_s")])
             self.trace.push(self.step_count + 1, block, self.device.power_enabled)
             self.step_count += n_steps
             self.latest = block[-1]
@@ -249,6 +253,16 @@ class SimulatedDevice:
             self.device.target_reached = abs(speed - self.target_speed_mech_rad_s) <= 0.01 * max(
                 1.0, abs(self.target_speed_mech_rad_s))
             return block
+
+    def _filter_reported(self, speeds: np.ndarray) -> None:
+        if self.velocity_filter_s <= 0:
+            self.speed_reported = float(speeds[-1])
+            return
+        from scipy.signal import lfilter       # only a drive with the quirk pays for the import
+
+        a = 1.0 - math.exp(-self.model.control_period_s / self.velocity_filter_s)
+        y, _ = lfilter([a], [1.0, a - 1.0], speeds, zi=[(1.0 - a) * self.speed_reported])
+        self.speed_reported = float(y[-1])
 
     def _fault_code(self) -> int:
         return self.model.fault_code() or (EMCY_OVERCURRENT if self.faults.overcurrent else 0)

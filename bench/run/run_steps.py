@@ -157,12 +157,13 @@ class RunSteps:
 
     def _reference_at(self, t_s: float) -> dict[str, float]:
         """The reference reading taken last at or before drive time t_s (sample and hold); the oldest one kept for
-        samples older than every reading."""
+        samples older than every reading. `reference_age_s`: how old that reading is at t_s (a stalled bench reads the
+        dynamometer once for several SYNCs: the unit check does not judge on a stale reading)."""
         readings = self._reference_readings
         for t_read, values in reversed(readings):
             if t_read <= t_s + 0.5 * self.sync_period_s:
-                return values
-        return readings[0][1]
+                return {**values, "reference_age_s": max(0.0, t_s - t_read)}
+        return {**readings[0][1], "reference_age_s": 0.0}
 
     def _run_time(self, samples: list[LiveSample]) -> list[LiveSample]:
         """Shift drive-clock stamps to time since this run's first SYNC (the drive may have run before)."""

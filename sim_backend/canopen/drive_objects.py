@@ -94,7 +94,7 @@ class Cia402Objects:
         if index == o.ERROR_REGISTER:
             return error_register_for(dev.device.error_code) if dev.device.state is State.FAULT else 0
         if index == o.VELOCITY_ACTUAL:
-            return self.units.to_drive(float(dev.latest[SPEED_EST]))
+            return self.units.to_drive(dev.speed_reported)
         if index == o.VELOCITY_DEMAND:
             return self.units.to_drive(float(dev.latest[SPEED_REF]))
         if index == o.TORQUE_ACTUAL:

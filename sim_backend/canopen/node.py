@@ -61,6 +61,7 @@ class SimCanopenNode:
         device.device.remote = not spec.local_control
         device.warning_emcy_after_s = spec.warning_emcy_after_s
         device.comm_loss_delay_s = spec.comm_loss_delay_s
+        device.velocity_filter_s = spec.velocity_filter_s
         if spec.node_guarding:              # node guarding instead of heartbeat: no 0x1016, no 0x1017 (after boot)
             if o.CONSUMER_HEARTBEAT in od:
                 del od[o.CONSUMER_HEARTBEAT]

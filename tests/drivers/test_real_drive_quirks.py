@@ -147,3 +147,48 @@ def test_10_probe_on_a_booting_drive_gives_the_boot_timeout_hint():
         with pytest.raises(LinkError, match="boot_timeout_s = 5"):
             probe(section(rig.channel, sdo_timeout_s=0.2), REPO)
         assert time.monotonic() - started < 3.0
+
+
+def test_5_the_unit_check_allows_a_stated_velocity_filter_and_skips_stale_reference_samples():
+    """The unit check fed as a run feeds it: a drive reporting the shaft through a 100 ms first-order filter trips
+    unit_mismatch when nothing says so (the message names lag and the line to write), agrees when velocity_filter_s
+    states it, and still catches a 1.1 factor with it stated. A reference reading held over a stall is not judged."""
+    import math as m
+
+    from bench.run.supervisor import UnitCheck
+
+    def feed(check, k=1.0, tau=0.1, stall=None):
+        dt, est, trip = 0.01, 0.0, None
+        for n in range(1, 900):
+            t = n * dt
+            true = min(t / 0.5, 1.0) * 20.0                        # the rig scenario's ramp to 20 rad/s
+            est += (1 - m.exp(-dt / tau)) * (k * true - est) if tau else k * true - est
+            values = {"speed_est_mech_rad_s": est, "speed_true_mech_rad_s": true, "reference_age_s": 0.0}
+            if stall is not None and stall[0] <= t < stall[1]:
+                values.update(speed_true_mech_rad_s=min(stall[0] / 0.5, 1.0) * 20.0, reference_age_s=t - stall[0])
+            trip = check.check(t, values)
+            if trip is not None:
+                return trip
+        return None
+
+    unstated = feed(UnitCheck())
+    assert unstated is not None and unstated.reason == "unit_mismatch"
+    assert "or a lag" in unstated.message and "velocity_filter_s = 0.1" in unstated.message
+    assert feed(UnitCheck(lag_s=0.1)) is None
+    assert feed(UnitCheck(lag_s=0.05), tau=0.05) is None
+    factor = feed(UnitCheck(lag_s=0.1), k=1.1)
+    assert factor is not None and factor.reason == "unit_mismatch"
+    stale = UnitCheck(stale_s=0.025)
+    assert feed(stale, tau=0.0, stall=(0.1, 0.2)) is None and stale.skipped_stale >= 7
+    assert feed(UnitCheck(), tau=0.0, stall=(0.1, 0.2)) is not None       # judged on the held reading: false trip
+
+
+def test_5_a_filtered_0x606c_lags_the_shaft():
+    with e35(velocity_filter_s=0.1) as (link, rig):
+        link.open()
+        link.configure(LIVE, [], 1)
+        link.enable_velocity_mode()
+        link.set_speed_ref(20.0)
+        reported = [s.values["speed_est_mech_rad_s"] for s in (link.sync()[-1] for _ in range(20))]
+        shaft = abs(rig.device.model.load_feedback()[0])
+        assert shaft - reported[-1] > 2.0, (shaft, reported[-1])
