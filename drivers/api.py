@@ -75,6 +75,7 @@ class DriveStatus:
     emcy: list[tuple[int, str]] = field(default_factory=list)  # (error code, text) received since last call
     warning: bool = False       # CiA 402 statusword bit 7: the drive warns (temperature, limits...) and runs on
     control_lost: str | None = None   # statusword bit 9 (remote) or a [drive] enable bit dropped while powered
+    bus_drop: str | None = None       # the bus dropped for a moment (no frame at all), the drive still operational
 
 
 class UnitsProfile(Protocol):

@@ -81,6 +81,8 @@ def check_status(t_s: float | None, status: DriveStatus) -> Trip | None:
         return Trip("emcy", t_s, {"emcy_code": float(code)}, f"EMCY 0x{code:04X} {text}{when}")
     if status.control_lost:
         return Trip("remote_lost", t_s, {}, status.control_lost)
+    if status.bus_drop:
+        return Trip("bus_drop", t_s, {}, f"{status.bus_drop} (seen{when})")
     if not status.heartbeat_ok:
         return Trip("heartbeat", t_s, {}, f"drive heartbeat lost{when}")
     return None

@@ -15,6 +15,7 @@ from drivers.contract.errors import LinkError
 log = logging.getLogger(__name__)
 
 GUARD_TIME = 0x100C
+SYNC_COUNTER_OVERFLOW = 0x1019
 NMT_COMMANDS = {"stop": "STOPPED", "reset": "RESET"}   # [drive] last_resort_nmt
 
 
@@ -116,8 +117,22 @@ def restore(link: Any) -> list[str]:
     errors: list[str] = []
     if link._guard is not None:
         errors += link._guard.disarm()
-    errors += restore_producer_heartbeat(link) + link._restore_sync_counter()
+    errors += restore_producer_heartbeat(link) + restore_sync_counter(link)
     if link._snapshot is not None and link._snapshot.touched:
         link.node.nmt.state = "PRE-OPERATIONAL"
         errors += link._snapshot.restore(link.sdo)
     return errors
+
+
+def restore_sync_counter(link: Any) -> list[str]:
+    """0x1019 (SYNC counter overflow) as the drive had it; 0x1006 is zeroed around the write, as CiA 301 asks."""
+    if link._sync_counter_restore is None:
+        return []
+    try:
+        link.sdo.write_standard(o.COMM_CYCLE_PERIOD, 0, 0, 4)
+        link.sdo.write_standard(SYNC_COUNTER_OVERFLOW, 0, link._sync_counter_restore, 1)
+        link.sdo.write_standard(o.COMM_CYCLE_PERIOD, 0, round(link.sync_period_s * 1e6), 4)
+        link._sync_counter_restore = None
+        return []
+    except LinkError as exc:
+        return [str(exc)]

@@ -49,6 +49,7 @@ from drivers.canopen.config import CanopenDriveConfig
 from drivers.canopen.bus import BusErrorCounter, QuickVirtualBus, SocketcandRefusal, bus_kwargs, make_bus, open_bus
 from drivers.canopen.comm_loss_guard import CommLossGuard
 from drivers.canopen import closing, mode_select
+from drivers.canopen.bus_drop import BusDropWatch
 from drivers.contract.control_watch import ControlWatch
 from drivers.canopen import drill as drills
 from drivers.contract.comm_loss import CommLossConfig
@@ -107,6 +108,7 @@ class CanopenDriveLink(DriveLink):
         self._guard: CommLossGuard | None = None
         self._producer_restore: int | None = None     # 0x1017 as the drive had it (drivers.canopen.closing)
         self.control = ControlWatch(tuple(cfg.enable_bits or ()))    # statusword bit 9 and [drive] enable_bits
+        self.bus_drop = BusDropWatch(self.sync_period_s)
         self._lock = threading.Condition()
         self._cancel = threading.Event()
         self._last_heartbeat = 0.0
@@ -386,18 +388,6 @@ class CanopenDriveLink(DriveLink):
         finally:
             self.sdo.write_standard(o.COMM_CYCLE_PERIOD, 0, round(self.sync_period_s * 1e6), 4)
 
-    def _restore_sync_counter(self) -> list[str]:
-        if self._sync_counter_restore is None:
-            return []
-        try:
-            self.sdo.write_standard(o.COMM_CYCLE_PERIOD, 0, 0, 4)
-            self.sdo.write_standard(SYNC_COUNTER_OVERFLOW, 0, self._sync_counter_restore, 1)
-            self.sdo.write_standard(o.COMM_CYCLE_PERIOD, 0, round(self.sync_period_s * 1e6), 4)
-            self._sync_counter_restore = None
-            return []
-        except LinkError as exc:
-            return [str(exc)]
-
     def _plan_pdos(self, live_signals: Sequence[str]) -> pdos.PdoPlan:
         if self.pdo_policy not in pdos.POLICIES:
             raise LinkError(f"{self.where}: pdo policy {self.pdo_policy!r} is not one of {', '.join(pdos.POLICIES)}")
@@ -447,6 +437,7 @@ class CanopenDriveLink(DriveLink):
         with self._lock:
             self._last_heartbeat = time.monotonic()
             self._heartbeat_state = data[0] & 0x7F if data else None
+            self.bus_drop.heartbeat_at = timestamp
         self._booted.set()                    # boot-up (state 0) or a heartbeat: the node is up
 
     def _on_emcy(self, can_id, data, timestamp):
@@ -458,6 +449,7 @@ class CanopenDriveLink(DriveLink):
         log.info("node %d EMCY 0x%04X (%s), error register 0x%02X", self.node_id, code, text, register)
         with self._lock:
             self._emcy.append((code, f"{text}; error register 0x{register:02X}"))
+            self.bus_drop.emcy()
 
     def _on_tpdo(self, can_id, data, timestamp):
         self._on_tpdos([(can_id, data)], timestamp)
@@ -469,6 +461,8 @@ class CanopenDriveLink(DriveLink):
         if abs(now - timestamp) < 3600.0:       # interfaces stamping with the epoch clock: receive backlog
             self._rx_lag_s = now - timestamp
         with self._lock:
+            if self.timing == "realtime":
+                self.bus_drop.tpdo(timestamp, self._heartbeat_state, getattr(self._placer, "unanswered", None))
             woken = False
             for can_id, data in frames:
                 result = self._decoder.decode(can_id, data, timestamp)
@@ -502,6 +496,7 @@ class CanopenDriveLink(DriveLink):
         with self._lock:
             errors, self._errors = self._errors, []
             self._samples.clear()
+            self.bus_drop.reset()
             return errors
 
     def drill(self, before_withhold: Callable[[], None] | None = None) -> dict[str, Any]:
@@ -719,6 +714,7 @@ class CanopenDriveLink(DriveLink):
             # that much, and its first command would jump into the profile (a 0.5 s ramp taken as a step at 0.4 s)
             with self._lock:
                 self._samples.clear()
+                self.bus_drop.reset()
                 if isinstance(self._placer, SyncTimeline):
                     self._placer.rebase()
 
@@ -850,6 +846,7 @@ class CanopenDriveLink(DriveLink):
             state = cia402.decode(word)
             return DriveStatus(state=cia402.state_name(word), fault=state in cia402.FAULT_STATES,
                                heartbeat_ok=self._heartbeat_ok(), emcy=emcy, control_lost=self.control.lost,
+                               bus_drop=self.bus_drop.lost,
                                warning=bool(word & cia402.StatusBit.WARNING))
 
     # -- parameters ----------------------------------------------------------------------------------

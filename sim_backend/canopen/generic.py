@@ -22,7 +22,8 @@ time), `boot_delay_s` (no answer at all until the boot-up message 0x700 + id, da
 acts), `local_control` (bit 9 = 0 from power-on), `mode_display_delay_s` (0x6061 late), `warning_emcy_after_s` (a
 warning EMCY while enabled), `target_sdo_only_enabled` (0x60FF by SDO aborted 0x08000022 unless enabled),
 `node_guarding` (0x100C/0x100D instead of 0x1016/0x1017), `comm_loss_delay_s` (a late comm-loss reaction),
-`velocity_filter_s` (0x606C filtered: the reported speed lags the shaft).
+`velocity_filter_s` (0x606C filtered: the reported speed lags the shaft), `bus_drop_at_s` / `bus_drop_s` (the bus
+drops: no frame either way, the drive stays OPERATIONAL, no EMCY).
 """
 
 from __future__ import annotations
@@ -68,6 +69,8 @@ class DriveSpec:
     node_guarding: bool = False               # 0x100C/0x100D node guarding, no 0x1016/0x1017 heartbeat objects
     comm_loss_delay_s: float = 0.0            # its comm-loss reaction comes this much later than its consumer time
     velocity_filter_s: float = 0.0            # 0x606C first-order filtered with this time constant (drive time)
+    bus_drop_at_s: float | None = None        # after this much OPERATIONAL drive time the bus drops (nothing heard or
+    bus_drop_s: float = 0.2                   # sent) for bus_drop_s wall seconds; the drive stays OPERATIONAL
 
 
 def is_drivebench(od: objectdictionary.ObjectDictionary) -> bool:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import struct
 import threading
+import time
 from pathlib import Path
 
 import can
@@ -72,6 +73,7 @@ class SimCanopenNode:
         self._tpdo_stop = (None if spec.tpdo_stops_after_s is None else
                            (spec.tpdo_stops_after_s, spec.tpdo_stops))   # after this much operational drive time
         self._operational_since: float | None = None
+        self._drop_until = 0.0                # the bus-drop quirk: muted until then (monotonic)
         generic.fill_defaults(od)
         self.od = od
         self.node = DriveLocalNode(node_id, od)
@@ -203,7 +205,7 @@ class SimCanopenNode:
             self.network.subscribe(cob, self._on_rpdo)
 
     def _on_rpdo(self, can_id, data, timestamp):
-        if self.nmt_state != o.NMT_OPERATIONAL:
+        if self.nmt_state != o.NMT_OPERATIONAL or self.muted():
             return
         pdo = self.pdos.rpdos.get(can_id)
         if pdo is None:
@@ -214,7 +216,17 @@ class SimCanopenNode:
             return
         self.pdos.receive(pdo, bytes(data))
 
+    def muted(self) -> bool:
+        """The bus-drop quirk: nothing heard, nothing sent (the drive's own state untouched)."""
+        drop = self.spec.bus_drop_at_s
+        if (drop is not None and self._drop_until == 0.0 and self._operational_since is not None
+                and self.device.time_s - self._operational_since >= drop):
+            self._drop_until = time.monotonic() + self.spec.bus_drop_s
+        return time.monotonic() < self._drop_until
+
     def _on_sync(self, can_id, data, timestamp):
+        if self.muted():
+            return
         self.heartbeat.maybe_send()
         if self.pdos.dirty:
             self._rebuild_pdos()
@@ -228,9 +240,9 @@ class SimCanopenNode:
             self._operational_since = None
             return
         frames = self.pdos.tpdo_frames(self._sync_count, self.device.time_s)
+        if self._operational_since is None:
+            self._operational_since = self.device.time_s
         if self._tpdo_stop is not None:
-            if self._operational_since is None:
-                self._operational_since = self.device.time_s
             if self.device.time_s - self._operational_since > self._tpdo_stop[0]:
                 frames = self._without_stopped_tpdo(frames)
         if frames:

@@ -192,3 +192,32 @@ def test_5_a_filtered_0x606c_lags_the_shaft():
         reported = [s.values["speed_est_mech_rad_s"] for s in (link.sync()[-1] for _ in range(20))]
         shaft = abs(rig.device.model.load_feedback()[0])
         assert shaft - reported[-1] > 2.0, (shaft, reported[-1])
+
+
+@pytest.mark.parametrize("drop", [True, False], ids=["bus-drop", "healthy"])
+def test_9_a_200_ms_bus_drop_with_the_drive_operational_is_named(drop):
+    quirks = dict(bus_drop_at_s=0.5, bus_drop_s=0.2) if drop else {}
+    with build(RigSpec(motor=MOTOR, seed=1, eds=E35, drive=DriveSpec(**E35_SPEC, **quirks))) as rig:
+        link = CanopenDriveLink(section(rig.channel), REPO, LinkSettings(timing="realtime"))
+        try:
+            link.open()
+            link.configure(LIVE, [], 1)
+            link.enable_velocity_mode()
+            link.set_speed_ref(10.0)
+            started = time.monotonic()
+            while time.monotonic() - started < 2.0 and link.status().bus_drop is None:
+                link.sync()
+            status = link.status()
+            if drop:
+                assert status.bus_drop is not None, link.sync_report()
+                assert "the CAN bus dropped for" in status.bus_drop and "still NMT OPERATIONAL" in status.bus_drop
+                gap_ms = float(status.bus_drop.split("dropped for ")[1].split(" ms")[0])
+                assert 150 <= gap_ms <= 400, status.bus_drop
+                trip = check_status(1.0, status)
+                assert trip.reason == "bus_drop"
+            else:
+                assert status.bus_drop is None
+            link.quick_stop()
+            link.disable()
+        finally:
+            link.close()
