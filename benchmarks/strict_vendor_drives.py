@@ -2,14 +2,16 @@
 
 Each drive (config/benches/sim-generic-{cia402-slave,e35,technosoft}.toml) is served out of process by `drivebench sim
 serve` and run as a lab runs a real rig (benchmarks/rig_timing.py's configs: no [services], no [simulator], real
-time, socketcand, Modbus TCP) and strictly: the comm-loss drill before every run (drill_valid_s = 0), the rig's
-consumer time 300 ms as a rig uses, `fault_reset = "never"`. `scenarios/rig/speed-step-20rads.toml` runs `--runs`
+time, socketcand, Modbus TCP) and strictly: the comm-loss drill before every run (drill_valid_s = 0),
+`fault_reset = "never"`, the configs' consumer heartbeat time (2000 ms) or `--consumer-ms` (a rig uses 200-500 ms:
+then a bench process the host does not schedule for that long is, correctly, stopped by the drive). `scenarios/rig/speed-step-20rads.toml` runs `--runs`
 times per drive with `--load-procs` busy processes on this machine's cores, after `--baseline-runs` runs per drive
 without them (the same session's baseline). Per drive and phase: passes, false trips (an aborted run of a healthy
 drive: any trip — unit_mismatch, feedback_lost, remote_lost, a refused drill...), incomplete runs, errors, with the
 reason of each run that did not pass. Ratios: loaded pass rate against the baseline's.
 
     python benchmarks/strict_vendor_drives.py [--runs 20] [--baseline-runs 2] [--rigs e35,technosoft,cia402-slave]
+                                              [--consumer-ms 300]
 
 Last line: RESULT runs=... load_procs=... <rig>_pass=... <rig>_false_trips=... <rig>_incomplete=... <rig>_error=...
            <rig>_pass_rate_vs_baseline=... baseline_<rig>_pass=...
@@ -31,14 +33,12 @@ sys.path.insert(0, str(REPO))
 
 from benchmarks.rig_timing import RIGS, busy, configs, one_run, serve_process, why  # noqa: E402
 
-STRICT_CONSUMER_MS = 300
-
-
-def strict(bench: Path) -> None:
-    """The rig's bench config made strict: a drill before every run, a rig's consumer heartbeat time."""
+def strict(bench: Path, consumer_ms: int | None) -> None:
+    """The rig's bench config made strict: a drill before every run; optionally a rig's consumer heartbeat time."""
     text = bench.read_text()
     text = re.sub(r"(?m)^drill_valid_s = .*\n", "", text)
-    text = re.sub(r"(?m)^consumer_time_ms = .*$", f"consumer_time_ms = {STRICT_CONSUMER_MS}", text)
+    if consumer_ms is not None:
+        text = re.sub(r"(?m)^consumer_time_ms = .*$", f"consumer_time_ms = {consumer_ms}", text)
     bench.write_text(text)
 
 
@@ -51,11 +51,11 @@ def outcome(record: dict) -> str:
     return {"incomplete": "incomplete", "fail": "fail"}.get(verdict, "error")
 
 
-def phase(rigs, n: int, workdir: Path, label: str) -> dict[str, Counter]:
+def phase(rigs, n: int, workdir: Path, label: str, consumer_ms: int | None) -> dict[str, Counter]:
     out: dict[str, Counter] = {}
     for rig in rigs:
         serve, bench = configs(rig, workdir)
-        strict(bench)
+        strict(bench, consumer_ms)
         proc = serve_process(serve)
         counts: Counter = Counter()
         try:
@@ -83,6 +83,7 @@ def main() -> int:
     parser.add_argument("--baseline-runs", type=int, default=2, help="runs per drive without load (default 2)")
     parser.add_argument("--rigs", default=",".join(RIGS), help=f"comma-separated, of {', '.join(RIGS)}")
     parser.add_argument("--load-procs", type=int, default=2, help="busy processes during the loaded phase")
+    parser.add_argument("--consumer-ms", type=int, default=None, help="consumer heartbeat time (default: the configs')")
     args = parser.parse_args()
     rigs = [r for r in args.rigs.split(",") if r]
     bad = [r for r in rigs if r not in RIGS]
@@ -92,20 +93,20 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="strict-drives-") as tmp:
         workdir = Path(tmp)
         print(f"baseline: {args.baseline_runs} strict runs per drive, no extra load", flush=True)
-        baseline = phase(rigs, args.baseline_runs, workdir, "baseline") if args.baseline_runs else {}
+        baseline = phase(rigs, args.baseline_runs, workdir, "baseline", args.consumer_ms) if args.baseline_runs else {}
         print(f"loaded: {args.runs} strict runs per drive, {args.load_procs} busy processes", flush=True)
         loaders = [multiprocessing.Process(target=busy, daemon=True) for _ in range(args.load_procs)]
         for proc in loaders:
             proc.start()
         try:
-            loaded = phase(rigs, args.runs, workdir, "loaded")
+            loaded = phase(rigs, args.runs, workdir, "loaded", args.consumer_ms)
         finally:
             for proc in loaders:
                 proc.terminate()
                 proc.join(5)
     print()
     print(f"{'drive':13s} {'phase':8s} pass   false trips  incomplete  fail  error")
-    fields = [f"runs={args.runs}", f"load_procs={args.load_procs}"]
+    fields = [f"runs={args.runs}", f"load_procs={args.load_procs}", f"consumer_ms={args.consumer_ms or 'config'}"]
     for rig in rigs:
         for label, table in (("baseline", baseline), ("loaded", loaded)):
             c = table.get(rig)

@@ -79,6 +79,14 @@ def zero_target(link: Any) -> None:
 
 
 def after_enable(link: Any) -> None:
+    """Right after OPERATION ENABLED: the zero target a drive refused by SDO before; and the drill's own heartbeat
+    EMCY (0x8130), which a loaded bench can receive only after the drill re-armed, is the drill's, not the run's."""
     if getattr(link, "_zero_after_enable", False):
         link.sdo.write_standard(o.TARGET_VELOCITY, 0, 0, 4, signed=True)
         link._zero_after_enable = False
+    if "drill" in link.report:
+        with link._lock:
+            late = [f"0x{code:04X} {text}" for code, text in link._emcy if code == o.EMCY_HEARTBEAT]
+            link._emcy = [(code, text) for code, text in link._emcy if code != o.EMCY_HEARTBEAT]
+        if late:
+            link.report["drill"]["emcy_after_rearm"] = late
