@@ -51,27 +51,36 @@ def outcome(record: dict) -> str:
     return {"incomplete": "incomplete", "fail": "fail"}.get(verdict, "error")
 
 
-def phase(rigs, n: int, workdir: Path, label: str, consumer_ms: int | None) -> dict[str, Counter]:
-    out: dict[str, Counter] = {}
+def start_serves(rigs, workdir: Path, consumer_ms: int | None) -> dict[str, tuple[subprocess.Popen, Path]]:
+    """Every drive served before the load starts (a simulator starting under two busy loops can take minutes)."""
+    served = {}
     for rig in rigs:
         serve, bench = configs(rig, workdir)
         strict(bench, consumer_ms)
-        proc = serve_process(serve)
-        counts: Counter = Counter()
+        served[rig] = (serve_process(serve), bench)
+    return served
+
+
+def stop_serves(served) -> None:
+    for proc, _ in served.values():
+        proc.terminate()
         try:
-            for k in range(n):
-                record = one_run(bench, workdir / f"runs-{label}-{rig}")
-                kind = outcome(record)
-                counts[kind] += 1
-                trips = [t.get("reason") for t in record.get("trips") or []]
-                print(f"  {label:8s} {rig:13s} run {k + 1:2d}: {kind:10s}"
-                      + (f" trips {trips}: {why(record)}" if kind != "pass" else ""), flush=True)
-        finally:
-            proc.terminate()
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
+def phase(served, n: int, workdir: Path, label: str) -> dict[str, Counter]:
+    out: dict[str, Counter] = {}
+    for rig, (_, bench) in served.items():
+        counts: Counter = Counter()
+        for k in range(n):
+            record = one_run(bench, workdir / f"runs-{label}-{rig}")
+            kind = outcome(record)
+            counts[kind] += 1
+            trips = [t.get("reason") for t in record.get("trips") or []]
+            print(f"  {label:8s} {rig:13s} run {k + 1:2d}: {kind:10s}"
+                  + (f" trips {trips}: {why(record)}" if kind != "pass" else ""), flush=True)
         counts["runs"] = n
         out[rig] = counts
     return out
@@ -92,18 +101,22 @@ def main() -> int:
         return 2
     with tempfile.TemporaryDirectory(prefix="strict-drives-") as tmp:
         workdir = Path(tmp)
-        print(f"baseline: {args.baseline_runs} strict runs per drive, no extra load", flush=True)
-        baseline = phase(rigs, args.baseline_runs, workdir, "baseline", args.consumer_ms) if args.baseline_runs else {}
-        print(f"loaded: {args.runs} strict runs per drive, {args.load_procs} busy processes", flush=True)
-        loaders = [multiprocessing.Process(target=busy, daemon=True) for _ in range(args.load_procs)]
-        for proc in loaders:
-            proc.start()
+        served = start_serves(rigs, workdir, args.consumer_ms)
         try:
-            loaded = phase(rigs, args.runs, workdir, "loaded", args.consumer_ms)
-        finally:
+            print(f"baseline: {args.baseline_runs} strict runs per drive, no extra load", flush=True)
+            baseline = phase(served, args.baseline_runs, workdir, "baseline") if args.baseline_runs else {}
+            print(f"loaded: {args.runs} strict runs per drive, {args.load_procs} busy processes", flush=True)
+            loaders = [multiprocessing.Process(target=busy, daemon=True) for _ in range(args.load_procs)]
             for proc in loaders:
-                proc.terminate()
-                proc.join(5)
+                proc.start()
+            try:
+                loaded = phase(served, args.runs, workdir, "loaded")
+            finally:
+                for proc in loaders:
+                    proc.terminate()
+                    proc.join(5)
+        finally:
+            stop_serves(served)
     print()
     print(f"{'drive':13s} {'phase':8s} pass   false trips  incomplete  fail  error")
     fields = [f"runs={args.runs}", f"load_procs={args.load_procs}", f"consumer_ms={args.consumer_ms or 'config'}"]
