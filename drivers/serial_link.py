@@ -424,29 +424,14 @@ class SerialDriveLink(DriveLink):
         return self.report["last_resort"]["line"] if "last_resort" in self.report else None
 
     def _secured(self) -> bool:
-        """Disabled: the WATCHDOG may be switched off. Else the last resort (drivers.contract.last_resort): the bench
-        sends nothing (any request feeds the drive's watchdog) for its time plus margin, watching the reference
-        sensor, then reads the drive again."""
-        def statusword() -> int:
-            return self._read_status()[0]
-
-        done = self.report.get("last_resort")
-        if done is not None:
-            return done.get("outcome") == "stopped itself"
-        check = lr.RestCheck(statusword, lambda: None, self.standstill_mech_rad_s)
-        if check.look()["powered"] is False:
-            return True
-        quiet_until = time.monotonic() + (self.comm_loss.consumer_time_ms + self.comm_loss.margin_ms) / 1000.0
-
-        def quiet_statusword() -> int:
-            if time.monotonic() < quiet_until:
-                raise LinkError("not asked while the drive's watchdog runs down")
-            return statusword()
-
-        reference = self._reference_speed or (lambda: None)
-        check = lr.RestCheck(quiet_statusword, reference, self.standstill_mech_rad_s)
-        result = lr.last_resort(check, lambda: None, (quiet_until - time.monotonic()) + self.stop_timeout_s
-                                + lr.MARGIN_S)
-        self.report["last_resort"] = result
-        lr.announce(f"{self.where}: {result['line']}")
-        return result["outcome"] == "stopped itself"
+        """Disabled: the WATCHDOG may be switched off. Else the last resort, silent for the watchdog's time (any
+        request feeds it), the reference sensor watched (drivers.contract.last_resort.request_fed_last_resort)."""
+        if self.report.get("last_resort") is None:
+            quiet_s = (self.comm_loss.consumer_time_ms + self.comm_loss.margin_ms) / 1000.0
+            result = lr.request_fed_last_resort(lambda: self._read_status()[0], self._reference_speed,
+                                                self.standstill_mech_rad_s, quiet_s, self.stop_timeout_s)
+            if result is None:
+                return True
+            self.report["last_resort"] = result
+            lr.announce(f"{self.where}: {result['line']}")
+        return self.report["last_resort"].get("outcome") == "stopped itself"

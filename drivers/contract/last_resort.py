@@ -113,3 +113,21 @@ def last_resort(check: RestCheck, withhold: Callable[[], None], bound_s: float,
         out["outcome"] = "still turning"
         out["line"] = still_turning_line(speed)
     return out
+
+
+def request_fed_last_resort(statusword: Callable[[], int], reference: Callable[[], float | None] | None,
+                            standstill_mech_rad_s: float, quiet_s: float, stop_s: float) -> dict[str, Any] | None:
+    """For a drive whose watchdog any request feeds (the serial line): None when it is disabled; else nothing is
+    asked of it for `quiet_s` (its watchdog time plus margin) while the reference sensor is watched, then its
+    statusword again, at most `stop_s` + MARGIN_S more."""
+    if RestCheck(statusword, lambda: None, standstill_mech_rad_s).look()["powered"] is False:
+        return None
+    quiet_until = time.monotonic() + quiet_s
+
+    def quiet_statusword() -> int:
+        if time.monotonic() < quiet_until:
+            raise LinkError("not asked while the drive's watchdog runs down")
+        return statusword()
+
+    check = RestCheck(quiet_statusword, reference or (lambda: None), standstill_mech_rad_s)
+    return last_resort(check, lambda: None, quiet_s + stop_s + MARGIN_S)
