@@ -126,3 +126,29 @@ def test_the_drill_is_not_done_at_speed_on_a_drive_found_running():
         assert withheld_at and withheld_at[0] < 2.5, withheld_at        # at rest when the heartbeat stopped
         assert result["found_running"]["standstill"] is True
         assert not rig.device.device.power_enabled
+
+
+def test_the_last_resort_sends_the_nmt_command_the_config_names():
+    """[drive] last_resort_nmt = "stop": where the drive's manual says NMT STOPPED stops its power stage, the bench
+    sends it with the heartbeat withheld (watched on the bus); the drive's own reaction still does the stopping."""
+    import can
+
+    spec = DriveSpec(**E35_SPEC, remote_drops_after_s=0.3)
+    with e35_link(spec, last_resort_nmt="stop") as (link, rig):
+        sniffer = can.Bus(interface="virtual", channel=rig.channel, receive_own_messages=False)
+        try:
+            link.open()
+            link.configure(LIVE, [], 1)
+            link.enable_velocity_mode()
+            link.set_speed_ref(20.0)
+            for _ in range(60):
+                link.sync()
+            while sniffer.recv(0) is not None:
+                pass
+            link.close()
+            nmt = [bytes(m.data) for m in iter(lambda: sniffer.recv(0), None) if m.arbitration_id == 0x000]
+        finally:
+            sniffer.shutdown()
+        assert bytes([0x02, 0x01]) in nmt, nmt                         # NMT stop remote node, node 1
+        assert "NMT STOPPED sent" in link.report["last_resort"]["nmt"]
+        assert not rig.device.device.power_enabled
