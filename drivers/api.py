@@ -74,6 +74,8 @@ class DriveStatus:
     heartbeat_ok: bool
     emcy: list[tuple[int, str]] = field(default_factory=list)  # (error code, text) received since last call
     warning: bool = False       # CiA 402 statusword bit 7: the drive warns (temperature, limits...) and runs on
+    control_lost: str | None = None   # statusword bit 9 (remote) or a [drive] enable bit dropped while powered
+    bus_drop: str | None = None       # the bus dropped for a moment (no frame at all), the drive still operational
 
 
 class UnitsProfile(Protocol):
@@ -115,6 +117,12 @@ class DriveLink(Protocol):
         """The comm-loss drill: withhold the bench's traffic and observe the drive's own reaction (the record's
         comm_loss drive entry); `before_withhold` is called just before. None: the link cannot drill, so the
         bench's death cannot be shown safe."""
+        return None
+
+    def secure(self) -> str | None:
+        """After the safe stop: the drive confirmed disabled, else the last resort (drivers.contract.last_resort: its
+        comm-loss reaction left armed and let act, the shaft watched); the one line to show, None when nothing was
+        needed. close() restores the drive's settings only when this ended with the drive disabled."""
         return None
 
     def keepalive(self) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from drivers.contract import cia402
+from drivers.contract.control_watch import enable_bits_problem
 from drivers.contract.sections import Section, key
 from drivers.contract.signals import SIGNAL_NAMES
 
@@ -39,6 +40,10 @@ class DriveSection(Section):
     drill_margin_ms: int | None = None
     standstill_mech_rad_s: float = cia402.STANDSTILL_MECH_RAD_S   # the drive counts as stopped below this
     stop_timeout_s: float = cia402.STOP_TIMEOUT_S                 # how long a stop may take
+    # manufacturer statusword bits (8, 14, 15) the drive sets while it obeys the bench, watched with bit 9 (remote)
+    enable_bits: tuple[int, ...] | None = key(None, check=enable_bits_problem)
+    # the drive's own velocity filter time constant on its reported speed (0x606C), for the first-motion unit check
+    velocity_filter_s: float | None = key(None, kind="number", min=0, max=2.0)
 
 
 @dataclass(frozen=True)

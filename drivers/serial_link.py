@@ -21,6 +21,8 @@ from drivers.contract import cia402
 from drivers.api import attempt_all, DriveIdentity, DriveLink, DriveStatus, LinkSettings, LiveSample
 from drivers.contract.errors import LinkError
 from drivers.contract.comm_loss import EXTERNAL_HINT, CommLossConfig
+from drivers.contract import last_resort as lr
+from drivers.contract.control_watch import ControlWatch, local_control_line
 from drivers.contract.serial_frames import (
     PROTOCOL_MAJOR, PROTOCOL_MINOR, RESPONSE_FLAG, SAMPLE_HEADER, Cmd, ErrorCode, Frame, FrameDecoder,
     encode_frame, fault_text, unpack_str8,
@@ -51,6 +53,8 @@ class SerialDriveLink(DriveLink):
         self.report: dict = {}                 # what the link read and set, for the record
         self.comm_loss = CommLossConfig.from_section(cfg)
         self._watchdog_armed = False
+        self.control = ControlWatch(tuple(cfg.enable_bits or ()))    # statusword bit 9 and [drive] enable_bits
+        self._reference_speed = None
         if self.timeout_s <= 0 or self.retries < 0 or self.sync_period_s <= 0:
             raise ValueError("[drive] timeout_s and sync_period_s must be > 0 and retries >= 0")
         self.base_dir = base_dir
@@ -272,7 +276,13 @@ class SerialDriveLink(DriveLink):
     def _step_timeout_s(self) -> float:
         return max(1.0, 4 * self.timeout_s)
 
+    def set_reference_speed(self, speed) -> None:
+        self._reference_speed = speed
+
     def enable_velocity_mode(self) -> None:
+        word = self.read_statusword()
+        if not word & cia402.StatusBit.REMOTE:
+            raise LinkError(f"{self.where}: {local_control_line(word)}")
         cia402.enable_operation(self, fault_reset_policy=self.fault_reset_policy, timeout_s=self._step_timeout_s,
                                 where=self.where, select_mode=lambda: self._transact(
                                     Cmd.MODE, struct.pack("<b", cia402.Mode.PROFILE_VELOCITY)),
@@ -288,7 +298,8 @@ class SerialDriveLink(DriveLink):
         self._transact(Cmd.PARAM_WRITE_INDEX, struct.pack("<Hd", index, value))
 
     def _decode_sample(self, p: bytes) -> LiveSample:
-        step, _status, _error, mask = SAMPLE_HEADER.unpack_from(p)
+        step, status, _error, mask = SAMPLE_HEADER.unpack_from(p)
+        self.control.feed(status)
         names = self._names_cache.get(mask)
         if names is None:
             names = self._names_cache[mask] = selected_names(mask)
@@ -344,19 +355,23 @@ class SerialDriveLink(DriveLink):
 
     def status(self) -> DriveStatus:
         statusword, _error_code = self._read_status()
+        self.control.feed(statusword)
         codes, self._emcy_codes = self._emcy_codes, []
         return DriveStatus(state=cia402.state_name(statusword), fault=cia402.decode(statusword) in cia402.FAULT_STATES,
-                           heartbeat_ok=True, emcy=[(c, fault_text(c)) for c in codes])
+                           heartbeat_ok=True, emcy=[(c, fault_text(c)) for c in codes],
+                           warning=bool(statusword & cia402.StatusBit.WARNING), control_lost=self.control.lost)
 
     def begin_quick_stop(self) -> None:
         """The quick-stop command alone, state confirmed: the safe stop's first step, before the load machine is
         touched; quick_stop() then waits for standstill."""
+        self.control.refuse(self.where, "quick stop")
         self._quick_stop_state = cia402.quick_stop(self, self._step_timeout_s, self.where)
 
     def quick_stop(self) -> None:
         """Quick stop (unless begin_quick_stop gave it), then wait (bounded) until the shaft is below the standstill
         threshold."""
         state, self._quick_stop_state = self._quick_stop_state, None
+        self.control.refuse(self.where, "quick stop")
         if state is None:
             state = cia402.quick_stop(self, self._step_timeout_s, self.where)
         if state is cia402.State.FAULT:
@@ -379,11 +394,14 @@ class SerialDriveLink(DriveLink):
 
     def disable(self) -> None:
         # disable voltage: power stage off from every state (shutdown 0x06 is refused in QUICK STOP ACTIVE)
+        self.control.refuse(self.where, "disable voltage")
         attempt_all(lambda: self.set_speed_ref(0.0),
                     lambda: cia402.disable_voltage(self, self._step_timeout_s, self.where))
 
     def close(self) -> None:
         if self._port is not None:
+            if self._watchdog_armed and not self._secured():
+                self._watchdog_armed = False     # left armed in the drive: the bench goes silent, the drive reacts
             if self._watchdog_armed:             # a normal end: the bench leaves, the drive need not react
                 try:
                     self._transact(Cmd.WATCHDOG, struct.pack("<Hh", 0, self.comm_loss.abort_option))
@@ -392,3 +410,28 @@ class SerialDriveLink(DriveLink):
                     pass
             self._port.close()
             self._port = None
+
+    @property
+    def last_resort_bound_s(self) -> float:
+        return (self.comm_loss.consumer_time_ms + self.comm_loss.margin_ms) / 1000.0 + self.stop_timeout_s + lr.MARGIN_S
+
+    def secure(self) -> str | None:
+        if not self._watchdog_armed:
+            return None
+        secured = self._secured()
+        if not secured:
+            self._watchdog_armed = False   # left armed in the drive
+        return self.report["last_resort"]["line"] if "last_resort" in self.report else None
+
+    def _secured(self) -> bool:
+        """Disabled: the WATCHDOG may be switched off. Else the last resort, silent for the watchdog's time (any
+        request feeds it), the reference sensor watched (drivers.contract.last_resort.request_fed_last_resort)."""
+        if self.report.get("last_resort") is None:
+            quiet_s = (self.comm_loss.consumer_time_ms + self.comm_loss.margin_ms) / 1000.0
+            result = lr.request_fed_last_resort(lambda: self._read_status()[0], self._reference_speed,
+                                                self.standstill_mech_rad_s, quiet_s, self.stop_timeout_s)
+            if result is None:
+                return True
+            self.report["last_resort"] = result
+            lr.announce(f"{self.where}: {result['line']}")
+        return self.report["last_resort"].get("outcome") == "stopped itself"

@@ -15,6 +15,7 @@ class Cia402Device:
     error_code: int = 0            # 0x603F
     target_reached: bool = False
     warning: bool = False          # statusword bit 7 (a drive warns and runs on: temperature, limits)
+    remote: bool = True            # statusword bit 9: False = local control, the controlword is not obeyed
 
     @property
     def power_enabled(self) -> bool:
@@ -23,7 +24,7 @@ class Cia402Device:
 
     @property
     def statusword(self) -> int:
-        word = statusword(self.state, target_reached=self.target_reached)
+        word = statusword(self.state, target_reached=self.target_reached, remote=self.remote)
         return int(word | StatusBit.WARNING) if self.warning else word
 
     def fault(self, error_code: int) -> None:

@@ -8,6 +8,7 @@ lock serialises them (each server runs in its own thread).
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass, field
 
@@ -15,6 +16,8 @@ import numpy as np
 
 from drivers.contract import parameters
 from drivers.contract.objects import EMCY_HEARTBEAT, EMCY_OVERCURRENT
+
+EMCY_TEMPERATURE_WARNING = 0x4310     # CiA 301 device temperature: a warning a drive sends and runs on
 from drivers.contract.cia402 import Command, Mode, State
 from drivers.contract.parameters import ParamKind
 from drivers.contract.signals import SIGNAL_NAMES
@@ -60,6 +63,15 @@ class SimulatedDevice:
     load_watchdog: Watchdog = field(default_factory=lambda: Watchdog("load machine"))
     _watchdogs: WatchdogThread | None = None
     on_master_lost: list = field(default_factory=list)     # front ends' own reactions (CANopen: 0x1029)
+    # vendor quirks (sim_backend.canopen.generic.DriveSpec): bit 9 (remote) drops after this much OPERATION ENABLED
+    # drive time, or is 0 from power-on; a drive in local control ignores the controlword and keeps its target
+    remote_drops_after_s: float | None = None
+    local_control: bool = False
+    warning_emcy_after_s: float | None = None   # EMCY 0x4310 + bit 7 after this much OPERATION ENABLED drive time
+    comm_loss_delay_s: float = 0.0              # the comm-loss reaction this much after the consumer time
+    velocity_filter_s: float = 0.0              # 0x606C's first-order filter (a drive's reported speed lags)
+    speed_reported: float = 0.0                 # the estimate through that filter, rad/s
+    _enabled_steps: int = 0
 
     @property
     def time_s(self) -> float:
@@ -72,7 +84,8 @@ class SimulatedDevice:
         with self.lock:
             self.model = model
             self.trace.clear()
-            self.device = Cia402Device()
+            self.device = Cia402Device(remote=not self.local_control)
+            self._enabled_steps = 0
             self.mode_of_operation = Mode.PROFILE_VELOCITY
             self.target_speed_mech_rad_s = 0.0
             self.load = LoadMachineRegisters()
@@ -86,8 +99,31 @@ class SimulatedDevice:
     def write_controlword(self, word: int) -> None:
         with self.lock:
             self.faults.log(ControlwordWritten(word))
+            if not self.device.remote:
+                return                       # local control: the bench's controlword is not obeyed
             self.device.write_controlword(word, fault_active=self._fault_code() != 0)
             self._apply_outputs()
+
+    def set_target(self, speed_mech_rad_s: float) -> None:
+        """0x60FF / the serial SPEED command: ignored in local control (the drive keeps its last target)."""
+        with self.lock:
+            if self.device.remote:
+                self.target_speed_mech_rad_s = speed_mech_rad_s
+
+    def _remote_drop(self, n_steps: int) -> None:
+        if self.device.state is State.OPERATION_ENABLED:
+            self._enabled_steps += n_steps
+        enabled_s = self._enabled_steps * self.model.control_period_s
+        if self.warning_emcy_after_s is not None and not self.device.warning and enabled_s >= self.warning_emcy_after_s:
+            self.device.warning = True
+            self.pending_emcy.append(EMCY_TEMPERATURE_WARNING)
+        if self.remote_drops_after_s is None or not self.device.remote:
+            return
+        if self.device.state is State.OPERATION_ENABLED:
+            if self._enabled_steps * self.model.control_period_s >= self.remote_drops_after_s:
+                self.device.remote = False
+                self.faults.self_stops.append(f"drive: statusword bit 9 (remote) dropped at t={self.time_s:.3f} s: "
+                                              f"local control, target {self.target_speed_mech_rad_s:g} rad/s kept")
 
     def reset_fault(self) -> None:
         with self.lock:
@@ -150,6 +186,19 @@ class SimulatedDevice:
 
     def _master_lost(self, silent_s: float) -> None:
         """CiA 402 0x6007 abort connection option: the drive's own reaction to a lost master."""
+        if self.comm_loss_delay_s > 0:
+            timer = threading.Timer(self.comm_loss_delay_s, self._master_lost_late, (silent_s + self.comm_loss_delay_s,))
+            timer.daemon = True
+            timer.start()
+            return
+        self._react_to_master_lost(silent_s)
+
+    def _master_lost_late(self, silent_s: float) -> None:
+        with self.lock:
+            if self.master_watchdog.tripped:
+                self._react_to_master_lost(silent_s)
+
+    def _react_to_master_lost(self, silent_s: float) -> None:
         option = self.abort_connection_option
         what = {1: "fault", 2: "disable voltage", 3: "quick stop"}.get(option, "no action")
         self.pending_emcy.append(EMCY_HEARTBEAT)
@@ -204,8 +253,10 @@ class SimulatedDevice:
     def advance(self, n_steps: int) -> np.ndarray:
         """Run n control periods; feed the trace recorder; detect faults. Returns the telemetry block."""
         with self.lock:
+            self._remote_drop(n_steps)
             self._apply_outputs()
             block = self.model.step(n_steps)
+            self._filter_reported(block[:, SIGNAL_NAMES.index("speed_est_mech_rad_s")])
             self.trace.push(self.step_count + 1, block, self.device.power_enabled)
             self.step_count += n_steps
             self.latest = block[-1]
@@ -222,6 +273,16 @@ class SimulatedDevice:
             self.device.target_reached = abs(speed - self.target_speed_mech_rad_s) <= 0.01 * max(
                 1.0, abs(self.target_speed_mech_rad_s))
             return block
+
+    def _filter_reported(self, speeds: np.ndarray) -> None:
+        if self.velocity_filter_s <= 0:
+            self.speed_reported = float(speeds[-1])
+            return
+        from scipy.signal import lfilter       # only a drive with the quirk pays for the import
+
+        a = 1.0 - math.exp(-self.model.control_period_s / self.velocity_filter_s)
+        y, _ = lfilter([a], [1.0, a - 1.0], speeds, zi=[(1.0 - a) * self.speed_reported])
+        self.speed_reported = float(y[-1])
 
     def _fault_code(self) -> int:
         return self.model.fault_code() or (EMCY_OVERCURRENT if self.faults.overcurrent else 0)

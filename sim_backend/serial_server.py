@@ -157,8 +157,7 @@ class SerialProtocolHandler:
             (speed,) = struct.unpack("<d", p)
             if not math.isfinite(speed):
                 raise CommandError(ErrorCode.BAD_VALUE, f"target velocity {speed} is not finite")
-            with dev.lock:
-                dev.target_speed_mech_rad_s = speed
+            dev.set_target(speed)
             return b""
         if cmd is Cmd.WATCHDOG:
             _expect_len(p, 4, cmd)

@@ -29,7 +29,7 @@ class Item:
 
 
 def checklist(drive: dict[str, Any], cfg: Any, drill: dict[str, Any] | None = None) -> list[Item]:
-    items = [_cia402(drive), _mode(drive), *_units(drive), _pdos(drive), *_comm_loss(drive, drill),
+    items = [_cia402(drive), _remote(drive), _mode(drive), *_units(drive), _pdos(drive), *_comm_loss(drive, drill),
              _load(cfg, drill), _node_id(drive), _fault(drive)]
     return items
 
@@ -46,6 +46,18 @@ def _cia402(d: dict) -> Item:
                                      "wrong node id, or not a drive the bench can run")
 
 
+def _remote(d: dict) -> Item:
+    word = d.get("statusword")
+    if word is None:
+        return Item("remote (statusword bit 9)", "unknown", "no statusword (0x6041) answered")
+    if word & 0x0200:
+        return Item("remote (statusword bit 9)", "ok", f"= 1: the drive follows the bench's controlword "
+                                                       f"(statusword 0x{word:04X})")
+    return Item("remote (statusword bit 9)", "fix", f"statusword bit 9 (remote) = 0: the drive is in local control "
+                                                    f"(statusword 0x{word:04X}) and ignores the bench's controlword; "
+                                                    f"switch it to remote (local/remote switch, panel, enable input)")
+
+
 def _mode(d: dict) -> Item:
     modes = d.get("supported_modes")
     if modes is None:
@@ -54,8 +66,8 @@ def _mode(d: dict) -> Item:
     if PV in modes:
         return Item("usable mode", "ok", "profile velocity (3) supported")
     if CSV in modes:
-        return Item("usable mode", "fix", "no profile velocity, only cyclic synchronous velocity (9): this bench "
-                                          "drives profile velocity; CSV needs the bench's CSV support")
+        return Item("usable mode", "ok", "no profile velocity, only cyclic synchronous velocity (9): the bench runs "
+                                         "it in CSV, a target with every SYNC (velocity_mode = \"auto\" chooses it)")
     return Item("usable mode", "fix", f"neither profile velocity nor CSV among {', '.join(modes) or 'none'}")
 
 

@@ -123,8 +123,9 @@ def print_record(console: Console, record: dict, run_dir: Path | str) -> None:
         console.print(f"  {timings(comm_loss)}")
     warnings = [w for w in record.get("drive_warnings") or [] if isinstance(w, dict) and w.get("warning")]
     if warnings:
+        emcy = next((w["emcy"] for w in warnings if w.get("emcy")), None)
         console.print(f"  [yellow]drive warning[/] (statusword bit 7) set {len(warnings)} time(s), first at "
-                      f"t={warnings[0].get('t_s', float('nan')):.3f} s")
+                      f"t={warnings[0].get('t_s', float('nan')):.3f} s" + (f", EMCY {emcy} (ran on)" if emcy else ""))
     sync = record.get("sync") or {}
     if sync.get("intervals"):
         console.print(f"  SYNC {sync.get('period_ms')} ms at the bench: p50 {sync.get('p50_ms')} ms, p99 "

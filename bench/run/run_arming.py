@@ -11,6 +11,9 @@ from bench.run.drill import (DRILL_SETTINGS, DrillRefused, proved_recently, refu
 from drivers.contract.errors import InputError
 from bench.run.run_periods import FEEDBACK_LOST_PERIODS, LIVE_SIGNALS
 from bench.run.supervisor import FeedbackCheck, UnitCheck
+
+STALE_REFERENCE_PERIODS = 2.5   # a reference reading older than this many SYNC periods is stale for the unit check
+STALE_REFERENCE_MIN_S = 0.03    # real time: samples come in batches of up to 10 ms, the reading after each batch
 from drivers.api import UnitsProfile
 from drivers.contract.signals import SIGNAL_NAMES
 
@@ -65,7 +68,10 @@ class RunArming:
         if "speed_true_mech_rad_s" in measured:
             # lockstep: the reference is read while the drive waits for the next SYNC, at the same instant; real time:
             # up to a batch and a Modbus round trip later
-            self.supervisor.unit_check = UnitCheck(skew_s=0.0 if not self.realtime else 2 * self.sync_period_s)
+            self.supervisor.unit_check = UnitCheck(
+                skew_s=0.0 if not self.realtime else 2 * self.sync_period_s,
+                lag_s=float(self.cfg.drive.get("velocity_filter_s") or 0.0),
+                stale_s=max(STALE_REFERENCE_PERIODS * self.sync_period_s, STALE_REFERENCE_MIN_S if self.realtime else 0.0))
             self.recorder.note("unit_check", self.supervisor.unit_check.settings())
             return
         if profile.unread and not profile.units_confirmed:

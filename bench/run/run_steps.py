@@ -8,6 +8,7 @@ import time
 from datetime import datetime, timezone
 
 from bench.run.load_emulation import SPEED_SIGNAL
+from bench.run.supervisor import is_warning
 from bench.run.run_periods import FETCH_PERIOD_S, LOAD_POLL_PERIOD_S, PROGRESS_PERIOD_S, STALL_TIMEOUT_S, STATUS_PERIOD_S
 from drivers.contract.errors import LinkError
 from drivers.api import LiveSample
@@ -81,7 +82,7 @@ class RunSteps:
 
             if t_drive >= next_status:
                 status = self.drive.status()
-                self._note_warning(t_drive, status.warning)
+                self._note_warning(t_drive, status.warning, status)
                 self.supervisor.feed_status(t_drive, status)
                 next_status = t_drive + STATUS_PERIOD_S
             if t_drive >= next_load_poll and self.load is not None:
@@ -111,8 +112,14 @@ class RunSteps:
             return self.supervisor.trip.message + self._drive_fault_behind(self.supervisor.trip)
         return None
 
-    def _note_warning(self, t_s: float, on: bool) -> None:
-        """The statusword's warning bit (CiA 402 bit 7): every change, as an event in the record."""
+    def _note_warning(self, t_s: float, on: bool, status=None) -> None:
+        """The statusword's warning bit (CiA 402 bit 7): every change, as an event in the record; with the warning
+        EMCYs that came while the drive ran on (bench.run.supervisor.is_warning)."""
+        if status is not None and status.emcy and is_warning(status):
+            self.drive_warnings.extend({"t_s": t_s, "warning": on, "emcy": f"0x{code:04X} {text}",
+                                        "utc": datetime.now(timezone.utc).isoformat(timespec="milliseconds")}
+                                       for code, text in status.emcy if code)
+            self.recorder.note("drive_warnings", self.drive_warnings)
         if on == self._warning:
             return
         self._warning = on
@@ -154,12 +161,13 @@ class RunSteps:
 
     def _reference_at(self, t_s: float) -> dict[str, float]:
         """The reference reading taken last at or before drive time t_s (sample and hold); the oldest one kept for
-        samples older than every reading."""
+        samples older than every reading. `reference_age_s`: how old that reading is at t_s (a stalled bench reads the
+        dynamometer once for several SYNCs: the unit check does not judge on a stale reading)."""
         readings = self._reference_readings
         for t_read, values in reversed(readings):
             if t_read <= t_s + 0.5 * self.sync_period_s:
-                return values
-        return readings[0][1]
+                return {**values, "reference_age_s": max(0.0, t_s - t_read)}
+        return {**readings[0][1], "reference_age_s": 0.0}
 
     def _run_time(self, samples: list[LiveSample]) -> list[LiveSample]:
         """Shift drive-clock stamps to time since this run's first SYNC (the drive may have run before)."""

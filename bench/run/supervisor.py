@@ -64,15 +64,25 @@ def check_sample(limits: SupervisorLimits, t_s: float, values: dict[str, float])
     return None
 
 
+def is_warning(status: DriveStatus) -> bool:
+    """An EMCY with the statusword's warning bit (7) set and the drive still OPERATION ENABLED: the drive warns and
+    runs on (docs/rig.md); recorded and shown, not a trip. A fault shows in the state machine."""
+    return status.warning and not status.fault and status.state == "OPERATION ENABLED"
+
+
 def check_status(t_s: float | None, status: DriveStatus) -> Trip | None:
     when = "" if t_s is None else f" at t={t_s:.4f} s"
     if status.fault:
         return Trip("fault", t_s, {}, f"drive fault{when} (state {status.state})"
                     + "".join(f"; EMCY 0x{code:04X} {text}" for code, text in status.emcy))
     errors = [(code, text) for code, text in status.emcy if code != 0]  # 0x0000 = error reset
-    if errors:
+    if errors and not is_warning(status):
         code, text = errors[0]
         return Trip("emcy", t_s, {"emcy_code": float(code)}, f"EMCY 0x{code:04X} {text}{when}")
+    if status.control_lost:
+        return Trip("remote_lost", t_s, {}, status.control_lost)
+    if status.bus_drop:
+        return Trip("bus_drop", t_s, {}, f"{status.bus_drop} (seen{when})")
     if not status.heartbeat_ok:
         return Trip("heartbeat", t_s, {}, f"drive heartbeat lost{when}")
     return None
@@ -106,7 +116,13 @@ class UnitCheck:
       shaft has much speed (a run-away under the drive's own torque gains ~15 rad/s per 10 ms on the PMSM rig).
 
     A missing value (NaN, a signal that did not arrive) while the check runs is a disagreeing sample, never an agreeing
-    one: a drive whose speed never arrives cannot pass the check."""
+    one: a drive whose speed never arrives cannot pass the check.
+
+    Lag is not a unit error: a drive whose 0x606C is filtered (`lag_s`, [drive] velocity_filter_s: a first-order time
+    constant) reports the shaft's speed lag_s late, so the angles differ by up to lag_s x |speed| and the speeds by
+    lag_s x |acceleration| — both allowed for, and the travel judged grows so that a 1.1 factor still shows. A sample
+    whose reference reading is stale (`reference_age_s` more than `stale_s`: the bench stalled and read the dynamometer
+    once for several SYNCs) is not judged at all: its interval is left out of both angles."""
 
     moving_mech_rad_s: float = 0.5
     window_s: float = 1.0
@@ -119,7 +135,11 @@ class UnitCheck:
     gross_ratio: float = 3.0
     noise_mech_rad_s: float = 0.5
     gross_hold_samples: int = 2
+    lag_s: float = 0.0
+    stale_s: float = math.inf
     _start: float | None = None
+    _last_true: float | None = None
+    skipped_stale: int = 0               # samples not judged: their reference reading was stale
     _last_t: float | None = None
     _angle_est: float = 0.0
     _angle_true: float = 0.0
@@ -136,13 +156,15 @@ class UnitCheck:
                 "min_travel_rad": self.min_travel_rad, "max_window_s": self.max_window_s, "rel_tol": self.rel_tol,
                 "angle_noise_rad": self.angle_noise_rad, "skew_s": self.skew_s, "hold_samples": self.hold_samples,
                 "gross_ratio": self.gross_ratio, "noise_mech_rad_s": self.noise_mech_rad_s,
-                "gross_hold_samples": self.gross_hold_samples}
+                "gross_hold_samples": self.gross_hold_samples, "lag_s": self.lag_s,
+                "stale_s": None if math.isinf(self.stale_s) else self.stale_s}
 
     def summary(self) -> dict:
         state = ("not started (the shaft never turned)" if self._start is None
                  else "judging" if not self.done else "agreed")
         return {**self.settings(), "state": state, "started_t_s": self._start, "judged_samples": self.judged,
-                "missing_samples": self.missing, "worst_angle_excess": round(self.worst_excess, 4),
+                "missing_samples": self.missing, "stale_reference_samples": self.skipped_stale,
+                "worst_angle_excess": round(self.worst_excess, 4),
                 "angle_est_rad": round(self._angle_est, 4), "angle_true_rad": round(self._angle_true, 4),
                 "max_speed_true_mech_rad_s": round(self.max_speed, 4)}
 
@@ -157,8 +179,13 @@ class UnitCheck:
                 return None
             self._start = t_s
         elapsed = t_s - self._start
-        if elapsed > self.max_window_s or (elapsed > self.window_s and abs(self._angle_true) >= self.min_travel_rad):
+        travel = self.min_travel_rad + 2.0 * self.lag_s * self.max_speed / self.rel_tol
+        if elapsed > self.max_window_s or (elapsed > self.window_s and abs(self._angle_true) >= travel):
             self.done = True
+            return None
+        if values.get("reference_age_s", 0.0) > self.stale_s:
+            self.skipped_stale += 1
+            self._last_t, self._last_true = t_s, None
             return None
         dt = t_s - self._last_t if self._last_t is not None else 0.0
         self._last_t = t_s
@@ -176,15 +203,17 @@ class UnitCheck:
                         f"feedback lost at t={t_s:.4f} s: {which} missing for {self._bad} SYNC periods while the "
                         "shaft turns, during the unit check: the drive's units cannot be checked, stopping")
         self.max_speed = max(self.max_speed, abs(true))
+        accel = abs(true - self._last_true) / dt if self._last_true is not None and dt > 0 else 0.0
+        self._last_true = true
         self._angle_est += est * dt
         self._angle_true += true * dt
         gap = abs(self._angle_est - self._angle_true)
         allowance = (self.rel_tol * max(abs(self._angle_est), abs(self._angle_true)) + self.angle_noise_rad
-                     + self.skew_s * abs(true))
+                     + (self.skew_s + self.lag_s) * abs(true))
         excess = gap / allowance
         self.worst_excess = max(self.worst_excess, excess)
         ratio = abs(est) / max(abs(true), 1e-3)
-        gross = (abs(est - true) > self.noise_mech_rad_s
+        gross = (abs(est - true) > self.noise_mech_rad_s + self.lag_s * accel
                  and (est * true < 0 or not 1.0 / self.gross_ratio <= ratio <= self.gross_ratio))
         self._gross = self._gross + 1 if gross else 0
         self._bad = self._bad + 1 if excess > 1.0 else 0
@@ -199,7 +228,9 @@ class UnitCheck:
                                            "angle_est_rad": self._angle_est, "angle_true_rad": self._angle_true},
                     f"unit mismatch at t={t_s:.4f} s: the drive reports {est:.3f} rad/s, the reference sensor "
                     f"{true:.3f} rad/s ({what}): check the drive's velocity unit, encoder resolution, gear ratio "
-                    "and velocity_side in the record")
+                    "and velocity_side in the record; or a lag: a drive filtering its velocity actual value (0x606C) "
+                    f"reports the shaft late (velocity_filter_s = {self.lag_s:g} s stated; write its time constant, "
+                    "e.g. velocity_filter_s = 0.1, in [drive])")
 
 
 @dataclass
@@ -369,82 +400,4 @@ class Supervisor:
         return None
 
 
-STEP_TIMEOUT_S = 6.0   # one safe-stop step; above a serial link's 4 x 0.5 s retries or Modbus's 2 x 2 x 0.5 s
-
-
-class SafeStop:
-    """The end-of-run sequence: drive quick stop commanded, load to zero torque and disabled, the drive braked to
-    standstill, drive disabled.
-
-    The drive is told first: on a unit or overspeed trip the shaft is running away under the drive's own torque, and
-    the load machine is what brakes it until the drive does; a Modbus write takes milliseconds the drive should
-    already be braking in. Its `begin_quick_stop` (the quick-stop command alone, state confirmed) comes before the
-    load machine is touched, and its `quick_stop` then only waits for standstill.
-
-    Runs at most once however often it is requested (trip, Ctrl-C, SIGTERM, normal end). Every step is
-    tried even if an earlier one fails or hangs: each runs in a worker thread and is given up after
-    `step_timeout_s` (a dead link must not keep the other link's steps from running). The failures are
-    returned so the record can say so.
-    """
-
-    def __init__(self, drive, load, step_timeout_s: float = STEP_TIMEOUT_S):
-        self.drive = drive
-        self.load = load
-        self.step_timeout_s = step_timeout_s
-        self._lock = threading.Lock()
-        self.done = False
-        self.errors: list[str] = []
-        self.steps: list[str] = []
-
-    def run(self) -> list[str]:
-        with self._lock:
-            if self.done:
-                return self.errors
-            self.done = True
-            if self.drive is not None:
-                self._step("drive quick stop commanded", self.drive.begin_quick_stop)
-            if self.load is not None:
-                self._step("load zero torque and disabled", self.load.zero_and_disable)
-            if self.drive is not None:
-                self._step("drive quick stop", self.drive.quick_stop)
-            if self.drive is not None:
-                self._step("drive disabled", self.drive.disable)
-            return self.errors
-
-    def _step(self, label: str, action: Callable[[], None]) -> None:
-        self._outcome(label, _bounded(action, self.step_timeout_s))
-
-    def _outcome(self, label: str, error: str | None) -> None:
-        if error is None:
-            self.steps.append(label)
-        else:              # keep going: the remaining steps matter more than this error
-            self.errors.append(f"{label}: {error}")
-
-
-class _Worker:
-    """One safe-stop step in a daemon thread, started at once; result() waits for it (bounded)."""
-
-    def __init__(self, action: Callable[[], None]):
-        self.outcome: list[str | None] = []
-        self.started = time.monotonic()
-
-        def target() -> None:
-            try:
-                action()
-                self.outcome.append(None)
-            except BaseException as exc:
-                self.outcome.append(f"{type(exc).__name__}: {exc}")
-
-        self.thread = threading.Thread(target=target, name="drivebench-safe-stop", daemon=True)
-        self.thread.start()
-
-    def result(self, timeout_s: float) -> str | None:
-        self.thread.join(max(0.0, timeout_s - (time.monotonic() - self.started)))
-        if self.thread.is_alive():
-            return f"no answer within {timeout_s:g} s (step abandoned)"
-        return self.outcome[0]
-
-
-def _bounded(action: Callable[[], None], timeout_s: float) -> str | None:
-    """Run action in a daemon thread; None when it returned, else what went wrong (exception or timeout)."""
-    return _Worker(action).result(timeout_s)
+from bench.run.safe_stop import STEP_TIMEOUT_S, SafeStop, _bounded  # noqa: E402,F401  (one home: safe_stop)

@@ -42,3 +42,5 @@ class CanopenDriveConfig(DriveSection):
     signals: dict | None = None
     error_behaviour: int | None = None
     bench_node_id: int | None = None
+    # the last resort's NMT command where the drive's manual says it stops the power stage (drivers.canopen.closing)
+    last_resort_nmt: str = key("none", kind="string", choices=("none", "stop", "reset"))

@@ -48,6 +48,9 @@ from drivers.canopen import pdo as pdos
 from drivers.canopen.config import CanopenDriveConfig
 from drivers.canopen.bus import BusErrorCounter, QuickVirtualBus, SocketcandRefusal, bus_kwargs, make_bus, open_bus
 from drivers.canopen.comm_loss_guard import CommLossGuard
+from drivers.canopen import closing, mode_select
+from drivers.canopen.bus_drop import BusDropWatch
+from drivers.contract.control_watch import ControlWatch
 from drivers.canopen import drill as drills
 from drivers.contract.comm_loss import CommLossConfig
 from drivers.canopen.profile import DriveProfile, ProfileConfig, resolve
@@ -103,6 +106,9 @@ class CanopenDriveLink(DriveLink):
         self.report: dict[str, Any] = {}             # what was read and set, for the record
         self._snapshot: pdos.PdoSnapshot | None = None
         self._guard: CommLossGuard | None = None
+        self._producer_restore: int | None = None     # 0x1017 as the drive had it (drivers.canopen.closing)
+        self.control = ControlWatch(tuple(cfg.enable_bits or ()))    # statusword bit 9 and [drive] enable_bits
+        self.bus_drop = BusDropWatch(self.sync_period_s)
         self._lock = threading.Condition()
         self._cancel = threading.Event()
         self._last_heartbeat = 0.0
@@ -178,8 +184,8 @@ class CanopenDriveLink(DriveLink):
                 has_trace = sdo.has(o.EXT_TRACE_DATA)
             except SdoAbortedError:
                 has_trace = False
-        if sdo.has(o.PRODUCER_HEARTBEAT):   # heartbeat producer at a quarter of our timeout
-            sdo.write(o.PRODUCER_HEARTBEAT, 0, max(10, min(1000, int(self.heartbeat_timeout_s * 1000 / 4))))
+        # heartbeat producer at a quarter of our timeout
+        closing.set_producer_heartbeat(self, max(10, min(1000, int(self.heartbeat_timeout_s * 1000 / 4))))
         self.identity = DriveIdentity(vendor_id=vendor, product_code=product, revision=revision, serial=serial,
                                       device_name=name, firmware_version=version,
                                       has_trace_recorder=has_trace)
@@ -245,19 +251,16 @@ class CanopenDriveLink(DriveLink):
         self._cancel.set()
 
     def close(self) -> None:
-        """The drive's own settings back (comm-loss objects first, then PDOs), then off the bus."""
+        """The drive's own settings back (comm-loss objects first, then PDOs), then off the bus — only once the drive
+        is disabled; else the last resort (drivers.canopen.closing): 0x1016 left armed, the heartbeat withheld."""
         self._stop_sync_producer()
         if self.network is None:
             return
         errors: list[str] = []
         if self.sdo is not None:
             try:
-                if self._guard is not None:
-                    errors += self._guard.disarm()
-                errors += self._restore_sync_counter()
-                if self._snapshot is not None and self._snapshot.touched:
-                    self.node.nmt.state = "PRE-OPERATIONAL"
-                    errors += self._snapshot.restore(self.sdo)
+                if closing.secured(self):
+                    errors += closing.restore(self)
             except Exception as exc:       # closing must not mask the run's own error
                 errors.append(str(exc))
         for error in errors:
@@ -385,18 +388,6 @@ class CanopenDriveLink(DriveLink):
         finally:
             self.sdo.write_standard(o.COMM_CYCLE_PERIOD, 0, round(self.sync_period_s * 1e6), 4)
 
-    def _restore_sync_counter(self) -> list[str]:
-        if self._sync_counter_restore is None:
-            return []
-        try:
-            self.sdo.write_standard(o.COMM_CYCLE_PERIOD, 0, 0, 4)
-            self.sdo.write_standard(SYNC_COUNTER_OVERFLOW, 0, self._sync_counter_restore, 1)
-            self.sdo.write_standard(o.COMM_CYCLE_PERIOD, 0, round(self.sync_period_s * 1e6), 4)
-            self._sync_counter_restore = None
-            return []
-        except LinkError as exc:
-            return [str(exc)]
-
     def _plan_pdos(self, live_signals: Sequence[str]) -> pdos.PdoPlan:
         if self.pdo_policy not in pdos.POLICIES:
             raise LinkError(f"{self.where}: pdo policy {self.pdo_policy!r} is not one of {', '.join(pdos.POLICIES)}")
@@ -446,6 +437,7 @@ class CanopenDriveLink(DriveLink):
         with self._lock:
             self._last_heartbeat = time.monotonic()
             self._heartbeat_state = data[0] & 0x7F if data else None
+            self.bus_drop.heartbeat_at = timestamp
         self._booted.set()                    # boot-up (state 0) or a heartbeat: the node is up
 
     def _on_emcy(self, can_id, data, timestamp):
@@ -457,6 +449,7 @@ class CanopenDriveLink(DriveLink):
         log.info("node %d EMCY 0x%04X (%s), error register 0x%02X", self.node_id, code, text, register)
         with self._lock:
             self._emcy.append((code, f"{text}; error register 0x{register:02X}"))
+            self.bus_drop.emcy()
 
     def _on_tpdo(self, can_id, data, timestamp):
         self._on_tpdos([(can_id, data)], timestamp)
@@ -468,6 +461,8 @@ class CanopenDriveLink(DriveLink):
         if abs(now - timestamp) < 3600.0:       # interfaces stamping with the epoch clock: receive backlog
             self._rx_lag_s = now - timestamp
         with self._lock:
+            if self.timing == "realtime":
+                self.bus_drop.tpdo(timestamp, self._heartbeat_state, getattr(self._placer, "unanswered", None))
             woken = False
             for can_id, data in frames:
                 result = self._decoder.decode(can_id, data, timestamp)
@@ -475,6 +470,7 @@ class CanopenDriveLink(DriveLink):
                     self._errors.append(result)
                     woken = True
                 elif result:
+                    self.control.feed(self._decoder.statusword)
                     self._samples.extend(result)
                     self._latest = result[-1]
                     self._completed += len(result)
@@ -500,6 +496,7 @@ class CanopenDriveLink(DriveLink):
         with self._lock:
             errors, self._errors = self._errors, []
             self._samples.clear()
+            self.bus_drop.reset()
             return errors
 
     def drill(self, before_withhold: Callable[[], None] | None = None) -> dict[str, Any]:
@@ -507,6 +504,12 @@ class CanopenDriveLink(DriveLink):
         result = drills.drill(self, before_withhold)
         self.report["drill"] = result
         return result
+
+    last_resort_bound_s = property(closing.last_resort_bound_s)
+
+    def secure(self) -> str | None:
+        secured = closing.secured(self)
+        return None if secured and "last_resort" not in self.report else self.report["last_resort"]["line"]
 
     def set_reference_speed(self, speed: Callable[[], float | None]) -> None:
         """The rig's reference sensor (mech rad/s), so a drive found running is judged at rest by the shaft too."""
@@ -678,6 +681,7 @@ class CanopenDriveLink(DriveLink):
 
     def read_statusword(self) -> int:
         word = self.sdo.read(o.STATUSWORD)
+        self.control.feed(word)
         with self._lock:
             self._decoder.statusword = word
         return word
@@ -694,41 +698,23 @@ class CanopenDriveLink(DriveLink):
         if self.profile is None:
             raise LinkError(f"{self.where}: the drive's velocity unit is not known: not enabling")
 
-        def select_mode() -> None:
-            self.mode = self._velocity_mode()
-            self.report["velocity_mode"] = {cia402.Mode.PROFILE_VELOCITY: "profile velocity (3)",
-                                            cia402.Mode.CYCLIC_SYNC_VELOCITY: "cyclic synchronous velocity (9): a "
-                                                                              "target with every SYNC"}[self.mode]
-            self._target = 0
-            self.sdo.write_standard(o.TARGET_VELOCITY, 0, 0, 4, signed=True)
-            try:
-                self.sdo.write(o.MODES_OF_OPERATION, 0, self.mode)
-            except LinkError as exc:
-                other = ('velocity_mode = "csv"' if self.mode is cia402.Mode.PROFILE_VELOCITY
-                         else 'velocity_mode = "pv"')
-                raise LinkError(f"{exc}: the drive refuses mode of operation {int(self.mode)} "
-                                f"({self.mode.name.lower().replace('_', ' ')}) in 0x6060 (modes of operation); "
-                                f"0x6502 (supported drive modes) says which it has; write {other} in [drive] if it "
-                                f"has that one") from None
-            mode = self.sdo.read(o.MODES_DISPLAY) if self.sdo.has(o.MODES_DISPLAY) else None
-            if mode is not None and mode != self.mode:
-                raise LinkError(f"{self.where}: 0x6061 (mode of operation display) is {mode} after 0x6060 = "
-                                f"{int(self.mode)}: the drive did not take the mode")
-
         def fault_detail() -> str:
             code = self.sdo.read_standard(o.ERROR_CODE, 0)
             return "no error code" if code is None else f"error code 0x{code:04X}"
 
+        mode_select.check_remote(self)
         self._wait_for_rest()
         cia402.enable_operation(self, fault_reset_policy=self.fault_reset_policy, timeout_s=self._step_timeout_s,
-                                where=self.where, select_mode=select_mode, fault_detail=fault_detail,
-                                bring_to_rest=self._bring_to_rest)
+                                where=self.where, select_mode=lambda: mode_select.select_mode(self),
+                                fault_detail=fault_detail, bring_to_rest=self._bring_to_rest)
+        mode_select.after_enable(self)
         if self.timing == "realtime":
             # the run's time starts here: what arrived while the bench configured and enabled the drive (SYNC runs
             # from configure() on, 0.1-0.5 s of SDO round trips under load) would put the scenario's t = 0 back by
             # that much, and its first command would jump into the profile (a 0.5 s ramp taken as a step at 0.4 s)
             with self._lock:
                 self._samples.clear()
+                self.bus_drop.reset()
                 if isinstance(self._placer, SyncTimeline):
                     self._placer.rebase()
 
@@ -818,12 +804,14 @@ class CanopenDriveLink(DriveLink):
     def begin_quick_stop(self) -> None:
         """The quick-stop command alone (controlword 0x0002 by SDO, the state confirmed on the statusword): the
         safe stop's first step, before the load machine is touched; quick_stop() then waits for standstill."""
+        self.control.refuse(self.where, "quick stop")
         self._quick_stop_state = cia402.quick_stop(self, self._step_timeout_s, self.where)
 
     def quick_stop(self) -> None:
         """Quick stop (unless begin_quick_stop gave it), then wait (bounded) until the shaft is below the standstill
         threshold."""
         state, self._quick_stop_state = self._quick_stop_state, None
+        self.control.refuse(self.where, "quick stop")
         if state is None:
             state = cia402.quick_stop(self, self._step_timeout_s, self.where)
         if state is cia402.State.FAULT:
@@ -841,6 +829,7 @@ class CanopenDriveLink(DriveLink):
         return math.ceil(self.stop_timeout_s / self.sync_period_s) if self.timing == "lockstep" else None
 
     def disable(self) -> None:
+        self.control.refuse(self.where, "disable voltage")
         self._target = 0
         if self._rpdo_frame is not None:
             self._pack_rpdo()
@@ -856,7 +845,8 @@ class CanopenDriveLink(DriveLink):
             word = self._decoder.statusword
             state = cia402.decode(word)
             return DriveStatus(state=cia402.state_name(word), fault=state in cia402.FAULT_STATES,
-                               heartbeat_ok=self._heartbeat_ok(), emcy=emcy,
+                               heartbeat_ok=self._heartbeat_ok(), emcy=emcy, control_lost=self.control.lost,
+                               bus_drop=self.bus_drop.lost,
                                warning=bool(word & cia402.StatusBit.WARNING))
 
     # -- parameters ----------------------------------------------------------------------------------

@@ -74,7 +74,15 @@ def probe(section: dict, base_dir: Path) -> dict[str, Any]:
         node = network.add_node(node_id, od)
         node.sdo.RESPONSE_TIMEOUT = float(section.get("sdo_timeout_s", 0.5))
         sdo = SdoAccess(node, eds.name if eds is not None else "(no EDS)", node.sdo.RESPONSE_TIMEOUT)
-        vendor, product, revision, serial = (sdo.read_standard(o.IDENTITY, k) for k in (1, 2, 3, 4))
+        booting = (f"a drive still booting sends its NMT boot-up message (0x{o.HEARTBEAT + node_id:03X} data 00) "
+                   f"when ready: probe again then, and write boot_timeout_s = 5 in [drive] so runs wait for it")
+        try:
+            vendor, product, revision, serial = (sdo.read_standard(o.IDENTITY, k) for k in (1, 2, 3, 4))
+        except LinkError as exc:
+            if "abort" in str(exc):
+                raise
+            raise LinkError(f"{exc}: the drive does not answer; {booting}; check node_id, bitrate and wiring") \
+                from None
         if vendor is None:
             raise LinkError(f"node {node_id}: no identity object (0x1018) answered")
         device_type = sdo.read_standard(o.DEVICE_TYPE, 0) or 0
@@ -95,6 +103,7 @@ def probe(section: dict, base_dir: Path) -> dict[str, Any]:
                             "cia402": device_type & 0xFFFF == 402},
             "supported_modes": None if modes is None else [m.name.lower() for m in cia402.supported_modes(modes)],
             "state": None if statusword is None else cia402.state_name(statusword),
+            "remote_bit9": None if statusword is None else bool(statusword & cia402.StatusBit.REMOTE),
             "units": {"velocity_0x60A9": unit,
                       "encoder_0x608F": _pair(sdo, o.POSITION_ENCODER_RESOLUTION,
                                               "{} increments per {} motor revolutions"),

@@ -77,13 +77,26 @@ class SimulatorConfig(Section):
     csv_only: bool | None = key(None, kind="boolean")
     event_tpdos_only: bool | None = key(None, kind="boolean")
     boot_delay_s: float | None = key(None, kind="number", min=0)
+    remote_drops_after_s: float | None = key(None, kind="number", min=0)
+    local_control: bool | None = key(None, kind="boolean")
+    mode_display_delay_s: float | None = key(None, kind="number", min=0)
+    warning_emcy_after_s: float | None = key(None, kind="number", min=0)
+    target_sdo_only_enabled: bool | None = key(None, kind="boolean")
+    node_guarding: bool | None = key(None, kind="boolean")
+    comm_loss_delay_s: float | None = key(None, kind="number", min=0)
+    velocity_filter_s: float | None = key(None, kind="number", min=0)
+    bus_drop_at_s: float | None = key(None, kind="number", min=0)
+    bus_drop_s: float | None = key(None, kind="number", min=0)
     instruments: dict | None = key(None, kind="table")              # an instruments rig (sim_backend.instruments)
     lab_instruments: dict | None = key(None, kind="table")          # SCPI analyser and scope (sim_backend.lab_rig)
     serve: SimulatorServeConfig | None = key(None, kind="table")
 
     GENERIC = ("velocity_unit", "velocity_side", "encoder_increments_per_rev", "gear_ratio", "rated_current_a",
                "rated_torque_nm", "fixed_pdo_mapping", "comm_loss_reaction", "found_running_mech_rad_s",
-               "tpdo_stops_after_s", "tpdo_stops", "csv_only", "event_tpdos_only", "boot_delay_s")
+               "tpdo_stops_after_s", "tpdo_stops", "csv_only", "event_tpdos_only", "boot_delay_s",
+               "remote_drops_after_s", "local_control", "mode_display_delay_s", "warning_emcy_after_s",
+               "target_sdo_only_enabled", "node_guarding", "comm_loss_delay_s", "velocity_filter_s",
+               "bus_drop_at_s", "bus_drop_s")
 
     @classmethod
     def read(cls, table: dict, problems: Problems, where: str | None = None, root: Path | None = None,

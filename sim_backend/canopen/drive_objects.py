@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import time
 from dataclasses import dataclass
 from typing import Callable
 
@@ -27,6 +28,7 @@ SPEED_REF = SIGNAL_INDEX["speed_ref_mech_rad_s"]
 TORQUE_EST = SIGNAL_INDEX["torque_est_nm"]
 I_SY = SIGNAL_INDEX["i_sy_a"]
 VDC = SIGNAL_INDEX["vdc_v"]
+ABORT_DEVICE_STATE = 0x08000022     # CiA 301: data cannot be transferred because of the present device state
 
 
 @dataclass
@@ -72,13 +74,19 @@ class Cia402Objects:
         self.units = units or DriveUnits()
         self._position_rad = 0.0
         self._position_step = 0
+        self.mode_display_delay_s = 0.0          # quirks (generic.DriveSpec)
+        self.target_sdo_only_enabled = False
+        self.from_rpdo: Callable[[], bool] = lambda: False
+        self._mode_shown = (None, 0.0)           # (mode shown before the last 0x6060 write, when it was written)
 
     def read(self, index: int, subindex: int, od) -> object:
         dev = self.device
         if index == o.STATUSWORD:
             return dev.device.statusword
         if index == o.MODES_DISPLAY:
-            return dev.mode_of_operation
+            before, written = self._mode_shown
+            late = before is not None and time.monotonic() - written < self.mode_display_delay_s
+            return before if late else dev.mode_of_operation
         if index == o.SUPPORTED_DRIVE_MODES and self.supported_modes is not None:
             return self.supported_modes
         if index == o.ERROR_CODE:
@@ -86,7 +94,7 @@ class Cia402Objects:
         if index == o.ERROR_REGISTER:
             return error_register_for(dev.device.error_code) if dev.device.state is State.FAULT else 0
         if index == o.VELOCITY_ACTUAL:
-            return self.units.to_drive(float(dev.latest[SPEED_EST]))
+            return self.units.to_drive(dev.speed_reported)
         if index == o.VELOCITY_DEMAND:
             return self.units.to_drive(float(dev.latest[SPEED_REF]))
         if index == o.TORQUE_ACTUAL:
@@ -128,10 +136,13 @@ class Cia402Objects:
                                                                    self.supported_modes >> (value - 1) & 1):
                 raise SdoAbortedError(o.ABORT_INVALID_VALUE)
             with dev.lock:
+                self._mode_shown = (dev.mode_of_operation, time.monotonic())
                 dev.mode_of_operation = value
         elif index == o.TARGET_VELOCITY:
-            with dev.lock:
-                dev.target_speed_mech_rad_s = self.units.velocity.to_rad_s(value)
+            if (self.target_sdo_only_enabled and not self.from_rpdo()
+                    and dev.device.state is not State.OPERATION_ENABLED):
+                raise SdoAbortedError(ABORT_DEVICE_STATE)
+            dev.set_target(self.units.velocity.to_rad_s(value))
         elif index == o.SI_UNIT_VELOCITY:
             try:
                 unit = decode_velocity_unit(value)

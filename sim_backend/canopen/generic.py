@@ -17,7 +17,13 @@ device does.
 
 Quirks real drives have, as options: `csv_only` (0x6502 = 0x100, 0x6060 = 3 aborted with 0x06090030),
 `event_tpdos_only` (0x18xx sub 2 refuses 0-240; TPDOs go out on change and every event timer 0x18xx sub 5 of drive
-time), `boot_delay_s` (no answer at all until the boot-up message 0x700 + id, data 00).
+time), `boot_delay_s` (no answer at all until the boot-up message 0x700 + id, data 00), `remote_drops_after_s`
+(statusword bit 9 drops mid-run, the drive keeps its target and ignores the controlword; its comm-loss reaction still
+acts), `local_control` (bit 9 = 0 from power-on), `mode_display_delay_s` (0x6061 late), `warning_emcy_after_s` (a
+warning EMCY while enabled), `target_sdo_only_enabled` (0x60FF by SDO aborted 0x08000022 unless enabled),
+`node_guarding` (0x100C/0x100D instead of 0x1016/0x1017), `comm_loss_delay_s` (a late comm-loss reaction),
+`velocity_filter_s` (0x606C filtered: the reported speed lags the shaft), `bus_drop_at_s` / `bus_drop_s` (the bus
+drops: no frame either way, the drive stays OPERATIONAL, no EMCY).
 """
 
 from __future__ import annotations
@@ -53,6 +59,18 @@ class DriveSpec:
     csv_only: bool = False                    # 0x6502 = 0x100: cyclic synchronous velocity, no profile velocity
     event_tpdos_only: bool = False            # TPDO transmission types 0-240 (SYNC) refused: 254/255 + event timer
     boot_delay_s: float = 0.0                 # silent this long after power-up, then the NMT boot-up message
+    remote_drops_after_s: float | None = None # statusword bit 9 drops after this much OPERATION ENABLED drive time;
+                                              # from then on controlword and target are ignored (local control)
+    local_control: bool = False               # bit 9 = 0 from power-on: the controlword is ignored
+    mode_display_delay_s: float = 0.0         # 0x6061 shows a new 0x6060 this long (wall time) after it is written
+    warning_emcy_after_s: float | None = None # EMCY 0x4310 (temperature warning) + statusword bit 7 after this much
+                                              # OPERATION ENABLED drive time; the drive stays enabled
+    target_sdo_only_enabled: bool = False     # 0x60FF by SDO aborted 0x08000022 outside OPERATION ENABLED (RPDO ok)
+    node_guarding: bool = False               # 0x100C/0x100D node guarding, no 0x1016/0x1017 heartbeat objects
+    comm_loss_delay_s: float = 0.0            # its comm-loss reaction comes this much later than its consumer time
+    velocity_filter_s: float = 0.0            # 0x606C first-order filtered with this time constant (drive time)
+    bus_drop_at_s: float | None = None        # after this much OPERATIONAL drive time the bus drops (nothing heard or
+    bus_drop_s: float = 0.2                   # sent) for bus_drop_s wall seconds; the drive stays OPERATIONAL
 
 
 def is_drivebench(od: objectdictionary.ObjectDictionary) -> bool:

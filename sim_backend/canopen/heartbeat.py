@@ -51,6 +51,8 @@ class HeartbeatProducer:
             now = time.monotonic()
             if self._period_s <= 0 or now - self._last < self._period_s or self._closed:
                 return
+            if getattr(self._node, "muted", None) is not None and self._node.muted():
+                return
             self._last = now
         nmt = self._node.node.nmt
         try:

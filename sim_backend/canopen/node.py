@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import struct
 import threading
+import time
 from pathlib import Path
 
 import can
@@ -56,9 +57,23 @@ class SimCanopenNode:
         self.spec = spec
         self.added_objects = generic.add_missing_standard_objects(od, spec.comm_loss_objects, spec.comm_loss_reaction)
         device.cia402_comm_loss_reaction = spec.comm_loss_reaction
+        device.remote_drops_after_s = spec.remote_drops_after_s
+        device.local_control = spec.local_control
+        device.device.remote = not spec.local_control
+        device.warning_emcy_after_s = spec.warning_emcy_after_s
+        device.comm_loss_delay_s = spec.comm_loss_delay_s
+        device.velocity_filter_s = spec.velocity_filter_s
+        if spec.node_guarding:              # node guarding instead of heartbeat: no 0x1016, no 0x1017 (after boot)
+            if o.CONSUMER_HEARTBEAT in od:
+                del od[o.CONSUMER_HEARTBEAT]
+            for index, name, data_type in ((0x100C, "Guard time", o.UNSIGNED16), (0x100D, "Life time factor",
+                                                                                    o.UNSIGNED8)):
+                if index not in od:
+                    od.add_object(generic._var(name, index, 0, data_type, "rw", 0))
         self._tpdo_stop = (None if spec.tpdo_stops_after_s is None else
                            (spec.tpdo_stops_after_s, spec.tpdo_stops))   # after this much operational drive time
         self._operational_since: float | None = None
+        self._drop_until = 0.0                # the bus-drop quirk: muted until then (monotonic)
         generic.fill_defaults(od)
         self.od = od
         self.node = DriveLocalNode(node_id, od)
@@ -75,8 +90,11 @@ class SimCanopenNode:
                 if o.TPDO_COMM + n in od and 2 in od[o.TPDO_COMM + n].subindices:
                     var = od[o.TPDO_COMM + n][2]
                     var.default = var.value = 255
+        self.cia402.mode_display_delay_s = spec.mode_display_delay_s
+        self.cia402.target_sdo_only_enabled = spec.target_sdo_only_enabled
         self.pdos = PdoEngine(od, self._raw, self.node.get_data, self.node.set_data, self._fast_getter,
                               fixed_mapping=spec.fixed_pdo_mapping, event_only=spec.event_tpdos_only)
+        self.cia402.from_rpdo = lambda: self.pdos.applying
         self.node.add_read_callback(self._on_read)
         self.node.add_write_callback(self._on_write)
         if self.extension is not None:
@@ -116,6 +134,8 @@ class SimCanopenNode:
         self.network.subscribe(o.SYNC, self._on_sync)
         self.node.nmt.send_command(NMT_START_BOOT_UP)
         self.node.nmt.send_command(NMT_ENTER_PRE_OPERATIONAL)
+        if self.spec.node_guarding and o.PRODUCER_HEARTBEAT in self.od:   # canopen's NMT read it at the boot
+            del self.od[o.PRODUCER_HEARTBEAT]
 
     def _on_nmt_command(self, can_id, data, timestamp) -> None:
         """NMT as a drive does it: stop / reset communication / reset node while powered apply 0x6007 (CiA 402); a
@@ -215,7 +235,7 @@ class SimCanopenNode:
             self.network.subscribe(cob, self._on_rpdo)
 
     def _on_rpdo(self, can_id, data, timestamp):
-        if self.nmt_state != o.NMT_OPERATIONAL:
+        if self.nmt_state != o.NMT_OPERATIONAL or self.muted():
             return
         pdo = self.pdos.rpdos.get(can_id)
         if pdo is None:
@@ -226,7 +246,17 @@ class SimCanopenNode:
             return
         self.pdos.receive(pdo, bytes(data))
 
+    def muted(self) -> bool:
+        """The bus-drop quirk: nothing heard, nothing sent (the drive's own state untouched)."""
+        drop = self.spec.bus_drop_at_s
+        if (drop is not None and self._drop_until == 0.0 and self._operational_since is not None
+                and self.device.time_s - self._operational_since >= drop):
+            self._drop_until = time.monotonic() + self.spec.bus_drop_s
+        return time.monotonic() < self._drop_until
+
     def _on_sync(self, can_id, data, timestamp):
+        if self.muted():
+            return
         self.heartbeat.maybe_send()
         if self.pdos.dirty:
             self._rebuild_pdos()
@@ -240,9 +270,9 @@ class SimCanopenNode:
             self._operational_since = None
             return
         frames = self.pdos.tpdo_frames(self._sync_count, self.device.time_s)
+        if self._operational_since is None:
+            self._operational_since = self.device.time_s
         if self._tpdo_stop is not None:
-            if self._operational_since is None:
-                self._operational_since = self.device.time_s
             if self.device.time_s - self._operational_since > self._tpdo_stop[0]:
                 frames = self._without_stopped_tpdo(frames)
         if frames:

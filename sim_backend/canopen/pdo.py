@@ -136,15 +136,22 @@ class PdoEngine:
         for pdo, payload in pending:
             self.apply(pdo, payload)
 
+    applying = False               # an RPDO's objects are being written (a drive may treat them unlike SDO writes)
+
     def apply(self, pdo: Pdo, data: bytes) -> None:
         offset = 0
-        for index, subindex, bits in pdo.entries:
-            n = bits // 8
-            try:
-                self._set(index, subindex, data[offset:offset + n])
-            except SdoAbortedError as exc:
-                log.warning("RPDO 0x%X: object 0x%04X:%02X rejected (0x%08X)", pdo.cob_id, index, subindex, exc.code)
-            offset += n
+        self.applying = True
+        try:
+            for index, subindex, bits in pdo.entries:
+                n = bits // 8
+                try:
+                    self._set(index, subindex, data[offset:offset + n])
+                except SdoAbortedError as exc:
+                    log.warning("RPDO 0x%X: object 0x%04X:%02X rejected (0x%08X)", pdo.cob_id, index, subindex,
+                                exc.code)
+                offset += n
+        finally:
+            self.applying = False
 
     def pack(self, pdo: Pdo) -> bytes:
         if pdo.packer is not None:

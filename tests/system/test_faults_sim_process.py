@@ -114,6 +114,7 @@ def test_simulator_process_killed_mid_run(tmp_path, how):
     stop = record["safe_stop"]
     labels = ("drive quick stop commanded", "load zero torque and disabled", "drive quick stop", "drive disabled")
     assert stop["steps"] == []                                   # nothing could be done...
-    assert [e.split(":")[0] for e in stop["errors"]] == list(labels)   # ...but every step was tried, in order
+    assert [e.split(":")[0] for e in stop["errors"]] == [*labels, "last resort"]   # ...every step tried, in order,
+    assert "MOTOR STILL TURNING at an unknown speed: use the E-stop" in stop["errors"][-1]   # then said: may turn
     assert "safe stop incomplete" in record["abort_reason"]
     assert record["telemetry"]["rows"] > 0
