@@ -15,6 +15,7 @@ from pathlib import Path
 
 from bench.inputs.benchconfig import BenchConfig, drive_description, load_bench_config
 from bench.inputs.criteria import CriterionSpec, parse_criteria
+from bench.inputs.drive_kind import check_drive_kind
 from drivers.contract.checks import Problems, find_repo_root, read_toml_with_bytes, resolve_path
 from drivers.contract.errors import InputError
 from bench.run.load_emulation import EMULABLE, emulable
@@ -233,10 +234,13 @@ def _bench(p: Problems, raw: dict, path: Path, override: str | Path | None) -> t
                            f"next to the scenario)")
             return None, None
     try:
-        return bench_path.resolve(), load_bench_config(bench_path)
+        cfg = load_bench_config(bench_path)
     except InputError as e:
         p.extend(e.problems)
         return bench_path.resolve(), None
+    if override is not None:
+        check_drive_kind(p, raw, path, cfg, bench_path)
+    return bench_path.resolve(), cfg
 
 
 def _array_of_tables(p: Problems, raw: dict, key: str) -> list[tuple[str, dict]]:
