@@ -400,6 +400,12 @@ class Runner:
                 child.proc.send_signal(signal.SIGTERM)
                 child.term_sent = time.monotonic()
 
+    def finished_verdict(self, run_id: int) -> str | None:
+        """The verdict a run of this instance sent before the runner indexed it (None: none yet, or not ours)."""
+        child = self.children.get(run_id)
+        result = child.result if child is not None else None
+        return result.verdict if result is not None else None
+
     def _handle_aborts(self) -> None:
         if not self.children:
             return
@@ -412,7 +418,7 @@ class Runner:
                                                     Run.abort_requested_by.is_not(None))).scalars().all()
         for run_id in wanted:
             child = self.children[run_id]
-            if child.proc.poll() is not None:
+            if child.proc.poll() is not None or child.result is not None:    # ended, or its verdict is in
                 continue
             if child.term_sent is None:
                 child.proc.send_signal(signal.SIGTERM)      # the run's single safe-stop sequence
@@ -672,7 +678,8 @@ class Runner:
                 return
             index_record(s, run, record, run_dir)
             verdict = (record or {}).get("verdict")
-            if run.abort_requested_by and (child.term_sent is not None or verdict not in VERDICT_STATE):
+            if run.abort_requested_by and verdict not in ("pass", "fail", "incomplete") and (
+                    child.term_sent is not None or verdict not in VERDICT_STATE):   # a finished verdict stands
                 run.state = "aborted"
                 run.aborted_by = run.abort_requested_by
                 run.reason = f"aborted by {run.abort_requested_by}" + (
