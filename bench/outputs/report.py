@@ -469,6 +469,11 @@ def main(run_dirs: Sequence[str | Path], out_md: str | Path | None = None, suite
         for problem in exc.problems:
             print(problem, file=sys.stderr)
         return 2
+    except OSError as exc:       # an unwritable --out (a file on its path, no permission): one line, as bad input
+        why = ("is a file, not a directory" if isinstance(exc, (FileExistsError, NotADirectoryError))
+               else f"cannot write: {exc.strerror or exc}")
+        print(f"{exc.filename or out_md}: --out: {why}", file=sys.stderr)
+        return 2
     print(f"wrote {path}")
     return 0
 
