@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import AsyncIterator, Callable
 
 import anyio
+from fastapi import Request
 from fastapi.responses import FileResponse, Response, StreamingResponse
 
 from bench.service.db import FINAL_STATES
@@ -38,6 +39,7 @@ FOLLOW_POLL_S = 0.25          # a followed run.rrd that has not grown is looked 
 STATE_POLL_S = 1.0            # ... and the run's state (has it ended?) read from the database at most this often
 FOLLOW_MAX_S = 24 * 3600.0    # a follow ends after this even if the run never does (a stuck run, a lost process)
 READ_CHUNK = 256 * 1024
+MAX_FOLLOWS_PER_TOKEN = 8     # recordings one token may stream at once (200 followers took 64 % of a core)
 EXTRACT_TIMEOUT_S = 60.0      # the wheel's viewer server must hand over its files within this
 # what the viewer's index.html loads from its own origin (sw.js and the sign-in pages are never used here)
 VIEWER_FILES = {"index.html": "text/html; charset=utf-8", "re_viewer.js": "text/javascript",
@@ -219,9 +221,15 @@ def add_live(app, svc) -> None:
             return Response(page, media_type=VIEWER_FILES[name], headers={**cache, "Content-Security-Policy": VIEWER_CSP})
         return FileResponse(folder / name, media_type=VIEWER_FILES[name], headers=cache)  # 43 MB: from disk
 
+    following: dict[int, int] = {}     # token id -> its recordings being streamed now (the event loop's own)
+
     @app.get("/live/runs/{run_id}/recording.rrd")
-    async def recording(run_id: Id):
+    async def recording(run_id: Id, request: Request):
         s = svc()
+        who = request.scope["state"]["principal"]
+        if following.get(who.token_id, 0) >= MAX_FOLLOWS_PER_TOKEN:
+            raise ApiError(429, f"live view: token {who.name!r} follows {MAX_FOLLOWS_PER_TOKEN} recordings already "
+                                f"(at most {MAX_FOLLOWS_PER_TOKEN} at once per token); close one")
         run = await anyio.to_thread.run_sync(s.get_run, run_id)     # 404 for an unknown run
 
         def path_of() -> Path | None:
@@ -235,6 +243,16 @@ def add_live(app, svc) -> None:
 
         if run.state in FINAL_STATES and path_of() is None:
             raise ApiError(404, f"run {run_id}: no recording (run.rrd)")
-        return StreamingResponse(follow(path_of, ended), media_type="application/octet-stream",
+        async def counted():
+            following[who.token_id] = following.get(who.token_id, 0) + 1
+            try:
+                async for chunk in follow(path_of, ended):
+                    yield chunk
+            finally:
+                following[who.token_id] -= 1
+                if not following[who.token_id]:
+                    del following[who.token_id]
+
+        return StreamingResponse(counted(), media_type="application/octet-stream",
                                  headers={"Cache-Control": "no-store", "X-Recording-Id": f"run-{run_id}"})
 
