@@ -152,7 +152,8 @@ def index_record(s, run: Run, record: dict | None, run_dir: Path | None) -> None
         s.add(CriterionValue(run_id=run.id, name=str(c.get("name")), signal=c.get("signal"),
                              value=value if isinstance(value, (int, float)) else None,
                              limit=limit if isinstance(limit, (int, float)) and not isinstance(limit, bool) else None,
-                             passed=bool(c.get("passed")), status=c.get("status")))
+                             passed=bool(c.get("passed")),      # a documented known gap fails no run
+                             status="known_gap" if c.get("known_gap") and not c.get("passed") else c.get("status")))
     started, ended = _parse_utc(record.get("started_utc")), _parse_utc(record.get("ended_utc"))
     if started is not None and ended is not None:
         run.duration_s = max(0.0, ended - started)
