@@ -85,7 +85,7 @@ def criteria_table(title: str, criteria: Iterable[Any]) -> Table:
             result = "[red]FAIL[/red]"
         value = c.get("value")
         table.add_row(str(c.get("name")), str(c.get("signal")), _fmt(c.get("window_s")),
-                      "n/a" if value is None else _fmt(value),
+                      "n/a" if value is None else " ".join(filter(None, (_fmt(value), c.get("unit")))),
                       " ".join(filter(None, (_fmt(c.get("limit")), c.get("unit")))), result)
     if gaps:
         table.caption = "\n".join(f"({n}) {gap}" for n, gap in enumerate(gaps, start=1))
