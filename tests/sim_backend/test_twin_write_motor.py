@@ -26,3 +26,17 @@ def test_a_parameter_not_identified_keeps_the_source_value(tmp_path):
     line = next(x for x in out.read_text().splitlines() if x.startswith("inertia_kgm2"))
     assert "NOT IDENTIFIED (interval spans zero)" in line and "kept the source's value" in line
     assert written["firmware"] == source["firmware"]
+
+
+def test_a_plot_or_motor_file_it_cannot_write_is_one_line_before_the_replay(tmp_path):
+    import subprocess
+    import sys
+
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    for option in ("--plot", "--write-motor"):
+        extra = ["--fit-mechanics"] if option == "--write-motor" else []
+        out = subprocess.run([sys.executable, "-m", "bench", "twin", str(tmp_path), option, str(blocker / "x"), *extra],
+                             capture_output=True, text=True, cwd=REPO, timeout=120)
+        lines = [line for line in out.stderr.splitlines() if line.strip()]
+        assert out.returncode == 2 and lines == [f"{blocker / 'x'}: {option}: {blocker} is not a directory"], out.stderr
