@@ -459,8 +459,9 @@ def _limits(p: Problems, raw: dict, duration: float | None, speed: tuple[SpeedSe
         overspeed = p.number(table, "overspeed_mech_rad_s", w, positive=True)
     field_ = "limits.overspeed_rpm" if "overspeed_rpm" in table else "limits.overspeed_mech_rad_s"
     peak = max((max(abs(s.from_mech_rad_s), abs(s.to_mech_rad_s)) for s in speed), default=0.0)
-    if overspeed is not None and overspeed <= peak:
-        p.add(field_, f"{overspeed:.6g} mech rad/s is not above the profile's peak reference {peak:.6g} mech rad/s")
+    if overspeed is not None and overspeed <= peak:     # answered in the unit the file used
+        unit, k = ("rpm", RPM) if field_.endswith("rpm") else ("mech rad/s", 1.0)
+        p.add(field_, f"{overspeed / k:.6g} {unit} is not above the profile's peak reference {peak / k:.6g} {unit}")
     overcurrent = p.number(table, "overcurrent_a", w, positive=True)
     max_dur = p.number(table, "max_duration_s", w, required=False, positive=True)
     if duration is not None:
