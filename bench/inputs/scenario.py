@@ -17,12 +17,10 @@ from bench.inputs.benchconfig import BenchConfig, drive_description, load_bench_
 from bench.inputs.criteria import CriterionSpec, parse_criteria
 from bench.inputs.drive_kind import check_drive_kind
 from drivers.contract.checks import Problems, find_repo_root, read_toml_with_bytes, resolve_path
-from drivers.contract.errors import InputError
+from drivers.contract.errors import ContentError, InputError
 from bench.run.load_emulation import EMULABLE, emulable
 from drivers.contract import parameters
-from drivers.contract.load_map import LoadMode
-from drivers.contract.load_map import read_load_map
-from drivers.contract.errors import ContentError
+from drivers.contract.load_map import LoadMode, read_load_map
 from drivers.contract.toml_file import parse_toml_bytes
 from drivers.contract.parameters import Capability, Parameter
 
