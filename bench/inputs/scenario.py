@@ -16,6 +16,7 @@ from pathlib import Path
 from bench.inputs.benchconfig import BenchConfig, drive_description, load_bench_config
 from bench.inputs.criteria import CriterionSpec, parse_criteria
 from bench.inputs.drive_kind import check_drive_kind
+from bench.inputs.requirements import parse_requirements
 from drivers.contract.checks import Problems, find_repo_root, read_toml_with_bytes, resolve_path
 from drivers.contract.errors import ContentError, InputError
 from bench.run.load_emulation import EMULABLE, emulable
@@ -80,6 +81,7 @@ class Scenario:
     limits: Limits
     criteria: tuple[CriterionSpec, ...]
     drive_kind: str | None = None
+    requirements: tuple[str, ...] = ()        # ids the run gives evidence for (bench/inputs/requirements.py)
     _speed_starts: tuple[float, ...] = field(init=False, repr=False, compare=False)
     _load_starts: tuple[float, ...] = field(init=False, repr=False, compare=False)
 
@@ -112,7 +114,7 @@ class Scenario:
         return tuple(inj for inj in self.injections if (p := parameters.lookup(inj.name)) and p.simulator_only)
 
 
-_TOP_KEYS = ("schema_version", "name", "description", "bench", "duration_s", "seed",
+_TOP_KEYS = ("schema_version", "name", "description", "bench", "duration_s", "seed", "requirements",
              "speed", "load", "injection", "limits", "criteria")
 _SPEED_KEYS = {
     "hold": ("kind", "start_s", "end_s", "speed_mech_rad_s", "speed_rpm"),
@@ -191,12 +193,13 @@ def parse_scenario(path: str | Path, bench: str | Path | None = None,
     injections = _injections(p, _array_of_tables(p, raw, "injection"), dur, kind, offered, bench_cfg, bench_path)
     limits = _limits(p, raw, duration, speed)
     criteria = parse_criteria(p, _array_of_tables(p, raw, "criteria"), dur)
+    requirements = parse_requirements(p, raw)
     p.raise_if_any()
 
     return Scenario(path=path.resolve(), sha256=sha256, schema_version=version, name=name,
                     description=description, bench=bench_path, duration_s=duration, seed=seed,
                     speed_segments=speed, load_segments=load, injections=injections, limits=limits,
-                    criteria=criteria, drive_kind=kind), bench_cfg
+                    criteria=criteria, drive_kind=kind, requirements=requirements), bench_cfg
 
 
 def with_injections(scenario: Scenario, bench_cfg: BenchConfig, added: tuple[tuple[str, float], ...],

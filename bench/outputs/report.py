@@ -444,7 +444,9 @@ def _run_section(r: Run, out_md: Path, plot_dir: Path, suites: Suites = Suites()
         desc += f" ({md_cell(rec['abort_reason'])})"
     if not r.complete:
         desc += " — record incomplete (recovered from the journal)"
-    lines += [desc + ".", ""]
+    requirements = rec.get("scenario", {}).get("requirements") or []
+    lines += [desc + ".", ""] + ([f"Requirements: {', '.join(md_cell(q) for q in requirements)}.", ""]
+                                 if requirements else [])
     plot = None
     try:
         plot = write_plot(r, plot_dir / f"{_safe_name(r.name)}.png")
