@@ -38,11 +38,25 @@ def own_bench_kind(raw: dict, scenario_path: Path) -> tuple[str | None, str | No
         return None, value
 
 
-def check_drive_kind(p: Problems, raw: dict, scenario_path: Path, bench_cfg, bench_path: Path) -> None:
-    """Adds `bench: ...` when the scenario's own bench config is for another drive kind than `bench_cfg`."""
+def scenario_kinds(p: Problems, raw: dict, scenario_path: Path) -> tuple[set[str] | None, str]:
+    """The drive kinds the scenario is written for and what says so: `drive_kinds = ["pmsm", "spim"]` in the file
+    (a scenario that judges only what every drive has), else its own bench config's kind; (None, "") unknown."""
+    if "drive_kinds" in raw:
+        value = raw["drive_kinds"]
+        if (not isinstance(value, list) or not value
+                or any(not isinstance(v, str) or v not in KIND_NAMES for v in value)):
+            p.add("drive_kinds", f"must be a non-empty array of {', '.join(map(repr, KIND_NAMES))}, got {value!r}")
+            return None, ""
+        return set(value), f"drive_kinds = {value}"
     own, own_name = own_bench_kind(raw, scenario_path)
+    return ({own}, f"its bench {own_name}") if own else (None, "")
+
+
+def check_drive_kind(p: Problems, raw: dict, scenario_path: Path, bench_cfg, bench_path: Path) -> None:
+    """Adds `bench: ...` when the bench's drive is of a kind the scenario is not written for."""
+    kinds, said = scenario_kinds(p, raw, scenario_path)
     kind = bench_drive_kind(bench_cfg)
-    if own and kind and own != kind:
-        p.add("bench", f"the scenario is for a {KIND_NAMES.get(own, own)} drive (its bench {own_name}) and "
-                       f"{bench_path.name}'s drive is {KIND_NAMES.get(kind, kind)}: refused, the wrong test on "
-                       f"the wrong motor")
+    if kinds and kind and kind not in kinds:
+        wanted = " or ".join(KIND_NAMES[k] for k in sorted(kinds))
+        p.add("bench", f"the scenario is for a {wanted} drive ({said}) and {bench_path.name}'s drive is "
+                       f"{KIND_NAMES.get(kind, kind)}: refused, the wrong test on the wrong motor")

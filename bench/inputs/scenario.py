@@ -114,7 +114,7 @@ class Scenario:
         return tuple(inj for inj in self.injections if (p := parameters.lookup(inj.name)) and p.simulator_only)
 
 
-_TOP_KEYS = ("schema_version", "name", "description", "bench", "duration_s", "seed", "requirements",
+_TOP_KEYS = ("schema_version", "name", "description", "bench", "duration_s", "seed", "requirements", "drive_kinds",
              "speed", "load", "injection", "limits", "criteria")
 _SPEED_KEYS = {
     "hold": ("kind", "start_s", "end_s", "speed_mech_rad_s", "speed_rpm"),
@@ -239,8 +239,7 @@ def _bench(p: Problems, raw: dict, path: Path, override: str | Path | None) -> t
     except InputError as e:
         p.extend(e.problems)
         return bench_path.resolve(), None
-    if override is not None:
-        check_drive_kind(p, raw, path, cfg, bench_path)
+    check_drive_kind(p, raw, path, cfg, bench_path)
     return bench_path.resolve(), cfg
 
 

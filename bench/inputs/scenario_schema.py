@@ -65,6 +65,8 @@ def scenario_schema() -> dict[str, Any]:
         "seed": {"type": "integer", "minimum": 0, "maximum": 2**63 - 1},
         "requirements": {"type": "array", "uniqueItems": True, "maxItems": 100,
                          "items": {"type": "string", "minLength": 1, "maxLength": 200, "pattern": "^[^,\\n\\r\\t]+$"}},
+        "drive_kinds": {"type": "array", "minItems": 1, "uniqueItems": True, "items": {"enum": ["pmsm", "spim"]},
+                        "description": "the drive kinds the scenario is for (default: its own bench's)"},
         "speed": _tables_by_kind(sc._SPEED_KEYS),
         "load": _tables_by_kind(sc._LOAD_KEYS),
         "injection": {"type": "array", "items": {

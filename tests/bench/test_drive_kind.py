@@ -43,3 +43,29 @@ def test_the_api_and_the_rig_pages_picker_refuse_a_scenario_for_another_drive_ki
         assert page.status_code == 200 and SHORT not in page.text
     assert SHORT not in rig_scenarios(SCENARIOS, str(SPIM_BENCH))
     assert SHORT in rig_scenarios(SCENARIOS, str(REPO / "config/benches/sim-pmsm.toml"))
+
+
+def test_a_scenario_for_either_motor_says_so_with_drive_kinds(tmp_path):
+    from bench.inputs.scenario import load_scenario
+    from drivers.contract.errors import InputError
+
+    generic = REPO / "scenarios/rig/accept-load-step.toml"       # drive_kinds = ["pmsm", "spim"]
+    assert load_scenario(generic, REPO / "config/benches/sim-spim-instruments.toml").name == "accept-load-step"
+    only_spim = tmp_path / "only-spim.toml"
+    only_spim.write_text(generic.read_text().replace('drive_kinds = ["pmsm", "spim"]', 'drive_kinds = ["spim"]')
+                         .replace('bench = "config/', f'bench = "{REPO}/config/'))
+    try:
+        load_scenario(only_spim, REPO / "config/benches/sim-pmsm-instruments.toml")
+    except InputError as exc:
+        assert exc.problems == [f"{only_spim}: bench: the scenario is for a SPIM drive (drive_kinds = ['spim']) and "
+                                f"sim-pmsm-instruments.toml's drive is PMSM: refused, the wrong test on the wrong motor"]
+    else:
+        raise AssertionError("a SPIM-only scenario was accepted on a PMSM bench")
+    bad = tmp_path / "bad.toml"
+    bad.write_text(only_spim.read_text().replace('drive_kinds = ["spim"]', 'drive_kinds = ["bldc"]'))
+    try:
+        load_scenario(bad)
+    except InputError as exc:
+        assert any("drive_kinds: must be a non-empty array of 'pmsm', 'spim'" in line for line in exc.problems)
+    else:
+        raise AssertionError("drive_kinds = ['bldc'] was accepted")
