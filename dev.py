@@ -62,6 +62,11 @@ def ensure_venv(root: Path = ROOT, extras: str | None = None) -> Path:
     return python
 
 
+def first_compile(root: Path) -> bool:
+    """No numba cache beside the simulator's kernels yet (numba's cache=True writes *.nbi files in __pycache__)."""
+    return not any((root / "sim_backend").glob("**/__pycache__/*.nbi"))
+
+
 def main(argv: list[str]) -> int:
     if sys.version_info < (3, 11):
         print(f"dev.py: Python 3.11 or newer is needed, this is {sys.version.split()[0]}", file=sys.stderr)
@@ -75,6 +80,9 @@ def main(argv: list[str]) -> int:
         return 0
     if command == "run":
         args = [str(python), "-m", "bench", "run", *(rest or MAIN_JOB)]
+        if first_compile(ROOT):
+            print("dev.py: a first run compiles the simulator's numba kernels (about a minute on a laptop; cached "
+                  "for every later run): nothing is printed until the run starts", file=sys.stderr)
     elif command == "quick":
         args = [str(python), "-m", "pytest", "-n", "2", "-q", *QUICK, *rest]
     else:

@@ -179,6 +179,10 @@ def twin(run_dir, motor, do_fit, fit_mechanics, params, write_motor, plot_path, 
             raise InputError(f"--time-tol: {time_tol_s}: expected a number of seconds >= 0")
         if not (math.isfinite(blind_speed) and blind_speed >= 0):
             raise InputError(f"--blind-speed: {blind_speed}: expected a speed in mech rad/s >= 0")
+        for option, target in (("--plot", plot_path), ("--write-motor", write_motor)):
+            folder = Path(target).parent if target else None
+            if folder is not None and not folder.is_dir():      # asked for a file it cannot write: before the replay
+                raise InputError(f"{target}: {option}: {folder} is not a directory")
         doc = run_twin(run_dir, motor, do_fit, params, write_motor, plot_path, _tolerances(tol_items), time_tol_s,
                        blind_speed)
     except InputError as exc:

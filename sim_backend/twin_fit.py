@@ -315,16 +315,21 @@ def motor_toml(source: Path, result: FitResult, run_name: str) -> str:
         m = _LINE.match(line)
         if m and f"{section}.{m.group(2)}" in fitted:
             p = fitted[f"{section}.{m.group(2)}"]
-            value = f"{p.value:.6g}"
-            comment = (f"# twin fit of {run_name}: start {p.start:.6g}, 95 % interval [{p.low:.4g}, {p.high:.4g}]"
-                       + ("" if p.identified else f"; NOT IDENTIFIED ({p.reason})"))
+            if p.identified:
+                value = f"{p.value:.6g}"
+                comment = f"# twin fit of {run_name}: start {p.start:.6g}, 95 % interval [{p.low:.4g}, {p.high:.4g}]"
+            else:       # a value the run does not determine is not written: the source's stays
+                value = m.group(4).strip()
+                comment = (f"# twin fit of {run_name}: NOT IDENTIFIED ({p.reason}); kept the source's value (the fit "
+                           f"stopped at {p.value:.6g})")
             line = f"{m.group(1)}{m.group(2)}{m.group(3)}{value:<{max(len(m.group(4)), 1)}} {comment}"
         elif m and section == "motor" and m.group(2) == "name":
             line = f'{m.group(1)}name{m.group(3)}"twin fit of {run_name}" # was {m.group(4).strip()}'
         out.append(line)
     text = "\n".join(out) + "\n"
     header = (f"# Written by `drivebench twin --fit` from the run {run_name}, starting from {source.name}: the [plant] and\n"
-              f"# [mechanics] values marked 'twin fit' are fitted; everything else is the source file's.\n")
+              f"# [mechanics] values marked 'twin fit' are fitted (one NOT IDENTIFIED keeps the source's value);\n"
+              f"# everything else is the source file's.\n")
     return header + text
 
 

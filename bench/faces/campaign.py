@@ -98,6 +98,22 @@ def wilson_interval(passes: int, n: int, confidence: float = 0.95) -> tuple[floa
     return max(0.0, float(ci.low)), min(1.0, float(ci.high))
 
 
+def runs_needed(min_pass_rate: float, confidence: float = 0.95, most: int = 100_000) -> int | None:
+    """The fewest judged runs, every one passing, whose Wilson lower bound reaches `min_pass_rate` (at p = 1 the
+    bound is n / (n + z^2), so n >= z^2 p / (1 - p)); None when no run count up to `most` can (a rate of 100 %)."""
+    if min_pass_rate <= 0:
+        return 1
+    from scipy.stats import norm
+
+    z = float(norm.ppf(0.5 + confidence / 2))
+    if min_pass_rate >= 1:
+        return None
+    n = max(1, int(z * z * min_pass_rate / (1 - min_pass_rate)) - 1)
+    while n <= most and wilson_interval(n, n, confidence)[0] < min_pass_rate:
+        n += 1
+    return n if n <= most else None
+
+
 def load_campaign(path: str | Path) -> Campaign:
     path = Path(path)
     try:

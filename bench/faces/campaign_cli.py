@@ -31,10 +31,14 @@ def campaign(campaign_file: Path, workers: int, engine: str, address: str | None
     from bench.faces.campaign import load_campaign
     from bench.faces.campaign_run import done_ids, run_campaign, write_results
     from bench.faces.cli import _fail
+    from drivers.contract.errors import InputError
 
     try:
         camp = load_campaign(campaign_file)
         out = out_dir or Path("campaigns") / "out" / camp.name
+        problem = _out_problem(out)
+        if problem:
+            raise InputError([f"campaign: --out: {problem}"])
         if dry_run:
             sys.exit(_dry_run(camp, out))
         resumed = len(done_ids(out)) if out.is_dir() else 0
@@ -57,6 +61,20 @@ def campaign(campaign_file: Path, workers: int, engine: str, address: str | None
     click.echo(f"{camp.name}: {result['runs']} runs ({ran}) in {wall:.1f} s; "
                f"{'accepted' if result['accepted'] else 'NOT accepted'}; report {out / 'report.md'}")
     sys.exit(EXIT_ACCEPTED if result["accepted"] else EXIT_NOT_ACCEPTED)
+
+
+def _out_problem(out: Path) -> str | None:
+    """Why the results directory cannot be made or written (a file on its path, no write permission), or None."""
+    import os
+
+    for place in (out, *out.parents):
+        if place.exists():
+            if not place.is_dir():
+                return f"{out}: {place} is a file, not a directory"
+            if not os.access(place, os.W_OK | os.X_OK):
+                return f"{out}: {place} is not writable"
+            return None
+    return None
 
 
 def _dry_run(camp, out: Path) -> int:

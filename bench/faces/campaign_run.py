@@ -16,7 +16,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from bench.faces.campaign import Acceptance, Campaign, Point, points, wilson_interval
+from bench.faces.campaign import Acceptance, Campaign, Point, points, runs_needed, wilson_interval
 
 RESULTS_JSONL = "results.jsonl"
 RESULTS_PARQUET = "results.parquet"
@@ -256,6 +256,10 @@ def _write_report(campaign: Campaign, out_dir: Path, rows: list[dict], summary: 
     acc = campaign.acceptance
     rule = ("every run passes" if acc.rule == "every_run" else
             f"Wilson {acc.confidence:.0%} lower bound of the pass rate >= {acc.min_pass_rate:.0%}")
+    if acc.rule != "every_run":
+        needed = runs_needed(acc.min_pass_rate, acc.confidence)
+        rule += (f" (met only from {needed} judged runs of a criterion, every one passing; one failure needs more)"
+                 if needed else " (no run count can meet it)")
     verdicts: dict[str, int] = {}
     for r in rows:
         verdicts[r["verdict"]] = verdicts.get(r["verdict"], 0) + 1

@@ -29,7 +29,8 @@ class Item:
 
 
 def checklist(drive: dict[str, Any], cfg: Any, drill: dict[str, Any] | None = None) -> list[Item]:
-    items = [_cia402(drive), _remote(drive), _mode(drive), *_units(drive), _pdos(drive), *_comm_loss(drive, drill),
+    items = [_cia402(drive), _remote(drive), _mode(drive), *_units(drive, cfg), _pdos(drive),
+             *_comm_loss(drive, drill),
              _load(cfg, drill), _node_id(drive), _fault(drive)]
     return items
 
@@ -71,7 +72,7 @@ def _mode(d: dict) -> Item:
     return Item("usable mode", "fix", f"neither profile velocity nor CSV among {', '.join(modes) or 'none'}")
 
 
-def _units(d: dict) -> list[Item]:
+def _units(d: dict, cfg: Any = None) -> list[Item]:
     profile, units = d.get("profile") or {}, d["units"]
     out = []
     if "error" in profile:
@@ -84,7 +85,11 @@ def _units(d: dict) -> list[Item]:
         out.append(Item("units", "ok", f"velocity in {units['velocity_0x60A9']}" if "not on" not in
                         units["velocity_0x60A9"] else f"velocity unit {source}"))
     gear = units.get("gear_0x6091", "not on this drive")
-    if gear == "not on this drive":
+    stated = ((cfg.drive if cfg is not None else None) or {}).get("gear_ratio")
+    if gear == "not on this drive" and stated:
+        out.append(Item("gear", "ok", f"no gear ratio object (0x6091); the bench config states gear_ratio = "
+                                      f"[{', '.join(f'{v:g}' for v in stated)}] (motor : shaft)"))
+    elif gear == "not on this drive":
         out.append(Item("gear", "unknown", "no gear ratio object (0x6091): state it where the velocity unit counts "
                                            "motor revolutions or increments", "gear_ratio = [1, 1]   # motor : shaft"))
     else:
@@ -97,6 +102,10 @@ def _pdos(d: dict) -> Item:
     event = [t for t in valid if t["transmission_type"] not in SYNC_TYPES]
     if not d.get("tpdos"):
         return Item("PDO transmission", "unknown", "no TPDO communication parameters answered")
+    if not valid:
+        return Item("PDO transmission", "unknown", f"none of the {len(d['tpdos'])} TPDOs is valid (all disabled): "
+                                                   "the drive sends no process data now; the bench maps and enables "
+                                                   "its own where the drive lets it, else it has no live samples")
     if event:
         names = ", ".join(f"TPDO{t['number']} type {t['transmission_type']}" for t in event)
         return Item("PDO transmission", "unknown", f"{names}: not on SYNC; the bench writes type 1 (every SYNC) "

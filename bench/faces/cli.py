@@ -85,7 +85,7 @@ def criteria_table(title: str, criteria: Iterable[Any]) -> Table:
             result = "[red]FAIL[/red]"
         value = c.get("value")
         table.add_row(str(c.get("name")), str(c.get("signal")), _fmt(c.get("window_s")),
-                      "n/a" if value is None else _fmt(value),
+                      "n/a" if value is None else " ".join(filter(None, (_fmt(value), c.get("unit")))),
                       " ".join(filter(None, (_fmt(c.get("limit")), c.get("unit")))), result)
     if gaps:
         table.caption = "\n".join(f"({n}) {gap}" for n, gap in enumerate(gaps, start=1))
@@ -601,31 +601,9 @@ def compare(run_a, run_b, plot_path, as_json) -> None:
 
 
 def _print_comparison(result: dict) -> None:
-    console = make_console()
-    console.print(f"A: {result['a']}\nB: {result['b']}")
-    ident = Table(title="what ran", title_justify="left")
-    for col in ("", "A", "B", ""):
-        ident.add_column(col)
-    for row in result["identity"]:
-        ident.add_row(row["field"], _fmt(row["a"]), _fmt(row["b"]), "" if row["same"] else "[yellow]differs[/]")
-    console.print(ident)
-    crit = Table(title="criteria", title_justify="left")
-    for col, justify in (("criterion", "left"), ("A", "right"), ("B", "right"), ("B - A", "right"),
-                         ("unit", "left"), ("A / B", "left")):
-        crit.add_column(col, justify=justify)
-    for row in result["criteria"]:
-        crit.add_row(str(row["name"]), _fmt(row["value_a"]), _fmt(row["value_b"]), _fmt(row["delta"]), row["unit"],
-                     f"{row['status_a']} / {row['status_b']}")
-    console.print(crit)
-    sig = Table(title="signals (B - A over the common drive-clock span)", title_justify="left")
-    for col, justify in (("signal", "left"), ("rms", "right"), ("max |B - A|", "right"), ("at [s]", "right"),
-                         ("unit", "left")):
-        sig.add_column(col, justify=justify)
-    for row in result["signals"]:
-        sig.add_row(row["signal"], _fmt(row["rms_diff"]), _fmt(row["max_abs_diff"]), _fmt(row["at_s"]), row["unit"])
-    console.print(sig)
-    if result.get("plot"):
-        console.print(f"plot: {result['plot']}")
+    from bench.faces.compare_text import print_comparison
+
+    print_comparison(result, make_console(), _fmt)
 
 
 def quiet_third_party_logs() -> None:

@@ -15,13 +15,13 @@ from pathlib import Path
 
 from bench.inputs.benchconfig import BenchConfig, drive_description, load_bench_config
 from bench.inputs.criteria import CriterionSpec, parse_criteria
+from bench.inputs.drive_kind import check_drive_kind
+from bench.inputs.requirements import parse_requirements
 from drivers.contract.checks import Problems, find_repo_root, read_toml_with_bytes, resolve_path
-from drivers.contract.errors import InputError
+from drivers.contract.errors import ContentError, InputError
 from bench.run.load_emulation import EMULABLE, emulable
 from drivers.contract import parameters
-from drivers.contract.load_map import LoadMode
-from drivers.contract.load_map import read_load_map
-from drivers.contract.errors import ContentError
+from drivers.contract.load_map import LoadMode, read_load_map
 from drivers.contract.toml_file import parse_toml_bytes
 from drivers.contract.parameters import Capability, Parameter
 
@@ -81,6 +81,7 @@ class Scenario:
     limits: Limits
     criteria: tuple[CriterionSpec, ...]
     drive_kind: str | None = None
+    requirements: tuple[str, ...] = ()        # ids the run gives evidence for (bench/inputs/requirements.py)
     _speed_starts: tuple[float, ...] = field(init=False, repr=False, compare=False)
     _load_starts: tuple[float, ...] = field(init=False, repr=False, compare=False)
 
@@ -113,7 +114,7 @@ class Scenario:
         return tuple(inj for inj in self.injections if (p := parameters.lookup(inj.name)) and p.simulator_only)
 
 
-_TOP_KEYS = ("schema_version", "name", "description", "bench", "duration_s", "seed",
+_TOP_KEYS = ("schema_version", "name", "description", "bench", "duration_s", "seed", "requirements", "drive_kinds",
              "speed", "load", "injection", "limits", "criteria")
 _SPEED_KEYS = {
     "hold": ("kind", "start_s", "end_s", "speed_mech_rad_s", "speed_rpm"),
@@ -192,12 +193,13 @@ def parse_scenario(path: str | Path, bench: str | Path | None = None,
     injections = _injections(p, _array_of_tables(p, raw, "injection"), dur, kind, offered, bench_cfg, bench_path)
     limits = _limits(p, raw, duration, speed)
     criteria = parse_criteria(p, _array_of_tables(p, raw, "criteria"), dur)
+    requirements = parse_requirements(p, raw)
     p.raise_if_any()
 
     return Scenario(path=path.resolve(), sha256=sha256, schema_version=version, name=name,
                     description=description, bench=bench_path, duration_s=duration, seed=seed,
                     speed_segments=speed, load_segments=load, injections=injections, limits=limits,
-                    criteria=criteria, drive_kind=kind), bench_cfg
+                    criteria=criteria, drive_kind=kind, requirements=requirements), bench_cfg
 
 
 def with_injections(scenario: Scenario, bench_cfg: BenchConfig, added: tuple[tuple[str, float], ...],
@@ -233,10 +235,12 @@ def _bench(p: Problems, raw: dict, path: Path, override: str | Path | None) -> t
                            f"next to the scenario)")
             return None, None
     try:
-        return bench_path.resolve(), load_bench_config(bench_path)
+        cfg = load_bench_config(bench_path)
     except InputError as e:
         p.extend(e.problems)
         return bench_path.resolve(), None
+    check_drive_kind(p, raw, path, cfg, bench_path)
+    return bench_path.resolve(), cfg
 
 
 def _array_of_tables(p: Problems, raw: dict, key: str) -> list[tuple[str, dict]]:
@@ -455,8 +459,9 @@ def _limits(p: Problems, raw: dict, duration: float | None, speed: tuple[SpeedSe
         overspeed = p.number(table, "overspeed_mech_rad_s", w, positive=True)
     field_ = "limits.overspeed_rpm" if "overspeed_rpm" in table else "limits.overspeed_mech_rad_s"
     peak = max((max(abs(s.from_mech_rad_s), abs(s.to_mech_rad_s)) for s in speed), default=0.0)
-    if overspeed is not None and overspeed <= peak:
-        p.add(field_, f"{overspeed:.6g} mech rad/s is not above the profile's peak reference {peak:.6g} mech rad/s")
+    if overspeed is not None and overspeed <= peak:     # answered in the unit the file used
+        unit, k = ("rpm", RPM) if field_.endswith("rpm") else ("mech rad/s", 1.0)
+        p.add(field_, f"{overspeed / k:.6g} {unit} is not above the profile's peak reference {peak / k:.6g} {unit}")
     overcurrent = p.number(table, "overcurrent_a", w, positive=True)
     max_dur = p.number(table, "max_duration_s", w, required=False, positive=True)
     if duration is not None:

@@ -4,6 +4,7 @@ over the drive-clock span both cover (B interpolated onto A's clock), plus a plo
 
 from __future__ import annotations
 
+import hashlib
 import math
 from pathlib import Path
 from typing import Any
@@ -49,7 +50,7 @@ def compare_runs(run_a: str | Path, run_b: str | Path) -> dict[str, Any]:
         criteria.append(_criterion_row(c, other))
     criteria += [_criterion_row(None, c) for c in by_b.values()]
     return {"a": str(run_a), "b": str(run_b), "identity": identity, "criteria": criteria,
-            "signals": _signal_rows(cols_a, cols_b)}
+            "scenario": scenario_differences(rec_a, rec_b), "signals": _signal_rows(cols_a, cols_b)}
 
 
 def _criterion_row(a: dict | None, b: dict | None) -> dict[str, Any]:
@@ -60,6 +61,9 @@ def _criterion_row(a: dict | None, b: dict | None) -> dict[str, Any]:
     return {"name": any_.get("name"), "signal": any_.get("signal"), "unit": any_.get("unit") or unit_of(any_),
             "value_a": va, "value_b": vb, "delta": vb - va if va is not None and vb is not None else None,
             "limit_a": (a or {}).get("limit"), "limit_b": (b or {}).get("limit"),
+            "window_a": (a or {}).get("window_s"), "window_b": (b or {}).get("window_s"),
+            "changed": [what for what, key in (("limit", "limit"), ("window", "window_s"), ("kind", "kind"))
+                        if a is not None and b is not None and a.get(key) != b.get(key)],
             "status_a": (a or {}).get("status") or ("absent" if a is None else ""),
             "status_b": (b or {}).get("status") or ("absent" if b is None else "")}
 
@@ -80,9 +84,20 @@ def _common(cols_a: dict, cols_b: dict, name: str) -> tuple[np.ndarray, np.ndarr
     return ta[sel], a[sel], np.interp(ta[sel], tb[ok_b], b[ok_b])
 
 
+def _measured(cols: dict, name: str) -> bool:
+    return name in cols and bool(np.isfinite(np.asarray(cols[name], float)).any())
+
+
 def _signal_rows(cols_a: dict, cols_b: dict) -> list[dict[str, Any]]:
+    """A row per signal both runs measured (its difference), and one per signal only one of them measured (said, so
+    that a signal the other bench could not measure is not silently left out)."""
     rows = []
     for s in SIGNALS:
+        in_a, in_b = _measured(cols_a, s.name), _measured(cols_b, s.name)
+        if in_a != in_b:
+            rows.append({"signal": s.name, "unit": s.unit, "only_in": "a" if in_a else "b", "span_s": None,
+                         "rms_diff": None, "max_abs_diff": None, "at_s": None})
+            continue
         common = _common(cols_a, cols_b, s.name)
         if common is None:
             continue
@@ -93,6 +108,49 @@ def _signal_rows(cols_a: dict, cols_b: dict) -> list[dict[str, Any]]:
                      "rms_diff": float(np.sqrt(np.mean(d * d))), "max_abs_diff": float(abs(d[i])),
                      "at_s": float(t[i])})
     return rows
+
+
+def scenario_differences(rec_a: dict, rec_b: dict, most: int = 40) -> list[dict[str, Any]]:
+    """What differs between the two runs' scenario files, key by key (`limits.overcurrent_a`, `speed[1].end_s`, ...),
+    read from the paths their records name where the file there still has the hash the record says; a side whose
+    file is gone or changed is said as such. [] when both ran the same file content."""
+    from drivers.contract.toml_file import parse_toml_bytes
+
+    sides = []
+    for rec in (rec_a, rec_b):
+        scenario = rec.get("scenario") or {}
+        try:
+            data = Path(str(scenario.get("path"))).read_bytes()
+        except OSError:
+            return [{"key": "(file)", "a": None, "b": None, "note": f"{scenario.get('path')}: no longer readable"}]
+        if hashlib.sha256(data).hexdigest() != scenario.get("sha256"):
+            return [{"key": "(file)", "a": None, "b": None,
+                     "note": f"{scenario.get('path')}: changed since the run (its sha256 differs)"}]
+        sides.append(_flat(parse_toml_bytes(data)))
+    if (rec_a.get("scenario") or {}).get("sha256") == (rec_b.get("scenario") or {}).get("sha256"):
+        return []
+    a, b = sides
+    rows = [{"key": k, "a": a.get(k), "b": b.get(k), "note": ""} for k in sorted(set(a) | set(b), key=_key_order)
+            if a.get(k) != b.get(k) and k not in ("name", "description")]
+    return rows[:most]
+
+
+def _flat(value: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(value, dict):
+        out: dict[str, Any] = {}
+        for k, v in value.items():
+            out.update(_flat(v, f"{prefix}.{k}" if prefix else str(k)))
+        return out
+    if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+        out = {}
+        for i, v in enumerate(value):
+            out.update(_flat(v, f"{prefix}[{i}]"))
+        return out
+    return {prefix: value}
+
+
+def _key_order(key: str) -> tuple:
+    return (not key.startswith("limits"), key)
 
 
 def write_plot(run_a: str | Path, run_b: str | Path, path: Path) -> Path | None:

@@ -74,6 +74,9 @@ def _write_mf4(path: Path, record: dict, t: np.ndarray, columns: dict[str, np.nd
     if dropped:
         lines.append("not measured on this bench (NaN throughout, left out): " + ", ".join(dropped))
     mdf.header.comment = f"<HDcomment><TX>{escape(chr(10).join(lines))}</TX></HDcomment>"
+    started = _utc(record.get("started_utc"))
+    if started is not None:       # the measurement's start is the run's, not the export's
+        mdf.header.start_time = started
     signals = [Signal(np.asarray(columns[name], dtype=np.float64), t, name=name, unit=units[name][0],
                       comment=units[name][1], master_metadata=("t_s", 1)) for name in kept]
     if signals:
@@ -83,6 +86,16 @@ def _write_mf4(path: Path, record: dict, t: np.ndarray, columns: dict[str, np.nd
     written = Path(mdf.save(path.with_name(path.stem + ".partial.mf4"), overwrite=True))  # asammdf keeps .mf4
     mdf.close()
     written.replace(path)
+
+
+def _utc(text) -> "datetime | None":
+    from datetime import datetime, timezone
+
+    try:
+        value = datetime.fromisoformat(str(text).replace("Z", "+00:00"))
+    except ValueError:
+        return None
+    return value if value.tzinfo else value.replace(tzinfo=timezone.utc)
 
 
 def _write_csv(path: Path, t: np.ndarray, columns: dict[str, np.ndarray], kept: list[str]) -> None:

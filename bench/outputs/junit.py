@@ -80,7 +80,8 @@ def _junit_properties(record: dict) -> list[tuple[str, str]]:
              ("bench.name", bench.get("name")), ("drive.device_name", identity.get("device_name")),
              ("drive.firmware_version", drive.get("firmware_version")),
              ("software.version", software.get("version")), ("software.git_revision", software.get("git_revision")),
-             ("started_utc", record.get("started_utc")), ("ended_utc", record.get("ended_utc"))]
+             ("started_utc", record.get("started_utc")), ("ended_utc", record.get("ended_utc")),
+             ("requirements", ", ".join(scenario.get("requirements") or []))]
     return [(k, str(v)) for k, v in pairs if v is not None and v != ""]
 
 

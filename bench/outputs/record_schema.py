@@ -20,7 +20,7 @@ class RunRecord(TypedDict, total=False):
     # always there, from the start
     verdict: str                    # "running" until the end, then one of VERDICTS
     complete: bool                  # False while running, after a crash, or when writing failed
-    scenario: dict[str, Any]        # path, sha256, name, duration_s
+    scenario: dict[str, Any]        # path, sha256, name, duration_s, requirements
     seed: int
     bench: dict[str, Any]           # name, path, timing
     drive: dict[str, Any]           # identity (as the drive reported it), firmware_version

@@ -71,7 +71,9 @@ class RunRecorder:
             "verdict": "running",
             "complete": False,
             "scenario": {"path": str(scenario.path), "sha256": scenario.sha256, "name": scenario.name,
-                         "duration_s": scenario.duration_s},
+                         "duration_s": scenario.duration_s,
+                         **({"requirements": list(scenario.requirements)} if getattr(scenario, "requirements", ())
+                            else {})},
             "seed": seed,
             "bench": {"name": bench_cfg.bench.name if bench_cfg else None,
                       "path": bench_cfg.path if bench_cfg else None},

@@ -444,7 +444,9 @@ def _run_section(r: Run, out_md: Path, plot_dir: Path, suites: Suites = Suites()
         desc += f" ({md_cell(rec['abort_reason'])})"
     if not r.complete:
         desc += " — record incomplete (recovered from the journal)"
-    lines += [desc + ".", ""]
+    requirements = rec.get("scenario", {}).get("requirements") or []
+    lines += [desc + ".", ""] + ([f"Requirements: {', '.join(md_cell(q) for q in requirements)}.", ""]
+                                 if requirements else [])
     plot = None
     try:
         plot = write_plot(r, plot_dir / f"{_safe_name(r.name)}.png")
@@ -468,6 +470,11 @@ def main(run_dirs: Sequence[str | Path], out_md: str | Path | None = None, suite
     except InputError as exc:
         for problem in exc.problems:
             print(problem, file=sys.stderr)
+        return 2
+    except OSError as exc:       # an unwritable --out (a file on its path, no permission): one line, as bad input
+        why = ("is a file, not a directory" if isinstance(exc, (FileExistsError, NotADirectoryError))
+               else f"cannot write: {exc.strerror or exc}")
+        print(f"{exc.filename or out_md}: --out: {why}", file=sys.stderr)
         return 2
     print(f"wrote {path}")
     return 0

@@ -77,8 +77,8 @@ def load_run(run_dir) -> tuple[dict, dict[str, np.ndarray], bool]:
         record = json.loads(record_path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise InputError([f"{run_dir}: {RECORD}: not found (not a run directory?)"]) from None
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError([f"{record_path}: (file): unreadable: {e}"]) from None
+    except (OSError, ValueError) as e:   # ValueError: bad JSON, bad UTF-8, a number of more than 4,300 digits
+        raise InputError([f"{record_path}: (file): unreadable: {' '.join(str(e).split())[:200]}"]) from None
     _check_record_shape(record_path, record)
     parquet, journal = run_dir / PARQUET, run_dir / JOURNAL
     complete = bool(record.get("complete")) and record.get("verdict") in VERDICTS

@@ -298,7 +298,8 @@ class _Run(RunArming, RunSteps, RunJournal, RunTrips, RunEnding):
         finally:
             if self.signals is not None:
                 self.signals.stopping = True     # from here on a signal is counted, never raised
-            stop_errors = self.safe_stop.run()
+            with self._shaft_followed_while_stopping():
+                stop_errors = self.safe_stop.run()
         try:
             return self._finish(abort_reason, error, interrupted, stop_errors)
         finally:

@@ -4,6 +4,7 @@ A part of orchestrator._Run."""
 
 from __future__ import annotations
 
+import contextlib
 import time
 from datetime import datetime, timezone
 
@@ -177,3 +178,34 @@ class RunSteps:
             self._clock_start = samples[0].t_s - self.sync_period_s
             self.recorder.note("drive_clock_start_s", self._clock_start)
         return [LiveSample(s.t_s - self._clock_start, s.values) for s in samples]
+
+    @contextlib.contextmanager
+    def _shaft_followed_while_stopping(self):
+        """The reference sensor keeps being read while the safe stop brakes the drive: a lockstep link advances its
+        SYNCs through its own `sync` (here each one is followed by a reading stamped on the drive time it answered),
+        so the rows of the stop get the shaft's speed to standstill instead of the last reading held. A reading that
+        fails is left out (the stop is never disturbed); a real-time link paces its stop by the wall clock and is not
+        followed (its stop's rows hold the last reading, as a gap would)."""
+        link = self.safe_stop.drive          # the link itself, which the safe stop drives (not the loop's Gate)
+        if self.load is None or not self.reference_signals or getattr(link, "timing", None) != "lockstep":
+            yield
+            return
+        plain = link.sync
+
+        def sync_and_read():
+            samples = plain()
+            shifted = self._run_time(samples)
+            if shifted:
+                try:
+                    values = values_from_load(self._load_call(self.load.feedback))
+                except Exception:     # a dead load link: the stop goes on, the reading is missing
+                    return samples
+                with self._live_lock:
+                    self._reference_readings.append((shifted[-1].t_s, values))
+            return samples
+
+        link.sync = sync_and_read             # the link's own stop looks its `sync` up on the instance
+        try:
+            yield
+        finally:
+            del link.sync

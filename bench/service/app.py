@@ -214,8 +214,10 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
 
     @app.get("/api/health")
     async def health() -> dict:                     # on the event loop: answers while worker threads are busy
+        runner = svc().runner
         return {"status": "ok", "database": "sqlite" if svc().db.is_sqlite else "postgresql",
-                "run_processes": svc().runner.run_processes()}
+                "run_processes": runner.run_processes(),
+                "fork_server": runner.forks.health() if runner.settings.run_start == "forkserver" else None}
 
     @app.get("/api/rigs")
     def rigs(who: Principal = Depends(viewer)) -> list[dict]:
@@ -313,12 +315,12 @@ def create_app(settings: ServiceSettings | None = None, service: Service | None 
 
     @app.get("/docs/{asset}", include_in_schema=False)
     def docs_asset(asset: str):
-        from swagger_ui_bundle import swagger_ui_path      # served from the package: a lab may have no internet
+        from importlib.resources import files      # served from the package: a lab may have no internet
 
         if asset not in ("swagger-ui-bundle.js", "swagger-ui.css"):
             return Response(f"/docs/{asset}: not found", status_code=404, media_type="text/plain")
         media = "text/javascript" if asset.endswith(".js") else "text/css"
-        return FileResponse(swagger_ui_path / asset, media_type=media)
+        return FileResponse(str(files("fastapi_swagger.resources") / asset), media_type=media)
 
     @app.get("/api/runs/{run_id}/export/{fmt}")
     def export_run_file(run_id: Id, fmt: str, who: Principal = Depends(viewer)):

@@ -119,10 +119,21 @@ def write_junit(path: Path, runs: list[dict], server: str) -> None:
         name = run.get("scenario_name") or run.get("scenario") or f"run-{run['id']}"
         suite = ET.SubElement(root, "testsuite", name=name)
         suite.set("timestamp", str(run.get("started_utc") or ""))
+        if isinstance(run.get("duration_s"), (int, float)):
+            suite.set("time", f"{run['duration_s']:.3f}")          # the run's wall time, as `drivebench run`'s
+        properties = ET.SubElement(suite, "properties")
+        for key, value in _run_properties(run, server):
+            ET.SubElement(properties, "property", name=key, value=value)
         failures = errors = skipped = 0
         criteria = run.get("criteria") or []
         for c in criteria:
             case = ET.SubElement(suite, "testcase", classname=f"drivebench.{name}", name=str(c.get("name")))
+            window = c.get("window_s")
+            if isinstance(window, list) and len(window) == 2 and all(isinstance(v, (int, float)) for v in window):
+                case.set("time", f"{max(0.0, float(window[1]) - float(window[0])):.6g}")   # drive time it judges
+            case_props = ET.SubElement(case, "properties")
+            for key in ("kind", "signal", "unit", "value", "limit", "status"):
+                ET.SubElement(case_props, "property", name=key, value="" if c.get(key) is None else str(c.get(key)))
             text = f"value {c.get('value')}, limit {c.get('limit')}: {c.get('detail', '')}"
             if c.get("status") == "not_judged" or (not c.get("passed") and c.get("known_gap")):
                 skipped += 1
@@ -141,3 +152,17 @@ def write_junit(path: Path, runs: list[dict], server: str) -> None:
         suite.set("skipped", str(skipped))
     ET.indent(root)
     ET.ElementTree(root).write(path, encoding="utf-8", xml_declaration=True)
+
+
+def _run_properties(run: dict, server: str) -> list[tuple[str, str]]:
+    """What ran on what, as `drivebench run`'s junit.xml says it, plus where the service keeps the run."""
+    drive = run.get("drive") or {}
+    software = run.get("software") or {}
+    pairs = [("run_id", run.get("id")), ("url", urllib.parse.urljoin(server.rstrip("/") + "/", f"runs/{run['id']}")),
+             ("rig", run.get("rig")), ("state", run.get("state")), ("verdict", run.get("verdict")),
+             ("seed", run.get("seed")), ("scenario_sha256", run.get("scenario_sha256")),
+             ("drive", drive.get("device_name") if isinstance(drive, dict) else drive),
+             ("firmware_version", run.get("firmware_version")), ("software_version", software.get("version")),
+             ("git_revision", run.get("revision")), ("owner", run.get("owner")), ("started_utc", run.get("started_utc")),
+             ("ended_utc", run.get("ended_utc"))]
+    return [(key, str(value)) for key, value in pairs if value not in (None, "")]

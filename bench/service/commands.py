@@ -96,6 +96,9 @@ def serve(db_url, data_dir, host, port, rigs_path, scenario_root, lease_ttl_s, m
                                      live_grpc_port=live_grpc_port, live_web_port=live_web_port)
     if problems:
         _bad(problems)
+    problems = _place_problems(host, port, scenario_root)
+    if problems:
+        _bad(problems)
     settings = ServiceSettings(data_dir=Path(data_dir), db_url=db_url, rigs_path=Path(rigs_path) if rigs_path else None,
                                scenario_root=Path(scenario_root) if scenario_root else None, lease_ttl_s=lease_ttl_s,
                                max_parallel=max_parallel, run_start=run_start, host_id=host_id)
@@ -118,6 +121,27 @@ def serve(db_url, data_dir, host, port, rigs_path, scenario_root, lease_ttl_s, m
                f"{len(settings.rigs)} rigs)", err=True)
     from bench.service.guard import run_server
     run_server(create_app(service=service), host, port, ssl_keyfile, ssl_certfile)
+
+
+def _place_problems(host: str, port: int, scenario_root: str | None) -> list[str]:
+    """What would make the service fail after it started: a scenario root that is no directory, a port in use."""
+    import socket
+
+    if scenario_root is not None and not Path(scenario_root).is_dir():
+        return [f"serve: --scenarios: {scenario_root}: not a directory"]
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except OSError as exc:
+        return [f"serve: --host: {host}: {exc.strerror or exc}"]
+    family, kind, proto, _, address = infos[0]
+    with socket.socket(family, kind, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)       # as uvicorn binds
+        try:
+            probe.bind(address)
+        except OSError as exc:
+            return [f"serve: --port: {host}:{port}: {exc.strerror or exc} (another service listens there? "
+                    f"give another --port)"]
+    return []
 
 
 @click.group()

@@ -233,6 +233,9 @@ class Service:
                                     f"runs (an admin any)")
             if run.state in FINAL_STATES:
                 raise ApiError(409, f"run {run_id}: already {run.state}")
+            verdict = self.runner.finished_verdict(run_id)
+            if verdict is not None:         # its process has ended the run; the index follows within a tick
+                raise ApiError(409, f"run {run_id}: already finished ({verdict}); its record is being indexed")
             cancelled = s.execute(update(Run).where(Run.id == run_id, Run.state == "queued").values(
                 state="cancelled", aborted_by=who.name, reason=f"cancelled by {who.name} before it started",
                 ended_ts=now())).rowcount

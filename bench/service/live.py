@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import AsyncIterator, Callable
 
 import anyio
+from fastapi import Request
 from fastapi.responses import FileResponse, Response, StreamingResponse
 
 from bench.service.db import FINAL_STATES
@@ -38,6 +39,7 @@ FOLLOW_POLL_S = 0.25          # a followed run.rrd that has not grown is looked 
 STATE_POLL_S = 1.0            # ... and the run's state (has it ended?) read from the database at most this often
 FOLLOW_MAX_S = 24 * 3600.0    # a follow ends after this even if the run never does (a stuck run, a lost process)
 READ_CHUNK = 256 * 1024
+MAX_FOLLOWS_PER_TOKEN = 8     # recordings one token may stream at once (200 followers took 64 % of a core)
 EXTRACT_TIMEOUT_S = 60.0      # the wheel's viewer server must hand over its files within this
 # what the viewer's index.html loads from its own origin (sw.js and the sign-in pages are never used here)
 VIEWER_FILES = {"index.html": "text/html; charset=utf-8", "re_viewer.js": "text/javascript",
@@ -47,31 +49,53 @@ VIEWER_FILES = {"index.html": "text/html; charset=utf-8", "re_viewer.js": "text/
 _INTERNET_FONTS = re.compile(r'<link[^>]*fonts\.(googleapis|gstatic)\.com[^>]*>', re.S)
 # The viewer fetches an HTTP .rrd without credentials (its HTTP client's default), so the token cookie would not go
 # with it: on this page, requests to the page's own origin carry it (same-origin only: nothing else gets it).
-_SAME_ORIGIN_CREDENTIALS = """<script>
-(function () {  // drivebench: the service's token cookie goes with the viewer's requests to this origin only
+# Nothing leaves the building: rerun 0.41's web viewer sends usage analytics (PostHog, tel.rerun.io) and asks GitHub
+# for its latest release at start-up, and has no option to turn either off (only its test build skips the update
+# check): on this page every request to another origin is refused before it is made (fetch, XHR, beacons,
+# websockets), and the page's Content-Security-Policy (VIEWER_CSP) refuses what would get past that.
+_SAME_ORIGIN_ONLY = """<script>
+(function () {  // drivebench: requests go to this origin only, with the service's token cookie; others are refused
+  const own = (u) => new URL(u instanceof Request ? u.url : String(u), location.href).origin === location.origin;
+  const refused = (u) => new TypeError("drivebench: a request outside the service refused: " + String(u));
   const plain = window.fetch;
   window.fetch = function (input, init) {
-    const url = new URL(input instanceof Request ? input.url : String(input), location.href);
-    if (url.origin === location.origin) {
-      if (input instanceof Request) input = new Request(input, {credentials: "same-origin"});
-      else init = Object.assign({}, init || {}, {credentials: "same-origin"});
-    }
+    if (!own(input)) return Promise.reject(refused(input instanceof Request ? input.url : input));
+    if (input instanceof Request) input = new Request(input, {credentials: "same-origin"});
+    else init = Object.assign({}, init || {}, {credentials: "same-origin"});
     return plain.call(this, input, init);
   };
+  const open = XMLHttpRequest.prototype.open;
+  XMLHttpRequest.prototype.open = function (method, url) {
+    if (!own(url)) throw refused(url);
+    return open.apply(this, arguments);
+  };
+  if (navigator.sendBeacon) {
+    const beacon = navigator.sendBeacon.bind(navigator);
+    navigator.sendBeacon = (url, data) => own(url) ? beacon(url, data) : false;
+  }
+  const Socket = window.WebSocket;
+  window.WebSocket = function (url, protocols) {
+    if (new URL(String(url), location.href).host !== location.host) throw refused(url);
+    return new Socket(url, protocols);
+  };
+  window.WebSocket.prototype = Socket.prototype;
 })();
 </script>
 """
+VIEWER_CSP = ("default-src 'self'; script-src 'self' 'unsafe-inline' 'wasm-unsafe-eval'; style-src 'self' "
+              "'unsafe-inline'; img-src 'self' data: blob:; font-src 'self' data:; connect-src 'self'; "
+              "worker-src 'self' blob:; media-src 'self' blob:; frame-ancestors 'self'")
 _VIEWER_SCRIPT = '<script src="re_viewer.js"></script>'
 _lock = threading.Lock()
 
 
 def viewer_page(raw: bytes) -> bytes:
-    """The wheel's index.html as this service serves it: no web fonts from the internet, the cookie on its own
-    origin's requests."""
+    """The wheel's index.html as this service serves it: no web fonts from the internet, requests to its own origin
+    only (with the cookie), none to another."""
     text = _INTERNET_FONTS.sub("", raw.decode("utf-8"))
     if _VIEWER_SCRIPT not in text:
         raise RuntimeError("the rerun web viewer's index.html has changed: re_viewer.js not found")
-    return text.replace(_VIEWER_SCRIPT, _SAME_ORIGIN_CREDENTIALS + _VIEWER_SCRIPT, 1).encode("utf-8")
+    return text.replace(_VIEWER_SCRIPT, _SAME_ORIGIN_ONLY + _VIEWER_SCRIPT, 1).encode("utf-8")
 
 
 def recording_name(run_id: int, scenario: str | None) -> str:
@@ -194,12 +218,18 @@ def add_live(app, svc) -> None:
         cache = {"Cache-Control": "private, max-age=86400"}
         if name == "index.html":
             page = viewer_page(await anyio.to_thread.run_sync((folder / name).read_bytes))
-            return Response(page, media_type=VIEWER_FILES[name], headers=cache)
+            return Response(page, media_type=VIEWER_FILES[name], headers={**cache, "Content-Security-Policy": VIEWER_CSP})
         return FileResponse(folder / name, media_type=VIEWER_FILES[name], headers=cache)  # 43 MB: from disk
 
+    following: dict[int, int] = {}     # token id -> its recordings being streamed now (the event loop's own)
+
     @app.get("/live/runs/{run_id}/recording.rrd")
-    async def recording(run_id: Id):
+    async def recording(run_id: Id, request: Request):
         s = svc()
+        who = request.scope["state"]["principal"]
+        if following.get(who.token_id, 0) >= MAX_FOLLOWS_PER_TOKEN:
+            raise ApiError(429, f"live view: token {who.name!r} follows {MAX_FOLLOWS_PER_TOKEN} recordings already "
+                                f"(at most {MAX_FOLLOWS_PER_TOKEN} at once per token); close one")
         run = await anyio.to_thread.run_sync(s.get_run, run_id)     # 404 for an unknown run
 
         def path_of() -> Path | None:
@@ -213,6 +243,16 @@ def add_live(app, svc) -> None:
 
         if run.state in FINAL_STATES and path_of() is None:
             raise ApiError(404, f"run {run_id}: no recording (run.rrd)")
-        return StreamingResponse(follow(path_of, ended), media_type="application/octet-stream",
+        async def counted():
+            following[who.token_id] = following.get(who.token_id, 0) + 1
+            try:
+                async for chunk in follow(path_of, ended):
+                    yield chunk
+            finally:
+                following[who.token_id] -= 1
+                if not following[who.token_id]:
+                    del following[who.token_id]
+
+        return StreamingResponse(counted(), media_type="application/octet-stream",
                                  headers={"Cache-Control": "no-store", "X-Recording-Id": f"run-{run_id}"})
 

@@ -88,38 +88,17 @@ def validate(path: Path, bench: str, shown: str):
     return scenario
 
 
-def _drive_kind(bench: str | Path | None) -> str | None:
-    from bench.inputs.benchconfig import drive_description, load_bench_config
-
-    try:
-        description = drive_description(load_bench_config(bench)) if bench else None
-    except (InputError, OSError):
-        return None
-    return description.drivebench_kind if description else None
-
-
 def _fitting_rigs(path: Path, shown: str, rigs: list[Rig], by_tag: bool):
-    """Validate against each distinct bench config of the rigs; by tag, keep the rigs the scenario validates on
-    and whose drive kind (pmsm, spim) is the one of the scenario's own bench config, when both are known."""
-    from bench.inputs.scenario import load_scenario
-
+    """Validate against each distinct bench config of the rigs (which refuses a rig whose drive kind, PMSM or
+    SPIM, is not the one of the scenario's own bench config: bench.inputs.drive_kind); by tag, keep the rigs the
+    scenario validates on."""
     if not by_tag:
         return validate(path, rigs[0].bench, shown), None
-    try:
-        own_kind = load_scenario(path).drive_kind
-    except (InputError, OSError, tomllib.TOMLDecodeError):
-        own_kind = None
     validated: dict[str, object] = {}
     first_error: ApiError | None = None
     fitting: list[str] = []
     scenario = None
-    kinds: dict[str, str | None] = {}
     for rig in rigs:
-        if rig.bench not in kinds:
-            kinds[rig.bench] = _drive_kind(rig.bench)
-        kind = kinds[rig.bench]
-        if own_kind and kind and kind != own_kind:
-            continue
         if rig.bench not in validated:
             try:
                 validated[rig.bench] = validate(path, rig.bench, shown)
@@ -130,10 +109,7 @@ def _fitting_rigs(path: Path, shown: str, rigs: list[Rig], by_tag: bool):
             scenario = scenario or validated[rig.bench]
             fitting.append(rig.name)
     if not fitting:
-        if first_error is not None:
-            raise first_error
-        raise bad_input([f"request: tag: no rig with this tag has a {own_kind} drive, which the scenario's bench "
-                         f"config names"])
+        raise first_error or bad_input(["request: tag: no rig with this tag"])
     return scenario, fitting
 
 

@@ -42,6 +42,7 @@ from bench.service.db import CriterionValue, Database, Instance, Lease, Rig, Run
 from bench.service.leases import active_leases, held_rigs
 from bench.service.live import recording_name
 from bench.service.events import EventHub
+from bench.service.forkserver import FORKSERVER_WAIT_S, ForkedProcess, ForkServer  # noqa: F401 (re-exported)
 from bench.service.run_protocol import (MAX_LINE_BYTES, Failed, Finished, Log, Progress, ProtocolError, RunRequest, Trip,
                                         decode, encode)
 
@@ -51,7 +52,6 @@ ABORT_KILL_AFTER_S = 60.0     # SIGTERM runs the safe stop; a run process still 
 STOP_WAIT_S = 30.0            # service shutdown: how long to wait for runs to finish their safe stop
 PROGRESS_DB_PERIOD_S = 1.0
 LOG_REPEAT_S = 30.0           # the same runner error is logged at most this often
-FORKSERVER_WAIT_S = 60.0      # queued runs wait this long for the fork server's preload, then start cold
 SWEEP_PERIOD_S = 1.0          # how often a live instance looks for runs of gone instances to take over
 WORKER = ("-m", "bench.service.worker")
 VERDICT_STATE = {"pass": "pass", "fail": "fail", "incomplete": "fail", "aborted": "aborted", "error": "error"}
@@ -88,38 +88,6 @@ class Child:
     protocol_error: str | None = None       # a message it sent that the service refused (the run is stopped)
     log_lock: threading.Lock = field(default_factory=threading.Lock)
     log: object | None = None               # service.log, written by both readers
-
-
-class ForkedProcess:
-    """A run process forked by the fork server, with the part of Popen's surface the runner uses."""
-
-    def __init__(self, process, stdout, stderr):
-        self.process = process
-        self.pid: int = process.pid
-        self.stdout, self.stderr = stdout, stderr
-
-    @property
-    def returncode(self) -> int | None:
-        return self.process.exitcode
-
-    def poll(self) -> int | None:
-        return self.process.exitcode        # negative: the signal that ended it, as Popen says
-
-    def send_signal(self, sig: int) -> None:
-        if self.poll() is None:
-            try:
-                os.kill(self.pid, sig)
-            except ProcessLookupError:
-                pass
-
-    def kill(self) -> None:
-        self.send_signal(signal.SIGKILL)
-
-    def wait(self, timeout: float | None = None) -> int:
-        self.process.join(timeout)
-        if self.process.exitcode is None:
-            raise subprocess.TimeoutExpired(f"run process {self.pid}", timeout)
-        return self.process.exitcode
 
 
 def _rerun_interval_s() -> float | None:
@@ -184,7 +152,8 @@ def index_record(s, run: Run, record: dict | None, run_dir: Path | None) -> None
         s.add(CriterionValue(run_id=run.id, name=str(c.get("name")), signal=c.get("signal"),
                              value=value if isinstance(value, (int, float)) else None,
                              limit=limit if isinstance(limit, (int, float)) and not isinstance(limit, bool) else None,
-                             passed=bool(c.get("passed")), status=c.get("status")))
+                             passed=bool(c.get("passed")),      # a documented known gap fails no run
+                             status="known_gap" if c.get("known_gap") and not c.get("passed") else c.get("status")))
     started, ended = _parse_utc(record.get("started_utc")), _parse_utc(record.get("ended_utc"))
     if started is not None and ended is not None:
         run.duration_s = max(0.0, ended - started)
@@ -218,9 +187,19 @@ class Runner:
         self.fenced: str | None = None     # why this instance no longer holds anything
         self.drill_proofs: tuple[dict, ...] = ()   # comm-loss drills passed in this instance's runs (bench.run.drill)
         self.spawned = {"forked": 0, "cold": 0}
-        self._forkserver = None                    # multiprocessing's forkserver context, started with the runner
-        self._forkserver_ready = threading.Event()  # its preload done: forking no longer waits for imports
-        self._forkserver_since: float | None = None  # monotonic time its preload began; None once it failed
+        self.forks = ForkServer(on_ready=self.wake)   # bench/service/forkserver.py, started with the runner
+
+    @property
+    def _forkserver_ready(self) -> threading.Event:
+        return self.forks.ready
+
+    @property
+    def _forkserver_since(self) -> float | None:
+        return self.forks.since
+
+    @_forkserver_since.setter
+    def _forkserver_since(self, value: float | None) -> None:
+        self.forks.since = value
 
     # -- lifecycle ----------------------------------------------------------------------------------------
 
@@ -261,16 +240,12 @@ class Runner:
         """Seconds the fork server has been importing while queued runs wait for it; None when runs may start (it
         is ready, it failed, it took longer than FORKSERVER_WAIT_S, or runs start cold). A run started meanwhile would
         pay the same imports cold, on the same cores as the preload it waits for."""
-        since = self._forkserver_since
-        if self.settings.run_start != "forkserver" or since is None or self._forkserver_ready.is_set():
-            return None
-        waited = time.monotonic() - since
-        return waited if waited < FORKSERVER_WAIT_S else None
+        return self.forks.waiting_s() if self.settings.run_start == "forkserver" else None
 
     def run_processes(self) -> str:
         """How the next run process starts: "warm" (forked from the preloaded fork server), "warming" (queued runs
         wait for its preload), or "cold" (a new interpreter: --run-start cold, or the fork server is not there)."""
-        if self.settings.run_start == "forkserver" and self._forkserver_ready.is_set():
+        if self.settings.run_start == "forkserver" and self.forks.warm():
             return "warm"
         return "warming" if self.warming_s() is not None else "cold"
 
@@ -364,6 +339,8 @@ class Runner:
             self._wake.clear()
 
     def tick(self) -> None:
+        if self.settings.run_start == "forkserver":
+            self.forks.check()        # a lost fork server is said and replaced; its runs go on
         self._reap()
         if (self.fenced and not self.children and not self._stop.is_set()
                 and time.monotonic() - self._last_rejoin >= self.settings.lease_ttl_s):
@@ -387,7 +364,7 @@ class Runner:
                     reader.join(timeout=5)
                 self._finish(child)
                 if isinstance(child.proc, ForkedProcess):
-                    child.proc.process.close()
+                    child.proc.close()
                 del self.children[run_id]
                 self._heartbeat()     # finishing a run reads its record: keep the lease renewed meanwhile
 
@@ -424,6 +401,12 @@ class Runner:
                 child.proc.send_signal(signal.SIGTERM)
                 child.term_sent = time.monotonic()
 
+    def finished_verdict(self, run_id: int) -> str | None:
+        """The verdict a run of this instance sent before the runner indexed it (None: none yet, or not ours)."""
+        child = self.children.get(run_id)
+        result = child.result if child is not None else None
+        return result.verdict if result is not None else None
+
     def _handle_aborts(self) -> None:
         if not self.children:
             return
@@ -436,7 +419,7 @@ class Runner:
                                                     Run.abort_requested_by.is_not(None))).scalars().all()
         for run_id in wanted:
             child = self.children[run_id]
-            if child.proc.poll() is not None:
+            if child.proc.poll() is not None or child.result is not None:    # ended, or its verdict is in
                 continue
             if child.term_sent is None:
                 child.proc.send_signal(signal.SIGTERM)      # the run's single safe-stop sequence
@@ -572,62 +555,10 @@ class Runner:
                                 **({"process_group": 0} if nice else {"start_new_session": True}))
 
     def _start_forkserver(self) -> None:
-        """The fork server, preloaded in the background: until it has imported everything, queued runs wait for it
-        (`warming_s`; a fork request meanwhile would wait for those imports on the runner's thread, and its leases
-        with it), for at most FORKSERVER_WAIT_S, then start cold."""
-        import multiprocessing
-        import multiprocessing.forkserver
-
-        from bench.service import worker
-
-        context = multiprocessing.get_context("forkserver")
-        context.set_forkserver_preload(worker.preload_modules())
+        """The fork server, preloaded in the background (bench/service/forkserver.py)."""
         with self.db.session() as s:        # read by bench.service.fork_warm in the fork server (its environment)
             benches = sorted({rig.bench for rig in s.execute(select(Rig)).scalars() if rig.bench})
-        os.environ[worker.WARM_BENCHES_ENV] = json.dumps(benches)
-        self._forkserver_since = time.monotonic()
-        multiprocessing.forkserver.ensure_running()
-        self._forkserver = context
-
-        def wait_for_preload() -> None:
-            try:
-                probe = context.Process(target=worker.ready, name="drivebench-forkserver-probe")
-                probe.start()
-                probe.join(300)
-                if probe.exitcode == 0:
-                    self._forkserver_ready.set()
-                else:
-                    self._forkserver_since = None
-                    print(f"drivebench serve: the fork server did not start (exit {probe.exitcode}); runs start cold",
-                          file=sys.stderr)
-            except Exception as exc:
-                self._forkserver_since = None
-                print(f"drivebench serve: the fork server did not start: {exc}; runs start cold", file=sys.stderr)
-            self.wake()               # the runs it held start now
-
-        threading.Thread(target=wait_for_preload, daemon=True, name="drivebench-forkserver").start()
-
-    def _fork(self, data: bytes, nice: int) -> ForkedProcess:
-        """A run process forked from the fork server, the request and the two pipes handed over with it."""
-        from multiprocessing.connection import Connection
-
-        from bench.service import worker
-
-        events_r, events_w = os.pipe()
-        log_r, log_w = os.pipe()
-        events, log = Connection(events_w), Connection(log_w)
-        try:
-            process = self._forkserver.Process(target=worker.forked, args=(data, events, log, nice, os.getpid()),
-                                               name="drivebench-run")
-            process.start()
-        except BaseException:
-            os.close(events_r)
-            os.close(log_r)
-            raise
-        finally:
-            events.close()
-            log.close()
-        return ForkedProcess(process, os.fdopen(events_r, "rb"), os.fdopen(log_r, "rb"))
+        self.forks.start(benches)
 
     def _hand_over(self, request: RunRequest, simulated: bool) -> tuple[subprocess.Popen | ForkedProcess, bool]:
         """The run's process, forked warm or started cold; (process, warm)."""
@@ -635,7 +566,7 @@ class Runner:
         nice = self.settings.nice if simulated else 0
         if self.run_processes() == "warm":
             self.spawned["forked"] += 1
-            return self._fork(data, nice), True
+            return self.forks.fork(data, nice, os.getpid()), True
         proc = self._start_worker(nice)
         try:
             proc.stdin.write(data)
@@ -748,7 +679,8 @@ class Runner:
                 return
             index_record(s, run, record, run_dir)
             verdict = (record or {}).get("verdict")
-            if run.abort_requested_by and (child.term_sent is not None or verdict not in VERDICT_STATE):
+            if run.abort_requested_by and verdict not in ("pass", "fail", "incomplete") and (
+                    child.term_sent is not None or verdict not in VERDICT_STATE):   # a finished verdict stands
                 run.state = "aborted"
                 run.aborted_by = run.abort_requested_by
                 run.reason = f"aborted by {run.abort_requested_by}" + (

@@ -21,6 +21,7 @@ from fastapi.templating import Jinja2Templates
 import anyio
 
 from bench.service.auth import COOKIE, Principal
+from drivers.contract.checks import find_repo_root
 from bench.service.core import RUN_FILES, Service
 from bench.service.db import FINAL_STATES, STATES, iso
 from bench.service.errors import ApiError
@@ -59,6 +60,8 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
 
     def error(request: Request, exc: ApiError) -> HTMLResponse:
         lines = exc.detail if isinstance(exc.detail, list) else [exc.detail]
+        root = f"{find_repo_root()}/"       # a page names files relative to the repository, never by a host path
+        lines = [str(line).replace(root, "") for line in lines]
         response = page(request, "error.html", status=exc.status, lines=lines)
         response.status_code = exc.status
         return response
@@ -90,7 +93,7 @@ def add_ui(app: FastAPI, svc: Callable[[], Service]) -> Callable[[Request, ApiEr
         s = svc()
         return page(request, "index.html", rigs=s.rigs(), queue=list(reversed(s.list_runs(active=True, limit=200))),
                     recent=[r for r in s.list_runs(limit=15) if r.state in FINAL_STATES],
-                    tags=sorted({t for r in s.rigs() for t in r["tags"]}))
+                    tags=_tags_in_rig_order(s))
 
     @app.get("/runs/{run_id}", response_class=HTMLResponse)
     def run_page(request: Request, run_id: Id):
@@ -279,6 +282,14 @@ class PlotCache:
             raise
         finally:
             self._rendering.pop(key, None)
+
+
+def _tags_in_rig_order(s: Service) -> list[str]:
+    """The submit form's targets: the tags of the rigs file's first rig first (the default target is a tag the first
+    rig has, not the alphabetically first tag, which may name a drive of another kind)."""
+    order = {rig.name: i for i, rig in enumerate(s.settings.rigs)}
+    rigs = sorted(s.rigs(), key=lambda r: order.get(r["name"], len(order)))
+    return list(dict.fromkeys(t for r in rigs for t in r["tags"]))
 
 
 def _compare_png(dir_a: Path, dir_b: Path) -> bytes:

@@ -104,15 +104,15 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _follow(service_pid: int) -> None:
-    """SIGTERM (the run's safe stop) to this process when the service ends, however it ends: the fork server is
-    this process's parent, so the parent-death signal alone would wait for the fork server."""
+    """SIGTERM (the run's safe stop) to this process when the service ends, however it ends, and only then: the
+    fork server is this process's parent, and a parent-death signal would follow it (a fork server SIGKILLed, by the
+    OOM killer say, took its runs with it), so the service's pidfd is watched instead."""
     from multiprocessing import forkserver
 
     server = forkserver._forkserver     # every forked child holds the server's "alive" pipe: let it go, so that the
     if server._forkserver_alive_fd is not None:     # fork server leaves with the service, not with the last run
         os.close(server._forkserver_alive_fd)
         server._forkserver_alive_fd = None
-    child.die_with(os.getppid())
     try:
         watched = os.pidfd_open(service_pid)
     except ProcessLookupError:

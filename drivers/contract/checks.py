@@ -4,6 +4,7 @@ and the path rule (absolute, else from the repository root, else next to the fil
 
 from __future__ import annotations
 
+import difflib
 import math
 from pathlib import Path
 from typing import Any
@@ -34,7 +35,9 @@ class Problems:
     def unknown_keys(self, table: dict, allowed: set[str] | tuple[str, ...], where: str) -> None:
         for key in table:
             if key not in allowed:
-                self.add(_join(where, key), f"unknown key (allowed: {', '.join(sorted(allowed))})")
+                close = difflib.get_close_matches(str(key), [str(a) for a in allowed], n=1, cutoff=0.75)
+                hint = f"; did you mean {close[0]!r}?" if close else ""
+                self.add(_join(where, key), f"unknown key{hint} (allowed: {', '.join(sorted(allowed))})")
 
     def number(self, table: dict, key: str, where: str, *, required: bool = True, default: float | None = None,
                min_value: float | None = None, positive: bool = False) -> float | None:

@@ -215,7 +215,7 @@ def test_the_run_list_and_the_queue_page_give_each_queued_run_the_reason_its_own
     """The list reads the rigs and the queue once for all its runs: each run's reason must still be its own."""
     op = H(api.tokens.operator)
     ids = [api.post("/api/runs", json={"scenario": f"service/{SHORT}", "rig": rig}, headers=op).json()["id"]
-           for rig in ("sim-a", "sim-a", "spim-a")]
+           for rig in ("sim-a", "sim-a", "real-a")]
     time.sleep(0.3)
     own = {i: api.get(f"/api/runs/{i}", headers=op).json()["waiting"] for i in ids}
     assert own[ids[0]].startswith("starting: rig sim-a is free")

@@ -15,6 +15,11 @@
           if (event.duration_s) bar.max = event.duration_s;
           bar.value = event.progress_s;
         });
+        document.querySelectorAll('[data-run-progress-text="' + event.id + '"]').forEach(function (text) {
+          const of = event.duration_s ? " of " + String(Math.round(event.duration_s * 1000) / 1000) + " s" : "";
+          const pct = event.duration_s ? " (" + Math.round(100 * event.progress_s / event.duration_s) + " %)" : "";
+          text.textContent = event.progress_s.toFixed(2) + " s" + of + " drive time" + pct;
+        });
       } else if (event.type === "trip") {
         document.querySelectorAll('[data-run-trips="' + event.id + '"]').forEach(function (list) {
           const item = document.createElement("li");
