@@ -103,12 +103,12 @@ def test_an_unknown_key_is_one_line_with_the_allowed_keys(tmp_path):
         load_bench_config(path)
     (line,) = err.value.problems
     allowed = ", ".join(sorted(DRIVE_TRANSPORTS["serial"].config.keys_allowed()))
-    assert line == f"{path}: drive.retriez: unknown key (allowed: {allowed})"
+    assert line == f"{path}: drive.retriez: unknown key; did you mean 'retries'? (allowed: {allowed})"
 
 
 def test_an_unknown_key_in_simulator_is_refused_at_validate_time(tmp_path):
     path = _bench(tmp_path, SERIAL, extra='\n[simulator]\nmotor = "toy"\ncsv_onyl = true\n')
-    with pytest.raises(InputError, match=r"simulator\.csv_onyl: unknown key \(allowed: .*csv_only"):
+    with pytest.raises(InputError, match=r"simulator\.csv_onyl: unknown key; did you mean 'csv_only'\? \(allowed: .*csv_only"):
         load_bench_config(path)
 
 
@@ -163,5 +163,5 @@ def test_sim_serve_refuses_an_unknown_simulator_key_in_one_line(tmp_path):
                           text=True, timeout=120, cwd=REPO)
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == [
-        f"error: {config}: simulator.motr: unknown key "
+        f"error: {config}: simulator.motr: unknown key; did you mean 'motor'? "
         f"(allowed: {', '.join(sorted(SimulatorConfig.keys_allowed()))})"]
