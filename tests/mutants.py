@@ -17,6 +17,8 @@ import types
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import pytest
+
 Edit = tuple[str, str]
 
 
@@ -199,8 +201,23 @@ def _compile(module_name: str, source: str, names: dict) -> types.ModuleType:
     return module
 
 
+_BUILT: dict[tuple[str, str], object] = {}
+
+
 def build(mutant: Mutant):
-    """The mutant's run_steps (compiled on its first call)."""
+    """The mutant's run_steps (compiled on its first call), one per mutant and process: two tests of one mutant on
+    the same pytest worker (xdist_group, `--dist loadgroup`) pay its numba compile once."""
+    if (mutant.drive, mutant.name) not in _BUILT:
+        _BUILT[(mutant.drive, mutant.name)] = _build(mutant)
+    return _BUILT[(mutant.drive, mutant.name)]
+
+
+def compile_group(mutant: Mutant) -> pytest.MarkDecorator:
+    """The xdist group that keeps every test of this mutant on one worker (so its compile is shared)."""
+    return pytest.mark.xdist_group(f"mutant-{mutant.drive}-{mutant.name}")
+
+
+def _build(mutant: Mutant):
     pkg = f"sim_backend.{mutant.drive}"
     fw_src = Path(importlib.import_module(f"{pkg}.firmware").__file__).read_text()
     kn_src = Path(importlib.import_module(f"{pkg}.kernel").__file__).read_text()

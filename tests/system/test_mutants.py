@@ -17,7 +17,7 @@ import pytest
 
 from bench.run.orchestrator import run_scenario
 from bench.outputs.report import MUTANTS_DIR
-from tests.mutants import ALL_MUTANTS, Mutant, _apply, build, mutant_kernel
+from tests.mutants import ALL_MUTANTS, Mutant, _apply, build, compile_group, mutant_kernel
 
 ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.slow             # a numba compile per mutant and up to a run per paper scenario
@@ -44,7 +44,7 @@ def kills(mutant: Mutant, out: Path, *, whole_table: bool = True) -> dict[str, l
     return killed
 
 
-@pytest.mark.parametrize("mutant", ALL_MUTANTS, ids=lambda m: f"{m.drive}-{m.name}")
+@pytest.mark.parametrize("mutant", [pytest.param(m, id=f"{m.drive}-{m.name}", marks=compile_group(m)) for m in ALL_MUTANTS])
 def test_every_firmware_mutant_is_rejected(mutant, tmp_path, request):
     out = request.config.getoption("--drivebench-out")
     table = bool(out and out != "runs")   # the kill table for the validation page names every scenario that kills
@@ -71,12 +71,13 @@ SIGNATURE_CASES = [
 ]
 
 
-@pytest.mark.parametrize("name, figure, signature, criterion, value_range", SIGNATURE_CASES,
-                         ids=[case[0] for case in SIGNATURE_CASES])
+@pytest.mark.parametrize("name, figure, signature, criterion, value_range", [
+    pytest.param(*case, id=case[0], marks=compile_group(next(m for m in ALL_MUTANTS if m.name == case[0])))
+    for case in SIGNATURE_CASES])
 def test_the_sensor_cheat_is_caught_by_the_designed_signature_not_by_the_figure(tmp_path, name, figure, signature,
                                                                               criterion, value_range):
     mutant = next(m for m in ALL_MUTANTS if m.name == name)
-    with mutant_kernel(mutant):
+    with mutant_kernel(mutant, build(mutant)):
         fig = run_scenario(ROOT / figure, out_root=tmp_path, rerun_mode="off")
         sig = run_scenario(ROOT / signature, out_root=tmp_path, rerun_mode="off")
     assert fig.verdict == "pass"
