@@ -85,8 +85,8 @@ def main(argv: list[str]) -> int:
                   "for every later run): nothing is printed until the run starts", file=sys.stderr)
     elif command == "quick":
         args = [str(python), "-m", "pytest", "-n", "2", "-q", *QUICK, *rest]
-    else:
-        args = [str(python), "-m", "pytest", "-n", "2", "-q", *rest]
+    else:  # loadgroup: the tests of one firmware mutant share a worker and its numba compile (tests/mutants.py)
+        args = [str(python), "-m", "pytest", "-n", "2", "--dist", "loadgroup", "-q", *rest]
     return subprocess.run(args, cwd=ROOT).returncode
 
 

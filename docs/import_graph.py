@@ -48,7 +48,7 @@ GROUPS: tuple[tuple[str, str, str, tuple[str, ...]], ...] = (
     ("sim_front", "device and protocol servers: CANopen node, EtherCAT slave, serial, Modbus, socketcand, rig builder", "sim_backend",
      ("sim_backend/__init__.py", "sim_backend/canopen/", "sim_backend/ethercat/", "sim_backend/device.py", "sim_backend/cia402_device.py",
       "sim_backend/faults.py",
-      "sim_backend/comm_watchdog.py", "sim_backend/trace.py", "sim_backend/serial_server.py",
+      "sim_backend/comm_watchdog.py", "sim_backend/trace.py", "sim_backend/serial_server.py", "sim_backend/serial_protocol.py",
       "sim_backend/modbus_server.py", "sim_backend/socketcand_server.py", "sim_backend/wire_faults.py",
       "sim_backend/sessions.py", "sim_backend/rig.py", "sim_backend/serve.py", "sim_backend/od_gen.py",
       "sim_backend/scpi_server.py", "sim_backend/lab_rig.py")),

@@ -29,8 +29,8 @@ from scipy.ndimage import uniform_filter1d
 from scipy.optimize import least_squares
 
 from drivers.contract.errors import InputError
-from sim_backend.twin import BLIND_SPEED, ESTIMATES, TOLERANCES, RecordedRun, blind_rows, \
-    build_drive, get_key, read_motor, replay, with_values
+from sim_backend.twin import RecordedRun, build_drive, get_key, read_motor, replay, with_values
+from sim_backend.twin_tube import BLIND_SPEED, ESTIMATES, TOLERANCES, blind_rows
 
 PARAMS: dict[str, tuple[str, ...]] = {
     "pmsm": ("plant.rs_ohm", "plant.ls_h", "plant.flux_wb", "mechanics.inertia_kgm2", "mechanics.viscous_nm_s_rad"),

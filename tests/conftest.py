@@ -7,6 +7,7 @@ The inner loop (`python3 dev.py quick`) leaves both out; `python3 dev.py test` (
 
 from __future__ import annotations
 
+import types
 from pathlib import Path
 
 import pytest
@@ -18,3 +19,13 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if SYSTEM in item.path.parents:
             item.add_marker(pytest.mark.system)
+
+
+@pytest.fixture(autouse=True)
+def _no_pyserial_close_pause(monkeypatch: pytest.MonkeyPatch) -> None:
+    """pyserial's socket:// close() sleeps 0.3 s "in case of quick reconnects": every serial link a test closed cost
+    0.3 s of nothing. The simulated serial server takes a bench reconnecting at once
+    (tests/sim_backend/test_server_abuse.py proves it), so the tests run without the pause."""
+    from serial.urlhandler import protocol_socket
+
+    monkeypatch.setattr(protocol_socket, "time", types.SimpleNamespace(sleep=lambda _seconds: None))

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 Edit = tuple[str, str]
 
@@ -392,6 +393,11 @@ def build(mutant: Mutant):
     if key not in _BUILT:
         _BUILT[key] = _build(mutant)
     return _BUILT[key]
+
+
+def compile_group(mutant: Mutant) -> pytest.MarkDecorator:
+    """The xdist group that keeps every test of this mutant on one worker (so its compile is shared)."""
+    return pytest.mark.xdist_group(f"mutant-{mutant.drive}-{mutant.name}")
 
 
 def _build(mutant: Mutant):

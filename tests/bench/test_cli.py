@@ -83,6 +83,7 @@ def test_run_saves_rrd_by_default(tmp_path, fake_rig):
     assert {"record.json", "telemetry.parquet", "summary.png", "junit.xml"} <= {p.name for p in run_dir.iterdir()}
 
 
+@pytest.mark.slow
 def test_spawn_without_display_falls_back_to_saving(tmp_path, fake_rig, monkeypatch):
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)

@@ -161,6 +161,7 @@ def test_plant_injection_refused_before_connecting(tmp_path):
     assert rig.calls == []
 
 
+@pytest.mark.slow
 def test_rerun_file_written_with_signal_entities(tmp_path):
     rig = FakeRig()
     result = run(tmp_path, rig, rerun_mode="save")

@@ -47,6 +47,7 @@ def parses(monkeypatch) -> collections.Counter:
     return counts
 
 
+@pytest.mark.slow
 def test_one_cli_run_reads_the_scenario_and_its_bench_config_once(tmp_path, parses):
     result = CliRunner().invoke(cli, ["run", str(SCENARIO), "--rerun", "off", "--out", str(tmp_path), "--json"])
     assert result.exit_code in (0, 1), result.output

@@ -347,6 +347,7 @@ def test_validation_errors_are_lines(api):
     assert response.json()["detail"] == ["request: ttl_s: Field required"]
 
 
+@pytest.mark.slow
 def test_failing_since_names_the_run_and_revision_a_failing_streak_began_at(api):
     from bench.service.db import CriterionValue, Run
 

@@ -109,6 +109,7 @@ def table_rows(md: str, section: str) -> dict[str, list[str]]:
     return rows
 
 
+@pytest.mark.slow
 def test_report_tables_plots_and_gaps(tmp_path):
     good = make_run(tmp_path, "pmsm", "pmsm-good", pos_err=0.01, flux_err=0.5, i_sy=3.03)
     bad = make_run(tmp_path, "spim", "spim-bad", pos_err=0.2, flux_err=2.0, i_sy=2.5)

@@ -10,7 +10,6 @@ import resource
 import socket
 import struct
 import time
-import types
 from pathlib import Path
 
 import can
@@ -232,11 +231,8 @@ def test_serial_endpoint_survives_a_connect_storm_of_resets_and_a_real_client_st
     assert server.stats["sessions"] + server.stats["accept_errors"] >= 1
 
 
-def test_serial_bench_reconnecting_right_after_closing_gets_the_line(monkeypatch):
-    # pyserial's socket:// close() sleeps 0.3 s "in case of quick reconnects" (15 s over 50 cycles, and no quick
-    # reconnect at all): without it the next bench really connects within a millisecond of the close
-    from serial.urlhandler import protocol_socket
-    monkeypatch.setattr(protocol_socket, "time", types.SimpleNamespace(sleep=lambda _s: None))
+def test_serial_bench_reconnecting_right_after_closing_gets_the_line():
+    # without pyserial's 0.3 s pause in close() (tests/conftest.py) the next bench connects within a millisecond
     device = SimulatedDevice(ToyDrive())
     server = start_serial_tcp(device)
     try:

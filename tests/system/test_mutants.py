@@ -2,7 +2,8 @@
 scenarios must be rejected by at least one criterion that the real firmware passes (a known gap does not count), or
 by the run ending aborted or in error. A surviving mutant fails the suite.
 
-With --drivebench-out DIR the kill table is written to DIR/mutants/ (a file per mutant); `drivebench report DIR/* --suites
+Without --drivebench-out a mutant's scenarios run until one rejects it (that is the verdict); with --drivebench-out DIR
+every scenario runs and the kill table (which scenarios reject it, and by what) is written to DIR/mutants/ (a file per mutant); `drivebench report DIR/* --suites
 config/report/paper-suites.toml --out docs/validation.md` puts it in the validation page.
 """
 
@@ -16,17 +17,19 @@ import pytest
 
 from bench.run.orchestrator import run_scenario
 from bench.outputs.report import MUTANTS_DIR
-from tests.mutants import ALL_MUTANTS, Mutant, _apply, build, mutant_kernel
+from tests.mutants import ALL_MUTANTS, Mutant, _apply, build, compile_group, mutant_kernel
 
 ROOT = Path(__file__).resolve().parents[2]
+pytestmark = pytest.mark.slow             # a numba compile per mutant and up to a run per paper scenario
 
 
 def scenarios_of(drive: str) -> list[Path]:
     return sorted((ROOT / "scenarios" / drive).glob("*.toml"))
 
 
-def kills(mutant: Mutant, out: Path) -> dict[str, list[str]]:
-    """scenario stem -> what rejected the mutant there (failing criteria that are not known gaps, or the verdict)."""
+def kills(mutant: Mutant, out: Path, *, whole_table: bool = True) -> dict[str, list[str]]:
+    """scenario stem -> what rejected the mutant there (failing criteria that are not known gaps, or the verdict).
+    Without whole_table it stops at the first scenario that rejects the mutant (the verdict needs one)."""
     killed: dict[str, list[str]] = {}
     with mutant_kernel(mutant, build(mutant)):
         for path in scenarios_of(mutant.drive):
@@ -36,15 +39,18 @@ def kills(mutant: Mutant, out: Path) -> dict[str, list[str]]:
                 why.insert(0, f"run {result.verdict}: {result.record.get('abort_reason') or result.error}")
             if why:
                 killed[path.stem] = why
+                if not whole_table:
+                    break
     return killed
 
 
-@pytest.mark.parametrize("mutant", ALL_MUTANTS, ids=lambda m: f"{m.drive}-{m.name}")
+@pytest.mark.parametrize("mutant", [pytest.param(m, id=f"{m.drive}-{m.name}", marks=compile_group(m)) for m in ALL_MUTANTS])
 def test_every_firmware_mutant_is_rejected(mutant, tmp_path, request):
-    killed = kills(mutant, tmp_path)
-    assert killed, f"mutant {mutant.name} ({mutant.what}) survives every {mutant.drive} acceptance scenario"
     out = request.config.getoption("--drivebench-out")
-    if out and out != "runs":             # one file per mutant: the suite's workers write side by side
+    table = bool(out and out != "runs")   # the kill table for the validation page names every scenario that kills
+    killed = kills(mutant, tmp_path, whole_table=table)
+    assert killed, f"mutant {mutant.name} ({mutant.what}) survives every {mutant.drive} acceptance scenario"
+    if table:                             # one file per mutant: the suite's workers write side by side
         path = Path(out) / MUTANTS_DIR / f"{mutant.drive}-{mutant.name}.json"
         path.parent.mkdir(parents=True, exist_ok=True)
         entry = {"drive": mutant.drive, "name": mutant.name, "what": mutant.what, "killed_by": killed}
@@ -65,12 +71,13 @@ SIGNATURE_CASES = [
 ]
 
 
-@pytest.mark.parametrize("name, figure, signature, criterion, value_range", SIGNATURE_CASES,
-                         ids=[case[0] for case in SIGNATURE_CASES])
+@pytest.mark.parametrize("name, figure, signature, criterion, value_range", [
+    pytest.param(*case, id=case[0], marks=compile_group(next(m for m in ALL_MUTANTS if m.name == case[0])))
+    for case in SIGNATURE_CASES])
 def test_the_sensor_cheat_is_caught_by_the_designed_signature_not_by_the_figure(tmp_path, name, figure, signature,
                                                                               criterion, value_range):
     mutant = next(m for m in ALL_MUTANTS if m.name == name)
-    with mutant_kernel(mutant):
+    with mutant_kernel(mutant, build(mutant)):
         fig = run_scenario(ROOT / figure, out_root=tmp_path, rerun_mode="off")
         sig = run_scenario(ROOT / signature, out_root=tmp_path, rerun_mode="off")
     assert fig.verdict == "pass"
