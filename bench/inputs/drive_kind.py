@@ -21,9 +21,11 @@ def bench_drive_kind(bench_cfg) -> str | None:
     return description.drivebench_kind if description else None
 
 
-def own_bench_kind(raw: dict, scenario_path: Path) -> tuple[str | None, str | None]:
+def own_bench_kind(raw: dict, scenario_path: Path, known: tuple[Path, object] | None = None
+                   ) -> tuple[str | None, str | None]:
     """The drive kind of the bench config the scenario file names itself, and that config's name as written;
-    (None, None) when it names none or the file cannot be read (the text sent to a service with a relative path)."""
+    (None, None) when it names none or the file cannot be read (the text sent to a service with a relative path).
+    `known`: a bench config already loaded (its resolved path and the config), used instead of reading it again."""
     from bench.inputs.benchconfig import load_bench_config
 
     value = raw.get("bench")
@@ -33,12 +35,15 @@ def own_bench_kind(raw: dict, scenario_path: Path) -> tuple[str | None, str | No
         found = resolve_path(value, find_repo_root(scenario_path), scenario_path.resolve().parent)
         if found is None:
             return None, value
+        if known is not None and found.resolve() == known[0]:
+            return bench_drive_kind(known[1]), value
         return bench_drive_kind(load_bench_config(found)), value
     except (InputError, OSError, ValueError):
         return None, value
 
 
-def scenario_kinds(p: Problems, raw: dict, scenario_path: Path) -> tuple[set[str] | None, str]:
+def scenario_kinds(p: Problems, raw: dict, scenario_path: Path, known: tuple[Path, object] | None = None
+                   ) -> tuple[set[str] | None, str]:
     """The drive kinds the scenario is written for and what says so: `drive_kinds = ["pmsm", "spim"]` in the file
     (a scenario that judges only what every drive has), else its own bench config's kind; (None, "") unknown."""
     if "drive_kinds" in raw:
@@ -48,13 +53,13 @@ def scenario_kinds(p: Problems, raw: dict, scenario_path: Path) -> tuple[set[str
             p.add("drive_kinds", f"must be a non-empty array of {', '.join(map(repr, KIND_NAMES))}, got {value!r}")
             return None, ""
         return set(value), f"drive_kinds = {value}"
-    own, own_name = own_bench_kind(raw, scenario_path)
+    own, own_name = own_bench_kind(raw, scenario_path, known)
     return ({own}, f"its bench {own_name}") if own else (None, "")
 
 
 def check_drive_kind(p: Problems, raw: dict, scenario_path: Path, bench_cfg, bench_path: Path) -> None:
     """Adds `bench: ...` when the bench's drive is of a kind the scenario is not written for."""
-    kinds, said = scenario_kinds(p, raw, scenario_path)
+    kinds, said = scenario_kinds(p, raw, scenario_path, (bench_path.resolve(), bench_cfg))
     kind = bench_drive_kind(bench_cfg)
     if kinds and kind and kind not in kinds:
         wanted = " or ".join(KIND_NAMES[k] for k in sorted(kinds))
