@@ -28,6 +28,7 @@ class DrawnResult:
     criteria: list                 # the run's CriterionResults
     points: list[dict]
     run_dir: Path
+    not_judged: list[str]          # criteria the rig could not judge (e.g. the DAQ gave no record): never a pass
 
 
 def run_drawn(drive: str, seed: int, out_root: str | Path) -> DrawnResult:
@@ -46,4 +47,6 @@ def run_drawn(drive: str, seed: int, out_root: str | Path) -> DrawnResult:
     failed = [c.name for c in result.criteria if c.status == "fail"]
     if result.verdict in ("aborted", "error"):
         failed.insert(0, f"run {result.verdict}: {result.record.get('abort_reason') or result.error}")
-    return DrawnResult(drive, seed, result.verdict, failed, list(result.criteria), drawn.points, result.run_dir)
+    not_judged = [c.name for c in result.criteria if c.status == "not_judged"]
+    return DrawnResult(drive, seed, result.verdict, failed, list(result.criteria), drawn.points, result.run_dir,
+                       not_judged)

@@ -15,6 +15,8 @@ from bench.signatures.predict import PmsmData, SpimData
 
 ROOT = Path(__file__).resolve().parents[2]
 MEASURED_ON_A_RIG = {"speed_true_mech_rad_s", "speed_est_mech_rad_s"}   # dyno encoder, the drive's own report
+# the PMSM rig's aligned encoder (DAQ) minus the drive's reported angle, derived after the run ([rig_truths])
+MEASURED_AFTER_THE_RUN = {"pmsm": {"pos_err_elec_rad"}, "spim": set()}
 HOOK_FREE_UNTIL = {"pmsm": 0.72, "spim": 1.0}
 
 
@@ -45,7 +47,10 @@ def test_a_drawn_signature_is_a_valid_instruments_rig_scenario(drive, seed):
     prepared = prepare_run(ROOT / "scenarios" / f"{drive}-rig" / f"sig-drawn-seed{seed}.toml", text=text, seed=seed)
     scenario = prepared.scenario
     assert prepared.bench.bench.plant_injections is False        # the instruments rig: no plant injections
-    assert {c.signal for c in scenario.criteria} <= MEASURED_ON_A_RIG
+    signals = {c.signal for c in scenario.criteria}
+    assert signals <= MEASURED_ON_A_RIG | MEASURED_AFTER_THE_RUN[drive]
+    assert MEASURED_AFTER_THE_RUN[drive] <= signals
+    assert MEASURED_AFTER_THE_RUN[drive] <= set(prepared.bench.rig_truths.signals())   # measured there, not assumed
     assert {seg.kind for seg in scenario.load_segments} == {"torque"}    # the dynamometer's own mode
     for c in scenario.criteria:
         assert c.limit > 0 and "expected" in c.params and c.window_s[1] <= scenario.duration_s
@@ -74,3 +79,22 @@ def test_the_kicks_cover_the_envelope():
     kicks = [p for p in drawn.points if "kick_rad" in p]
     assert all(0.25 <= abs(k["kick_rad"]) <= 0.6 for k in kicks)
     assert math.isclose(abs(drawn.points[0]["low"]), 2.0)
+
+
+def test_the_position_error_criteria_sit_on_the_kicks_sync_and_expect_the_kick_back():
+    """The measured angle error must jump by -m in the rows right after the SYNC that applies a steady kick (the
+    estimator's angle was written) and be back to zero, within the rig's stated uncertainty, at the window's end."""
+    for seed in (1, 2, 3):
+        drawn, _ = draw("pmsm", seed)
+        pos = [c for c in drawn.criteria if c["signal"] == "pos_err_elec_rad"]
+        steady = [p for p in drawn.points if "kick_rad" in p and "right after" not in p["what"]]
+        assert len(pos) == 2 * len(steady) == 4
+        for k in steady:
+            jump = next(c for c in pos if c["name"].startswith(k["what"]) and "jumps" in c["name"])
+            back = next(c for c in pos if c["name"].startswith(k["what"]) and "back to zero" in c["name"])
+            sync = math.ceil(round(k["at_s"], 4) * 100 - 1e-9) / 100
+            assert sync - 0.01 < k["at_s"] <= sync + 1e-9
+            assert jump["window_s"] == [round(sync + 0.0005, 4), round(sync + 0.0045, 4)]
+            assert jump["expected"] == -k["kick_rad"] and jump["limit"] < abs(k["kick_rad"]) / 3
+            assert back["expected"] == 0.0 and back["window_s"][1] == k["window_s"][1]
+            assert 0.005 < back["limit"] < 0.03

@@ -23,7 +23,9 @@ ONE_PER_CLASS = {
 @pytest.mark.parametrize("drive", ["pmsm", "spim"])
 def test_the_honest_firmware_passes_its_drawn_signature_and_one_cheat_per_class_does_not(drive, tmp_path):
     honest = run_drawn(drive, 1, tmp_path)
-    assert honest.verdict == "pass" and not honest.failed, honest.failed
+    assert honest.verdict == "pass" and not honest.failed and not honest.not_judged, honest.failed
+    measured = [c for c in honest.criteria if c.signal == "pos_err_elec_rad"]     # derived after the run (DAQ)
+    assert len(measured) == (4 if drive == "pmsm" else 0) and all(c.status == "pass" for c in measured)
     assert (honest.run_dir / "drawn.toml").is_file() and (honest.run_dir / "drawn.json").is_file()
     record = json.loads((honest.run_dir / "record.json").read_text())
     assert record["signature_draws"]["points"] == json.loads(json.dumps(honest.points))   # the draws, in the record
