@@ -6,6 +6,9 @@ from __future__ import annotations
 import threading
 
 from tests.service_fixtures import SHORT, client_for, make_settings, wait_until
+import pytest
+
+pytestmark = pytest.mark.slow
 
 
 def test_abort_after_the_run_sent_its_verdict_is_409_and_the_verdict_stands(tmp_path, monkeypatch):

@@ -245,6 +245,7 @@ def test_sigterm_ends_with_safe_stop_and_an_aborted_record(tmp_path):
         "load.zero_and_disable", "drive.quick_stop", "drive.disable"]
 
 
+@pytest.mark.slow
 def test_connect_url_after_connect_and_unreachable_viewer_falls_back(tmp_path, fake_rig):
     scenario = write_case(tmp_path)
     result = invoke("run", "--rerun", "connect", "rerun+http://127.0.0.1:9/proxy", scenario, "--out", tmp_path / "runs")

@@ -15,6 +15,9 @@ from bench.inputs.criteria import evaluate, verdict
 from bench.inputs.scenario import load_scenario
 from bench.outputs.recorder import RunRecorder
 from drivers.contract.signals import SIGNAL_NAMES
+import pytest
+
+pytestmark = pytest.mark.slow
 
 REPO = Path(__file__).resolve().parents[2]
 SOURCE = REPO / "scenarios/examples/pmsm-rs-step.toml"

@@ -8,6 +8,9 @@ import dataclasses
 from bench.faces.conformance_cli import run_conformance
 from bench.outputs.conformance_report import latest_for_bench
 from tests.service_fixtures import REPO, Tokens, client_for, make_settings
+import pytest
+
+pytestmark = pytest.mark.slow
 
 PMSM = REPO / "config" / "benches" / "sim-pmsm.toml"
 

@@ -8,12 +8,14 @@ import sys
 from pathlib import Path
 
 from tests.service_fixtures import SHORT, SCENARIOS, client_for, make_settings
+import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 CRANE = REPO / "scenarios/examples/pmsm-crane.toml"
 SPIM_BENCH = REPO / "config/benches/sim-spim.toml"
 
 
+@pytest.mark.slow
 def test_validate_with_a_bench_of_another_drive_kind_is_one_line_and_exit_2():
     out = subprocess.run([sys.executable, "-m", "bench", "validate", str(CRANE), "--bench", str(SPIM_BENCH)],
                          capture_output=True, text=True, cwd=REPO, timeout=120)

@@ -13,6 +13,8 @@ import pytest
 
 from bench.run.orchestrator import run_scenario
 
+pytestmark = pytest.mark.slow
+
 REPO = Path(__file__).resolve().parents[2]
 STEP = REPO / "scenarios/rig/accept-speed-step.toml"
 

@@ -20,6 +20,7 @@ def safe_stop_calls(rig) -> list[str]:
     return [n for n in rig.names() if n in SAFE_STOP]
 
 
+@pytest.mark.slow
 def test_full_run_passes_and_records_everything(tmp_path):
     rig = FakeRig()
     progress = []

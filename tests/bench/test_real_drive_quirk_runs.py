@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from bench.run.orchestrator import run_scenario
+import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 SCENARIO = REPO / "scenarios/rig/speed-step-20rads.toml"
@@ -30,6 +31,7 @@ def test_4_a_warning_emcy_is_recorded_and_the_run_passes(tmp_path):
     assert any(w.get("emcy", "").startswith("0x4310") for w in warnings), warnings
 
 
+@pytest.mark.slow
 def test_5_a_filtered_0x606c_passes_when_stated_and_is_named_when_not(tmp_path):
     stated = run_scenario(SCENARIO, e35_bench(tmp_path, "velocity_filter_s = 0.1", "velocity_filter_s = 0.1"),
                           out_root=tmp_path / "runs", rerun_mode="off")

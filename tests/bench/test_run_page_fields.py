@@ -7,6 +7,9 @@ from __future__ import annotations
 import re
 
 from tests.service_fixtures import LONG, client_for, make_settings, wait_until
+import pytest
+
+pytestmark = pytest.mark.slow
 
 
 def _row(page: str, cell_id: str) -> str:

@@ -9,6 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
+import pytest
+
+pytestmark = pytest.mark.slow
 
 REPO = Path(__file__).resolve().parents[2]
 SCENARIO = REPO / "tests/data/coast-at-50rads-pmsm-instruments.toml"

@@ -180,6 +180,7 @@ def test_sync_without_answer_times_out():
         assert 2.0 <= time.monotonic() - started < 4.0
 
 
+@pytest.mark.slow
 def test_sdo_timeout_names_the_object():
     with rig(sdo_timeout_s=0.2, heartbeat_timeout_s=30.0) as r:
         r.node.stop()

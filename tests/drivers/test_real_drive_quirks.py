@@ -112,6 +112,7 @@ def test_8_node_guarding_instead_of_heartbeat_is_refused_with_one_line():
         assert "0x06020000" not in text
 
 
+@pytest.mark.slow
 def test_10_a_late_comm_loss_reaction_is_reported_as_late_not_as_none():
     with e35(comm_loss_delay_s=2.0) as (link, rig):
         link.open()
