@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from bench.inputs.capture_criteria import capture_units, is_capture_signal
 from bench.inputs.criteria import TimeAxis, signals_of, time_axis
 from bench.outputs.memory import release_freed_memory
 from bench.outputs.record_schema import RunRecord
@@ -103,7 +104,7 @@ class RunEnding:
             holes = time_axis(self.recorder.read_back([], t_max=duration + 1e-9)[TIME_COLUMN], None, tolerance)
         specs = self.scenario.criteria
         first = min((s.window_s[0] - float(s.params.get("smooth_s") or 0.0) for s in specs), default=0.0) - 1.0
-        needed = {name for spec in specs for name in signals_of(spec)}
+        needed = {name for spec in specs for name in signals_of(spec) if not is_capture_signal(name)}
         measured = self.measured
         if self.lab is not None and self.lab.truths is not None:
             needed.add("pos_est_elec_rad")
@@ -113,7 +114,8 @@ class RunEnding:
             measured = self._lab_truths(t, columns, measured)
         judged = judge_run(self.scenario, t, columns, measured=measured, row_period_s=row_period,
                            tolerance=tolerance, abort_reason=abort_reason, error=error, stop_errors=stop_errors,
-                           holes=holes)
+                           holes=holes, records=self.lab.records() if self.lab is not None else None,
+                           record_units=capture_units(self.cfg.instruments))
         del columns, t
         self.recorder.note("time_axis", judged.time_axis)
         verdict, reason, results, error = judged.verdict, judged.reason, judged.results, judged.error
