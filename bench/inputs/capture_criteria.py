@@ -59,6 +59,13 @@ def capture_units(instruments: Iterable[Any]) -> dict[str, str]:
     return {f"{cfg.name}:{ch.signal}": ch.unit for cfg in instruments for ch in cfg.channels}
 
 
+def capture_accuracy(instruments: Iterable[Any]) -> dict[str, tuple[float, float, float]]:
+    """(reading %, range %, range in the signal's units) of each signal whose instrument states its accuracy."""
+    return {f"{cfg.name}:{ch.signal}": (cfg.accuracy_reading_pct, cfg.accuracy_range_pct, abs(ch.range * ch.scale))
+            for cfg in instruments if getattr(cfg, "accuracy_reading_pct", None) is not None
+            for ch in cfg.channels}
+
+
 # --- kinds -----------------------------------------------------------------------------------------------------
 
 def _whole_periods(w: _Window, spec: CriterionSpec) -> tuple[np.ndarray, np.ndarray, float]:
@@ -157,10 +164,12 @@ def _not_judged(spec: CriterionSpec, why: str, unit: str) -> CriterionResult:
 
 
 def evaluate_on_records(specs: Iterable[CriterionSpec], records: Mapping[str, Mapping[str, np.ndarray]],
-                        units: Mapping[str, str] | None = None) -> list[CriterionResult]:
+                        instruments: Iterable[Any] = ()) -> list[CriterionResult]:
     """Criteria reading instruments' records: `records` maps an instrument's name to its columns (`t_s` on the drive
-    clock and a column per signal) as the run placed them; `units` the unit of each `<instrument>:<signal>`."""
-    units = units or {}
+    clock and a column per signal) as the run placed them; `instruments` the bench's [[instruments]] (units,
+    ranges and stated accuracy of each `<instrument>:<signal>`)."""
+    instruments = tuple(instruments)
+    units, accuracy = capture_units(instruments), capture_accuracy(instruments)
     out = []
     for spec in specs:
         names = [spec.signal] + [v for v in spec.params.values() if is_capture_signal(v)]
@@ -193,19 +202,22 @@ def evaluate_on_records(specs: Iterable[CriterionSpec], records: Mapping[str, Ma
                                                    for n, k in lost.items()), unit))
             continue
         period = float(np.median(np.diff(t))) if t.size > 1 else None
-        result = evaluate([spec], t, columns, measured=None, row_period_s=period, tolerance=1.5)[0]
+        stated = {n: accuracy[n] for n in names if n in accuracy}
+        judged = replace(spec, params={**spec.params, "_accuracy": stated})
+        result = evaluate([judged], t, columns, measured=None, row_period_s=period, tolerance=1.5)[0]
         rate = f"{1.0 / period:.6g} S/s" if period else "one sample"
         out.append(replace(result, unit=unit, detail=f"{result.detail} [{inst}'s record, {rate}]"))
     return out
 
 
-def judge_with_records(specs, judge_rest, records, units) -> list[CriterionResult]:
+def judge_with_records(specs, judge_rest, records, instruments=()) -> list[CriterionResult]:
     """The scenario's criteria in its order: those reading a record judged on it, the rest by `judge_rest(specs)`."""
     specs = list(specs)
     on_records = [s for s in specs if reads_capture(s)]
     rest = iter(judge_rest([s for s in specs if not reads_capture(s)]))
-    recorded = iter(evaluate_on_records(on_records, records, units))
+    recorded = iter(evaluate_on_records(on_records, records, instruments))
     return [next(recorded) if reads_capture(s) else next(rest) for s in specs]
 
 
 _register()
+import bench.inputs.efficiency_criteria  # noqa: E402,F401  (registers the loss and efficiency kinds)

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from bench.inputs.capture_criteria import capture_units, is_capture_signal
+from bench.inputs.capture_criteria import is_capture_signal
 from bench.inputs.criteria import TimeAxis, signals_of, time_axis
 from bench.outputs.memory import release_freed_memory
 from bench.outputs.record_schema import RunRecord
@@ -115,7 +115,7 @@ class RunEnding:
         judged = judge_run(self.scenario, t, columns, measured=measured, row_period_s=row_period,
                            tolerance=tolerance, abort_reason=abort_reason, error=error, stop_errors=stop_errors,
                            holes=holes, records=self.lab.records() if self.lab is not None else None,
-                           record_units=capture_units(self.cfg.instruments))
+                           instruments=self.cfg.instruments)
         del columns, t
         self.recorder.note("time_axis", judged.time_axis)
         verdict, reason, results, error = judged.verdict, judged.reason, judged.results, judged.error

@@ -24,7 +24,7 @@ class Judged:
 def judge_run(scenario, t: np.ndarray, columns: dict[str, np.ndarray], *, measured: frozenset[str] | None,
               row_period_s: float | None, tolerance: float, abort_reason: str | None, error: str | None,
               stop_errors: list[str], holes: dict | None = None, records: dict | None = None,
-              record_units: dict | None = None) -> Judged:
+              instruments: tuple = ()) -> Judged:
     """`t` and `columns`: the recorded rows the criteria need (rows after duration_s, the stop, are not judged);
     `holes`: time_axis() of every in-test row (default: of `t`); `records`: the instruments' records on the drive
     clock, for criteria naming `<instrument>:<signal>` (bench.inputs.capture_criteria)."""
@@ -36,7 +36,7 @@ def judge_run(scenario, t: np.ndarray, columns: dict[str, np.ndarray], *, measur
             scenario.criteria, lambda specs: evaluate(specs, t[in_test], {k: v[in_test] for k, v in columns.items()},
                                                       measured=measured, row_period_s=row_period_s,
                                                       tolerance=tolerance),
-            records or {}, record_units or {})
+            records or {}, instruments)
     except Exception as exc:
         results = []
         if error is None:
