@@ -10,7 +10,8 @@ drive clock, replaces the telemetry's rows, and its sample period is the row per
 Kinds added here, for any signal (telemetry or record), sampled uniformly over the window:
 - `harmonic_pct`: the amplitude of harmonic `order` of `fundamental_hz` in % of |mean| (torque ripple per order)
   or, with `of_fundamental = true`, of the fundamental's amplitude (a current's harmonic);
-- `thd_pct`: total harmonic distortion up to `max_order`, in % of the fundamental (current ripple);
+- `thd_pct`: total harmonic distortion up to `max_order`, in % of the fundamental (current ripple); the
+  fundamental from the signal's zero crossings unless `fundamental_hz` is given;
 - `ripple_rms_pct`: rms of (signal - mean) in % of |mean| (the torque ripple factor).
 Both Fourier kinds use the largest whole number of fundamental periods in the window.
 
@@ -68,17 +69,28 @@ def capture_accuracy(instruments: Iterable[Any]) -> dict[str, tuple[float, float
 
 # --- kinds -----------------------------------------------------------------------------------------------------
 
-def _whole_periods(w: _Window, spec: CriterionSpec) -> tuple[np.ndarray, np.ndarray, float]:
-    f = float(spec.params["fundamental_hz"])
+def _whole_periods(w: _Window, spec: CriterionSpec) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """The window's samples over its largest whole number of periods of the fundamental: `fundamental_hz`, or
+    (when not given) measured from the signal's rising zero crossings around its mean."""
+    x, t = w.signal(spec.signal), w.t
+    f = float(spec.params["fundamental_hz"]) if spec.params.get("fundamental_hz") is not None else _measured_hz(t, x)
     if not f > 0:
         raise _Unusable(f"fundamental_hz must be > 0, got {f:g}")
-    x, t = w.signal(spec.signal), w.t
     dt = float(np.median(np.diff(t))) if t.size > 1 else 0.0
     periods = math.floor((t[-1] - t[0] + dt) * f + 1e-9)
     if periods < 1:
         raise _Unusable(f"the window holds less than one period of {f:g} Hz")
     keep = t < t[0] + periods / f - 0.5 * dt
-    return t[keep], x[keep], f
+    return t[keep], x[keep], f, periods
+
+
+def _measured_hz(t: np.ndarray, x: np.ndarray) -> float:
+    y = x - np.mean(x)
+    k = np.flatnonzero((y[:-1] < 0) & (y[1:] >= 0))
+    if k.size < 2:
+        raise _Unusable("fewer than two rising zero crossings in the window: give fundamental_hz")
+    crossings = t[k] - y[k] * (t[k + 1] - t[k]) / (y[k + 1] - y[k])
+    return float((crossings.size - 1) / (crossings[-1] - crossings[0]))
 
 
 def _amplitude(t: np.ndarray, x: np.ndarray, hz: float) -> float:
@@ -100,7 +112,7 @@ def _order(spec: CriterionSpec, key: str, default: float | None = None) -> int:
 
 
 def harmonic_pct(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
-    t, x, f = _whole_periods(w, spec)
+    t, x, f, periods = _whole_periods(w, spec)
     n = _order(spec, "order")
     _nyquist(t, n * f)
     amp = _amplitude(t, x, n * f)
@@ -111,11 +123,11 @@ def harmonic_pct(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
     if base == 0:
         raise _Unusable(f"{what} is zero; a percentage is undefined")
     return amp / base * 100.0, (f"order {n} ({n * f:.6g} Hz) amplitude {amp:.4g} against {what} {base:.4g}, "
-                                f"{t.size} samples over {round((t[-1] - t[0]) * f + 1)} periods of {f:g} Hz")
+                                f"{t.size} samples over {periods} periods of {f:.6g} Hz")
 
 
 def thd_pct(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
-    t, x, f = _whole_periods(w, spec)
+    t, x, f, periods = _whole_periods(w, spec)
     top = _order(spec, "max_order", 40.0)
     rate = (t.size - 1) / (t[-1] - t[0]) if t[-1] > t[0] else 0.0
     top = max(1, min(top, int((rate / 2) // f) - 1))
@@ -125,7 +137,8 @@ def thd_pct(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
     harmonics = [_amplitude(t, x, n * f) for n in range(2, top + 1)]
     thd = math.sqrt(sum(a * a for a in harmonics)) / fundamental * 100.0
     worst = int(np.argmax(harmonics)) + 2 if harmonics else 1
-    return thd, (f"orders 2-{top} of {f:g} Hz against the fundamental {fundamental:.4g}; largest order {worst}"
+    return thd, (f"orders 2-{top} of {f:.6g} Hz ({periods} periods) against the fundamental {fundamental:.4g}; "
+                 f"largest order {worst}"
                  + (f" ({harmonics[worst - 2] / fundamental * 100:.3g} %)" if harmonics else ""))
 
 
@@ -138,12 +151,13 @@ def ripple_rms_pct(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
 
 
 _FUNDAMENTAL = {"fundamental_hz": Param("number", required=True, help="the fundamental (electrical) frequency")}
+_MEASURED = {"fundamental_hz": Param("number", help="the fundamental (default: from the signal's zero crossings)")}
 NEW_KINDS: dict[str, Kind] = {
     "harmonic_pct": Kind(harmonic_pct, "%", {
         **_FUNDAMENTAL, "order": Param("number", required=True, help="harmonic order of fundamental_hz"),
         "of_fundamental": Param("bool", False, help="in % of the fundamental's amplitude instead of |mean|")},
         "amplitude of harmonic `order` of fundamental_hz in % of |mean| (or of the fundamental)"),
-    "thd_pct": Kind(thd_pct, "%", {**_FUNDAMENTAL, "max_order": Param("number", 40.0, help="highest order")},
+    "thd_pct": Kind(thd_pct, "%", {**_MEASURED, "max_order": Param("number", 40.0, help="highest order")},
                     "total harmonic distortion up to max_order in % of the fundamental"),
     "ripple_rms_pct": Kind(ripple_rms_pct, "%", {}, "rms of (signal - mean) in % of |mean|"),
 }

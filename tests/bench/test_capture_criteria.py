@@ -120,3 +120,8 @@ def test_losses_and_efficiency_with_the_analysers_uncertainty_budget_and_an_indi
     [bare] = evaluate_on_records([_spec("loss_w", "analyser:p_dc_w", window, 110.0, output="analyser:p_shaft_w")],
                                  {"analyser": _analyser()}, [])
     assert bare.status == "not_judged" and "accuracy_reading_pct" in bare.detail
+
+
+def test_thd_measures_its_fundamental_when_none_is_given():
+    [r] = evaluate_on_records([_spec("thd_pct", "scope:i_a_a", limit=10.0)], {"scope": _record()})
+    assert r.value == pytest.approx(100 * math.hypot(0.25, 0.15) / 5.0, rel=2e-3) and "of 50 Hz" in r.detail
