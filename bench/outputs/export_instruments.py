@@ -30,6 +30,21 @@ def instrument_records(run_dir: Path, record: dict) -> list[tuple[str, dict, dic
     return out
 
 
+def run_records(run_dir: Path, record: dict) -> tuple[dict[str, dict[str, np.ndarray]], tuple]:
+    """A recorded run's instrument records by instrument name, and its bench's [[instruments]] (units, ranges and
+    stated accuracy; () when the bench config the record names cannot be read): for re-judging offline."""
+    records = {name: columns for name, _, columns in instrument_records(run_dir, record)}
+    instruments: tuple = ()
+    path = (record.get("bench") or {}).get("path")
+    if records and path:
+        try:
+            from bench.inputs.benchconfig import load_bench_config
+            instruments = load_bench_config(path).instruments
+        except Exception:
+            instruments = ()
+    return records, instruments
+
+
 def append_instrument_groups(mdf: Any, run_dir: Path, record: dict) -> list[str]:
     """Append a channel group per instrument record to `mdf` (asammdf.MDF); the header lines describing them."""
     from asammdf import Signal

@@ -11,6 +11,16 @@ import pyarrow.parquet as pq
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
+CAPTURE_RISE = """
+[[criteria]]
+name = "rise time on the capture"
+kind = "rise_time"
+signal = "scope:speed_scope_mech_rad_s"
+window_s = [0.3, 0.49]
+target = 20.0
+from_value = 0.0
+limit = 0.042
+"""
 
 
 def test_captures_and_analyser_readings_are_channel_groups_on_the_drive_clock(tmp_path):
@@ -18,9 +28,10 @@ def test_captures_and_analyser_readings_are_channel_groups_on_the_drive_clock(tm
     from bench.outputs.export import export_run
     from bench.run.orchestrator import run_scenario
 
-    result = run_scenario(REPO / "scenarios/rig/accept-speed-step.toml",
-                          REPO / "config/benches/sim-pmsm-instruments.toml", out_root=tmp_path, rerun_mode="off",
-                          seed=1)
+    scenario = tmp_path / "step.toml"
+    scenario.write_text((REPO / "scenarios/rig/accept-speed-step.toml").read_text() + CAPTURE_RISE)
+    result = run_scenario(scenario, REPO / "config/benches/sim-pmsm-instruments.toml", out_root=tmp_path / "r",
+                          rerun_mode="off", seed=1)
     lab = json.loads((result.run_dir / "record.json").read_text())["lab_instruments"]
     path = export_run(result.run_dir, "mf4")
     mdf = asammdf.MDF(path)
@@ -45,3 +56,13 @@ def test_captures_and_analyser_readings_are_channel_groups_on_the_drive_clock(tm
         assert telemetry.timestamps[0] <= speed.timestamps[0]
     finally:
         mdf.close()
+
+
+    # re-judged offline (drivebench evaluate): the criterion on the capture reads the stored record, same value
+    from click.testing import CliRunner
+
+    from bench.faces.cli import cli
+    judged = next(c for c in result.record["criteria"] if c["signal"].startswith("scope:"))
+    out = CliRunner().invoke(cli, ["evaluate", str(result.run_dir), "--scenario", str(scenario), "--json"])
+    again = next(c for c in json.loads(out.output)["criteria"] if c["signal"].startswith("scope:"))
+    assert judged["status"] == again["status"] == "pass" and again["value"] == judged["value"]
