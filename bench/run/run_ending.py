@@ -64,6 +64,10 @@ class RunEnding:
                 self.recorder.note("lab_instruments", self.lab.finish())
             except Exception as exc:         # the instruments never cost the record
                 self.recorder.note("lab_instruments", {"errors": [f"{type(exc).__name__}: {exc}"]})
+            for name, record in self.lab.records().items():     # to Rerun, each on the drive clock's timeline
+                self.rerun.log_columns(record["t_s"], {f"instruments/{name}/{k}": v for k, v in record.items()
+                                                       if k != "t_s"})
+                self.rerun.flush()
         trip = self.supervisor.trip
         if trip is not None:
             self.recorder.note("supervisor_trip", trip.as_dict())

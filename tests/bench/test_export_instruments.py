@@ -1,4 +1,4 @@
-"""The MDF4 export carries the lab instruments' records: a channel group per capture and per analyser, each with its
+"""The MDF4 export and the Rerun recording carry the lab instruments' records: a channel group per capture and per analyser, each with its
 own master channel on the drive clock, read back with asammdf."""
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ def test_captures_and_analyser_readings_are_channel_groups_on_the_drive_clock(tm
     scenario = tmp_path / "step.toml"
     scenario.write_text((REPO / "scenarios/rig/accept-speed-step.toml").read_text() + CAPTURE_RISE)
     result = run_scenario(scenario, REPO / "config/benches/sim-pmsm-instruments.toml", out_root=tmp_path / "r",
-                          rerun_mode="off", seed=1)
+                          rerun_mode="save", seed=1)
     lab = json.loads((result.run_dir / "record.json").read_text())["lab_instruments"]
     path = export_run(result.run_dir, "mf4")
     mdf = asammdf.MDF(path)
@@ -66,3 +66,10 @@ def test_captures_and_analyser_readings_are_channel_groups_on_the_drive_clock(tm
     out = CliRunner().invoke(cli, ["evaluate", str(result.run_dir), "--scenario", str(scenario), "--json"])
     again = next(c for c in json.loads(out.output)["criteria"] if c["signal"].startswith("scope:"))
     assert judged["status"] == again["status"] == "pass" and again["value"] == judged["value"]
+
+
+    # and in the run's Rerun recording, each instrument's record under instruments/<name>/
+    from bench.outputs.rerun_view import rrd_entity_paths
+    paths = rrd_entity_paths(result.run_dir / "run.rrd")
+    assert {"/instruments/scope/speed_scope_mech_rad_s", "/instruments/analyser/p_dc_w",
+            "/instruments/daq/encoder_angle_mech_rad"} <= paths, sorted(p for p in paths if "instr" in p)
