@@ -58,6 +58,17 @@ class RunEnding:
         columns.update(rows)
         return measured if measured is None else measured | frozenset(rows)
 
+    def _plot_captures(self, criteria: list) -> None:
+        """instruments/<name>.png of each capture, with the windows of the criteria judged on it."""
+        from bench.outputs.capture_plot import write_capture_png
+        summaries = (self.recorder.record.get("lab_instruments") or {}).get("captures") or {}
+        for name, record in self.lab.captures.items():
+            try:
+                write_capture_png(self.recorder.run_dir / "instruments" / f"{name}.png", name, record,
+                                  summaries.get(name) or {}, criteria)
+            except Exception as exc:
+                self.recorder.note("capture_plot_error", f"{name}: {type(exc).__name__}: {exc}")
+
     def _finish(self, abort_reason, error, interrupted, stop_errors) -> RunResult:
         if self.lab is not None:             # after the safe stop: pull the captures, write instruments/
             try:
@@ -124,6 +135,8 @@ class RunEnding:
         self.recorder.note("time_axis", judged.time_axis)
         verdict, reason, results, error = judged.verdict, judged.reason, judged.results, judged.error
         self.rerun.log_judgement([r.to_dict() for r in results], {c.name: c.params for c in specs})
+        if self.lab is not None:
+            self._plot_captures([r.to_dict() for r in results])
         try:
             t_env, envelope = self.recorder.read_back_envelope(PLOT_SIGNALS, PLOT_BUCKETS)
             if len(t_env):

@@ -73,3 +73,7 @@ def test_captures_and_analyser_readings_are_channel_groups_on_the_drive_clock(tm
     paths = rrd_entity_paths(result.run_dir / "run.rrd")
     assert {"/instruments/scope/speed_scope_mech_rad_s", "/instruments/analyser/p_dc_w",
             "/instruments/daq/encoder_angle_mech_rad"} <= paths, sorted(p for p in paths if "instr" in p)
+
+    # and plotted: instruments/<name>.png per capture
+    assert (result.run_dir / "instruments/scope.png").stat().st_size > 10_000
+    assert (result.run_dir / "instruments/daq.png").is_file()
