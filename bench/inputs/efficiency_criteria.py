@@ -2,7 +2,8 @@
 (IEC 61800-9-2 operating points, docs/instruments.md and docs/acceptance.md).
 
 A criterion's signal is the input power (`analyser:p_dc_w`: the drive's; or a motor-terminal element), `output` the
-output power (`analyser:p_shaft_w`), both readings of an analyser whose [[instruments]] entry states its accuracy
+output power (`analyser:p_shaft_w`; with `output_2`, `output_3` the sum of up to three elements: a CDM's losses
+are P_dc - (P_a + P_b + P_c)), all readings of an analyser whose [[instruments]] entry states its accuracy
 (`accuracy_reading_pct`, `accuracy_range_pct`). Over the window, with P the mean of the readings:
 
     U(P)      = reading_pct/100 * |P| + range_pct/100 * range          (the data sheet's limit, per element)
@@ -34,16 +35,19 @@ ACCURACY = "_accuracy"       # injected by capture_criteria: signal -> (reading_
 
 def _budget(w: _Window, spec: CriterionSpec) -> tuple[float, float, float, float, str]:
     accuracy = spec.params.get(ACCURACY) or {}
-    names = (spec.signal, spec.params["output"])
+    outputs = [spec.params["output"]] + [spec.params[k] for k in ("output_2", "output_3") if spec.params.get(k)]
+    names = [spec.signal, *outputs]
     missing = [n for n in names if n not in accuracy]
     if missing:
         raise _NotJudged(f"no stated accuracy for {', '.join(missing)}: give the analyser's accuracy_reading_pct "
                          "and accuracy_range_pct in its [[instruments]] entry")
-    p_in, p_out = (float(np.mean(w.signal(n))) for n in names)
-    u_in, u_out = (accuracy[n][0] / 100 * abs(p) + accuracy[n][1] / 100 * accuracy[n][2]
-                   for n, p in zip(names, (p_in, p_out)))
+    means = {n: float(np.mean(w.signal(n))) for n in names}
+    limits = {n: accuracy[n][0] / 100 * abs(means[n]) + accuracy[n][1] / 100 * accuracy[n][2] for n in names}
+    p_in, u_in = means[spec.signal], limits[spec.signal]
+    p_out, u_out = sum(means[n] for n in outputs), sum(limits[n] for n in outputs)
     r, g, _ = accuracy[spec.signal]
-    return p_in, p_out, u_in, u_out, (f"P_in {p_in:.5g} W ±{u_in:.3g}, P_out {p_out:.5g} W ±{u_out:.3g} over "
+    parts = f" ({len(outputs)} elements)" if len(outputs) > 1 else ""
+    return p_in, p_out, u_in, u_out, (f"P_in {p_in:.5g} W ±{u_in:.3g}, P_out{parts} {p_out:.5g} W ±{u_out:.3g} over "
                                       f"{w.t.size} readings (±({r:g} % of reading + {g:g} % of range))")
 
 
@@ -80,7 +84,9 @@ def loss_pct(w: _Window, spec: CriterionSpec) -> tuple[float, str]:
                       f"judged); {how}")
 
 
-_POWER = {"output": Param("signal", required=True, help="output power (the criterion's signal is the input)")}
+_POWER = {"output": Param("signal", required=True, help="output power (the criterion's signal is the input)"),
+          "output_2": Param("signal", help="a second output element, added (a CDM's motor phases)"),
+          "output_3": Param("signal", help="a third output element, added")}
 NEW_KINDS: dict[str, Kind] = {
     "loss_w": Kind(loss_w, "W", {**_POWER, "reference_loss_w": Param(
         "number", help="the standard's reference losses: adds an indicative IES/IE class")},

@@ -125,3 +125,15 @@ def test_losses_and_efficiency_with_the_analysers_uncertainty_budget_and_an_indi
 def test_thd_measures_its_fundamental_when_none_is_given():
     [r] = evaluate_on_records([_spec("thd_pct", "scope:i_a_a", limit=10.0)], {"scope": _record()})
     assert r.value == pytest.approx(100 * math.hypot(0.25, 0.15) / 5.0, rel=2e-3) and "of 50 Hz" in r.detail
+
+
+def test_a_cdms_losses_sum_the_output_elements_and_their_uncertainty():
+    rec = _analyser()
+    rec["p_a_w"], rec["p_b_w"] = rec["p_shaft_w"] / 2, rec["p_shaft_w"] / 2
+    chans = (_Ch("p_dc_w", 3000.0), _Ch("p_a_w", 750.0), _Ch("p_b_w", 750.0))
+    inst = type("A", (), {"name": "analyser", "kind": "power_analyser", "accuracy_reading_pct": 0.1,
+                          "accuracy_range_pct": 0.1, "channels": chans})()
+    [r] = evaluate_on_records([_spec("loss_w", "analyser:p_dc_w", (2.0, 2.5), 200.0, output="analyser:p_a_w",
+                                     output_2="analyser:p_b_w")], {"analyser": rec}, [inst])
+    u = (0.001 * 1000 + 3.0) + 2 * (0.001 * 450 + 0.75)
+    assert r.value == pytest.approx(100 + u) and "(2 elements)" in r.detail
