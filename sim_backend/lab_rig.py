@@ -70,7 +70,8 @@ def start_lab(stack, model: Any, spec: LabSpec, seed: int, names: dict[str, list
         servers[-1].quirks.drop_after = spec.drop_after or None
     encoder = getattr(model, "instruments", None)
     common = dict(encoder_offset_rad=float(getattr(model, "offset_rad", 0.0)), clock_offset_s=spec.scope_clock_offset_s,
-                  counts_per_rev=int(encoder.encoder_counts_per_rev) if encoder is not None else 4096)
+                  counts_per_rev=int(encoder.encoder_counts_per_rev) if encoder is not None else 4096,
+                  dyno_inertia_kgm2=float(getattr(encoder, "dyno_inertia_kgm2", 0.0)) if encoder is not None else 0.0)
     for kind, wanted, memory_s in (("scope", spec.scope, 4.0), ("daq", spec.daq, 30.0)):
         if wanted:
             scope = SimScope(history_s=memory_s, **common)

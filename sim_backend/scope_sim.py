@@ -4,7 +4,8 @@ Inputs (fixed wiring of the simulated rig, docs/instruments.md):
     CHAN1, CHAN2  winding voltages (PMSM u_a, u_b line-to-neutral; SPIM main, auxiliary), V
     CHAN3, CHAN4  winding currents (PMSM i_a, i_b; SPIM main, auxiliary), A
     CHAN5         the dynamometer encoder's index output (5 V for 20 us once a revolution), V
-    CHAN6         the torque transducer's shaft torque, N*m
+    CHAN6         the torque transducer's shaft torque, N*m: the dynamometer's torque plus what accelerates its rotor,
+                  T_L + J_dyno dw/dt (as sim_backend/instruments.py; its fast analog output, no 100 Hz filter)
     CHAN7         DC-link voltage, V
     CHAN8         the dynamometer drive's analog speed monitor (from its own high-resolution encoder, no gate), rad/s
     CHAN9         a counter input on the dynamometer encoder (A, B, Z): the shaft angle since the last index, rad
@@ -34,12 +35,14 @@ _NUM = r"([0-9.eE+-]+)"
 
 class SimScope:
     def __init__(self, encoder_offset_rad: float = 0.0, max_rate_hz: float = 1e6, history_s: float = 4.0,
-                 counts_per_rev: int = 4096,
+                 counts_per_rev: int = 4096, dyno_inertia_kgm2: float = 0.0,
                  clock_offset_s: float = 0.0, identity: str = "KEYSIGHT TECHNOLOGIES,DSOX4034A,SIM0002,07.50"):
         self.identity = identity
         self.clock_offset_s = clock_offset_s
         self.encoder_offset_rad = encoder_offset_rad
         self.counts_per_rev = counts_per_rev
+        self.dyno_inertia_kgm2 = dyno_inertia_kgm2
+        self._last_speed = 0.0
         self.max_rate_hz = max_rate_hz
         self.history_s = history_s
         self.rate_hz = 50_000.0
@@ -79,7 +82,9 @@ class SimScope:
         index = np.zeros(n)
         step = 2 * math.pi / self.counts_per_rev          # the counter at each period's end, since the index
         counter = np.floor(np.mod(angles[1:], 2 * math.pi) / step) * step
-        x = np.column_stack((b.u_v[:, 0], b.u_v[:, 1], b.i_a[:, 0], b.i_a[:, 1], index, b.torque_shaft_nm,
+        shaft = b.torque_shaft_nm + self.dyno_inertia_kgm2 * np.diff(b.speed_mech_rad_s, prepend=self._last_speed) / dt
+        self._last_speed = float(b.speed_mech_rad_s[-1])
+        x = np.column_stack((b.u_v[:, 0], b.u_v[:, 1], b.i_a[:, 0], b.i_a[:, 1], index, shaft,
                              b.vdc_v, b.speed_mech_rad_s, counter))
         with self._lock:                 # memory as blocks: a DAQ's 30 s must not be copied every SYNC
             previous = self._chunks[-1] if self._chunks else None

@@ -518,11 +518,13 @@ def evaluate_cmd(run_dir, scenario_path, as_json) -> None:
         t = np.asarray(columns.get("t_s", np.zeros(0)))
         in_test = t <= scenario.duration_s + 1e-9
         measured = record.get("measured_signals")
-        results = evaluate(scenario.criteria, t[in_test], {k: np.asarray(v)[in_test] for k, v in columns.items()
-                                                           if k != "t_s"},
-                           measured=frozenset(measured) if isinstance(measured, list) else None,
-                           row_period_s=(record.get("time_axis") or {}).get("row_period_s"),
-                           tolerance=(record.get("time_axis") or {}).get("tolerance", 1.5))
+        from bench.inputs.capture_criteria import judge_with_records
+        from bench.outputs.export_instruments import run_records
+        results = judge_with_records(scenario.criteria, lambda specs: evaluate(
+            specs, t[in_test], {k: np.asarray(v)[in_test] for k, v in columns.items() if k != "t_s"},
+            measured=frozenset(measured) if isinstance(measured, list) else None,
+            row_period_s=(record.get("time_axis") or {}).get("row_period_s"),
+            tolerance=(record.get("time_axis") or {}).get("tolerance", 1.5)), *run_records(Path(run_dir), record))
         aborted = (not complete) or record.get("verdict") in ("aborted", "error")
         holes = time_axis(t[in_test], (record.get("time_axis") or {}).get("row_period_s"),
                           (record.get("time_axis") or {}).get("tolerance", 1.5))

@@ -183,7 +183,8 @@ def drive_description(cfg: BenchConfig) -> DeviceDescription | None:
 
 def measurable_signals(cfg: BenchConfig) -> frozenset[str]:
     """The signals this bench can measure, judged from its files alone (the run records what it really measured):
-    the drive's (from its EDS, profile and [drive] signals) and the reference sensor's."""
+    the drive's (from its EDS, profile and [drive] signals), the reference sensor's, and its instruments' records
+    (`<instrument>:<signal>`)."""
     from drivers.canopen.profile import static_measurable
     from drivers.reference import ReferenceConfig
     from drivers.contract.signals import SIGNAL_NAMES
@@ -198,7 +199,9 @@ def measurable_signals(cfg: BenchConfig) -> frozenset[str]:
                                 description.drivebench_kind is not None)
     reference = ReferenceConfig(cfg.reference_source)
     truths = frozenset(cfg.rig_truths.signals()) if cfg.rig_truths is not None else frozenset()
-    return (own - reference.not_from_drive()) | frozenset(reference.signals(bool(cfg.load))) | truths
+    from bench.inputs.capture_criteria import capture_signals_of
+    return ((own - reference.not_from_drive()) | frozenset(reference.signals(bool(cfg.load))) | truths
+            | capture_signals_of(cfg.instruments))
 
 
 def _stamp(path: str) -> tuple[int, int]:

@@ -633,8 +633,9 @@ def parse_criteria(p: Problems, items: list[tuple[str, dict]], duration: float) 
             names.add(name)
         kind_name = p.string(item, "kind", where, choices=tuple(KINDS))
         signal = p.string(item, "signal", where)
-        if signal is not None and signal not in SIGNAL_NAMES:
-            p.add(f"{where}.signal", f"unknown signal {signal!r} (signals: {', '.join(SIGNAL_NAMES)})")
+        if signal is not None and not known_signal(signal):
+            p.add(f"{where}.signal", f"unknown signal {signal!r} (signals: {', '.join(SIGNAL_NAMES)}; or an "
+                                        f"instrument's <instrument>:<signal>)")
             signal = None
         window = _window(p, item, where, duration)
         limit = p.number(item, "limit", where, min_value=0.0)
@@ -648,6 +649,12 @@ def parse_criteria(p: Problems, items: list[tuple[str, dict]], duration: float) 
             continue
         out.append(CriterionSpec(name, kind_name, signal, window, limit, params, known_gap))
     return tuple(out)
+
+
+def known_signal(name: str) -> bool:
+    """A telemetry signal, or an instrument's `<instrument>:<signal>` (bench.inputs.capture_criteria)."""
+    from bench.inputs.capture_criteria import is_capture_signal
+    return name in SIGNAL_NAMES or is_capture_signal(name)
 
 
 def _window(p: Problems, item: dict, where: str, duration: float) -> tuple[float, float] | None:
@@ -693,7 +700,7 @@ def _criterion_params(p: Problems, item: dict, where: str, kind_name: str,
             continue
         if spec.type == "signal":
             v = p.string(given, key, where)
-            if v is not None and v not in SIGNAL_NAMES:
+            if v is not None and not known_signal(v):
                 p.add(f"{where}.{key}", f"unknown signal {v!r}")
                 v = None
         elif spec.type == "bool":
@@ -724,3 +731,6 @@ def _criterion_params(p: Problems, item: dict, where: str, kind_name: str,
         p.add(f"{where}.after_s", f"{after:g} s is outside the window [{window[0]:g}, {window[1]:g}] s")
         ok = False
     return params if ok else None
+
+
+import bench.inputs.capture_criteria  # noqa: E402,F401  (registers its kinds; criteria on instruments' records)

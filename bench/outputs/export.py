@@ -4,7 +4,8 @@
   clock `t_s` as the master channel, one channel per signal the run measured (a signal that is NaN throughout, not
   measured on that bench, is left out and named in the file comment), units and descriptions from
   drivers/contract/signals.py, the run's identity in the header comment and record.json attached (embedded), so the file
-  carries its verdict.
+  carries its verdict. The lab instruments' records (captures, analyser readings) follow, a channel group each with
+  its own master on the drive clock (bench.outputs.export_instruments).
 - csv: `t_s` and one column per measured signal (names carry their units), through pyarrow's CSV writer; empty
   cells where a sample is missing.
 """
@@ -47,14 +48,14 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None) -> 
     t = np.asarray(columns.get("t_s", np.zeros(0)), dtype=np.float64)
     kept, dropped = _measured(columns)
     if fmt == "mf4":
-        _write_mf4(target, record, t, columns, kept, dropped)
+        _write_mf4(target, record, t, columns, kept, dropped, run_dir)
     else:
         _write_csv(target, t, columns, kept)
     return target
 
 
 def _write_mf4(path: Path, record: dict, t: np.ndarray, columns: dict[str, np.ndarray], kept: list[str],
-               dropped: list[str]) -> None:
+               dropped: list[str], run_dir: Path) -> None:
     try:
         from asammdf import MDF, Signal
     except ImportError:
@@ -73,7 +74,6 @@ def _write_mf4(path: Path, record: dict, t: np.ndarray, columns: dict[str, np.nd
              "master channel t_s: the drive clock (s)"]
     if dropped:
         lines.append("not measured on this bench (NaN throughout, left out): " + ", ".join(dropped))
-    mdf.header.comment = f"<HDcomment><TX>{escape(chr(10).join(lines))}</TX></HDcomment>"
     started = _utc(record.get("started_utc"))
     if started is not None:       # the measurement's start is the run's, not the export's
         mdf.header.start_time = started
@@ -81,6 +81,9 @@ def _write_mf4(path: Path, record: dict, t: np.ndarray, columns: dict[str, np.nd
                       comment=units[name][1], master_metadata=("t_s", 1)) for name in kept]
     if signals:
         mdf.append(signals, comment=f"drivebench {scenario.get('name')}", common_timebase=True)
+    from bench.outputs.export_instruments import append_instrument_groups
+    lines += append_instrument_groups(mdf, run_dir, record)     # the lab instruments' records, a group each
+    mdf.header.comment = f"<HDcomment><TX>{escape(chr(10).join(lines))}</TX></HDcomment>"
     mdf.attach(json.dumps(record, indent=1, default=str).encode(), "record.json", comment="the run's record.json",
                embedded=True, mime="application/json")
     written = Path(mdf.save(path.with_name(path.stem + ".partial.mf4"), overwrite=True))  # asammdf keeps .mf4

@@ -211,6 +211,17 @@ class InstrumentSession:
                 "units": {c.signal: c.unit for c in cfg.channels}}
 
 
+    def records(self) -> dict[str, dict[str, np.ndarray]]:
+        """Each instrument's record on the drive clock (captures as pulled, the analysers' readings), for criteria
+        naming `<instrument>:<signal>`; an instrument that gave nothing is absent (its criteria: not judged)."""
+        out: dict[str, dict[str, np.ndarray]] = dict(self.captures)
+        for a in self.analysers:
+            if a.readings:
+                out[a.cfg.name] = {"t_s": np.array([r[0] for r in a.readings], dtype=np.float64),
+                                   **{c.signal: np.array([r[1].get(c.signal, math.nan) for r in a.readings])
+                                      for c in a.cfg.channels}}
+        return out
+
     def truth_rows(self, t_rows: np.ndarray, pos_est: np.ndarray | None) -> dict[str, np.ndarray]:
         """The measured pos_err_elec_rad (and SPIM flux_true_wb) on the telemetry's rows, from the DAQ's record;
         {} when the rig has no [rig_truths] or its DAQ gave no record (then those criteria stay not judged)."""

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from bench.inputs.capture_criteria import is_capture_signal
 from bench.inputs.criteria import TimeAxis, signals_of, time_axis
 from bench.outputs.memory import release_freed_memory
 from bench.outputs.record_schema import RunRecord
@@ -57,12 +58,27 @@ class RunEnding:
         columns.update(rows)
         return measured if measured is None else measured | frozenset(rows)
 
+    def _plot_captures(self, criteria: list) -> None:
+        """instruments/<name>.png of each capture, with the windows of the criteria judged on it."""
+        from bench.outputs.capture_plot import write_capture_png
+        summaries = (self.recorder.record.get("lab_instruments") or {}).get("captures") or {}
+        for name, record in self.lab.captures.items():
+            try:
+                write_capture_png(self.recorder.run_dir / "instruments" / f"{name}.png", name, record,
+                                  summaries.get(name) or {}, criteria)
+            except Exception as exc:
+                self.recorder.note("capture_plot_error", f"{name}: {type(exc).__name__}: {exc}")
+
     def _finish(self, abort_reason, error, interrupted, stop_errors) -> RunResult:
         if self.lab is not None:             # after the safe stop: pull the captures, write instruments/
             try:
                 self.recorder.note("lab_instruments", self.lab.finish())
             except Exception as exc:         # the instruments never cost the record
                 self.recorder.note("lab_instruments", {"errors": [f"{type(exc).__name__}: {exc}"]})
+            for name, record in self.lab.records().items():     # to Rerun, each on the drive clock's timeline
+                self.rerun.log_columns(record["t_s"], {f"instruments/{name}/{k}": v for k, v in record.items()
+                                                       if k != "t_s"})
+                self.rerun.flush()
         trip = self.supervisor.trip
         if trip is not None:
             self.recorder.note("supervisor_trip", trip.as_dict())
@@ -103,7 +119,7 @@ class RunEnding:
             holes = time_axis(self.recorder.read_back([], t_max=duration + 1e-9)[TIME_COLUMN], None, tolerance)
         specs = self.scenario.criteria
         first = min((s.window_s[0] - float(s.params.get("smooth_s") or 0.0) for s in specs), default=0.0) - 1.0
-        needed = {name for spec in specs for name in signals_of(spec)}
+        needed = {name for spec in specs for name in signals_of(spec) if not is_capture_signal(name)}
         measured = self.measured
         if self.lab is not None and self.lab.truths is not None:
             needed.add("pos_est_elec_rad")
@@ -113,11 +129,14 @@ class RunEnding:
             measured = self._lab_truths(t, columns, measured)
         judged = judge_run(self.scenario, t, columns, measured=measured, row_period_s=row_period,
                            tolerance=tolerance, abort_reason=abort_reason, error=error, stop_errors=stop_errors,
-                           holes=holes)
+                           holes=holes, records=self.lab.records() if self.lab is not None else None,
+                           instruments=self.cfg.instruments)
         del columns, t
         self.recorder.note("time_axis", judged.time_axis)
         verdict, reason, results, error = judged.verdict, judged.reason, judged.results, judged.error
         self.rerun.log_judgement([r.to_dict() for r in results], {c.name: c.params for c in specs})
+        if self.lab is not None:
+            self._plot_captures([r.to_dict() for r in results])
         try:
             t_env, envelope = self.recorder.read_back_envelope(PLOT_SIGNALS, PLOT_BUCKETS)
             if len(t_env):

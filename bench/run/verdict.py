@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from bench.inputs.capture_criteria import judge_with_records
 from bench.inputs.criteria import CriterionResult, evaluate, incomplete_reason, time_axis, verdict as decide
 
 
@@ -22,15 +23,20 @@ class Judged:
 
 def judge_run(scenario, t: np.ndarray, columns: dict[str, np.ndarray], *, measured: frozenset[str] | None,
               row_period_s: float | None, tolerance: float, abort_reason: str | None, error: str | None,
-              stop_errors: list[str], holes: dict | None = None) -> Judged:
+              stop_errors: list[str], holes: dict | None = None, records: dict | None = None,
+              instruments: tuple = ()) -> Judged:
     """`t` and `columns`: the recorded rows the criteria need (rows after duration_s, the stop, are not judged);
-    `holes`: time_axis() of every in-test row (default: of `t`)."""
+    `holes`: time_axis() of every in-test row (default: of `t`); `records`: the instruments' records on the drive
+    clock, for criteria naming `<instrument>:<signal>` (bench.inputs.capture_criteria)."""
     in_test = t <= float(scenario.duration_s) + 1e-9
     if holes is None:
         holes = time_axis(t[in_test], row_period_s, tolerance)
     try:
-        results = evaluate(scenario.criteria, t[in_test], {k: v[in_test] for k, v in columns.items()},
-                           measured=measured, row_period_s=row_period_s, tolerance=tolerance)
+        results = judge_with_records(
+            scenario.criteria, lambda specs: evaluate(specs, t[in_test], {k: v[in_test] for k, v in columns.items()},
+                                                      measured=measured, row_period_s=row_period_s,
+                                                      tolerance=tolerance),
+            records or {}, instruments)
     except Exception as exc:
         results = []
         if error is None:

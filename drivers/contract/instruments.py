@@ -33,7 +33,8 @@ UNITS = ("V", "A", "W", "VA", "var", "Hz", "N*m", "rad/s", "rad", "1", "%")
 _RESOURCE = re.compile(r"^(TCPIP\d*::[^:]+::(\d+::SOCKET|[^:]+::INSTR|INSTR)|USB\d*::.+::INSTR|ASRL[^:]+::INSTR|GPIB\d*::\d+::INSTR)$",
                        re.IGNORECASE)
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
-_KEYS = ("name", "kind", "resource", "driver", "timeout_s", "poll_hz", "sample_rate_hz", "channels")
+_KEYS = ("name", "kind", "resource", "driver", "timeout_s", "poll_hz", "sample_rate_hz", "channels",
+         "accuracy_reading_pct", "accuracy_range_pct")
 _CHANNEL_KEYS = ("signal", "unit", "range", "scale")
 
 
@@ -56,6 +57,8 @@ class InstrumentConfig:
     timeout_s: float = 2.0
     poll_hz: float = 10.0
     sample_rate_hz: float = 50_000.0
+    accuracy_reading_pct: float | None = None   # the instrument's stated accuracy: +/-(% of reading + % of range)
+    accuracy_range_pct: float | None = None     # (its data sheet, for the readings' uncertainty budget)
 
     def channel(self, signal: str) -> Channel | None:
         return next((c for c in self.channels if c.signal == signal), None)
@@ -63,6 +66,7 @@ class InstrumentConfig:
     def as_dict(self) -> dict[str, Any]:
         return {"name": self.name, "kind": self.kind, "resource": self.resource, "driver": self.driver,
                 "timeout_s": self.timeout_s, "poll_hz": self.poll_hz, "sample_rate_hz": self.sample_rate_hz,
+                "accuracy_reading_pct": self.accuracy_reading_pct, "accuracy_range_pct": self.accuracy_range_pct,
                 "channels": {c.channel: {"signal": c.signal, "unit": c.unit, "range": c.range, "scale": c.scale}
                              for c in self.channels}}
 
@@ -97,10 +101,15 @@ def read_instruments(value: Any, problems: Problems) -> tuple[InstrumentConfig, 
         poll = problems.number(table, "poll_hz", where, required=False, default=10.0, positive=True)
         rate = problems.number(table, "sample_rate_hz", where, required=False, default=50_000.0, positive=True)
         channels = _channels(problems, table.get("channels"), f"{where}.channels")
+        accuracy = [problems.number(table, key, where, required=False, min_value=0.0)
+                    for key in ("accuracy_reading_pct", "accuracy_range_pct")]
+        if (accuracy[0] is None) != (accuracy[1] is None):
+            problems.add(where, "give both accuracy_reading_pct and accuracy_range_pct, or neither")
         if len(problems.lines) > before:
             continue
         names.add(name)
-        out.append(InstrumentConfig(name, kind, resource, driver, channels, float(timeout), float(poll), float(rate)))
+        out.append(InstrumentConfig(name, kind, resource, driver, channels, float(timeout), float(poll), float(rate),
+                                    *accuracy))
     return tuple(out)
 
 

@@ -17,6 +17,16 @@ pytestmark = pytest.mark.slow
 
 REPO = Path(__file__).resolve().parents[2]
 STEP = REPO / "scenarios/rig/accept-speed-step.toml"
+CAPTURE_RISE = """
+[[criteria]]
+name = "rise time 10-90 % of the step, judged on the scope's capture"
+kind = "rise_time"
+signal = "scope:speed_scope_mech_rad_s"
+window_s = [0.3, 0.49]
+target = 20.0
+from_value = 0.0
+limit = 0.042
+"""
 
 
 def _rise_time(t, x, t0, target, lo=0.1, hi=0.9):
@@ -29,9 +39,12 @@ def _rise_time(t, x, t0, target, lo=0.1, hi=0.9):
 
 @pytest.mark.parametrize("rig", ["pmsm", pytest.param("spim", marks=pytest.mark.slow)])
 def test_a_run_records_the_analyser_and_a_capture_on_the_drive_clock(tmp_path, rig):
-    result = run_scenario(STEP, REPO / f"config/benches/sim-{rig}-instruments.toml", out_root=tmp_path / "i",
+    scenario = tmp_path / "step.toml"
+    scenario.write_text(STEP.read_text() + CAPTURE_RISE)
+    result = run_scenario(scenario, REPO / f"config/benches/sim-{rig}-instruments.toml", out_root=tmp_path / "i",
                           rerun_mode="off", seed=1)
-    lab = json.loads((result.run_dir / "record.json").read_text())["lab_instruments"]
+    record = json.loads((result.run_dir / "record.json").read_text())
+    lab = record["lab_instruments"]
     assert lab["errors"] == [] and set(lab["identities"]) == {"analyser", "scope", "daq"}
     a = lab["analysers"]["analyser"]
     assert a["rate_hz_drive_clock"] >= 9.9 and not a["not_judged"]
@@ -50,8 +63,13 @@ def test_a_run_records_the_analyser_and_a_capture_on_the_drive_clock(tmp_path, r
     rise_truth = _rise_time(np.array(tel["t_s"]), np.array(tel["speed_true_mech_rad_s"]), 0.3, 20.0)
     rise_capture = _rise_time(t, np.array(cap["speed_scope_mech_rad_s"]), 0.3, 20.0)
     assert abs(rise_capture - rise_truth) < 1e-3, (rise_capture, rise_truth)
-    print(f"RESULT {rig}_rise_time_capture_s={rise_capture:.5f} plain_s={rise_truth:.5f} "
-          f"analyser_rate_hz={a['rate_hz_drive_clock']}")
+    # the same rise time judged by the bench's criterion on the capture, at its 50 kS/s
+    judged = next(c for c in record["criteria"] if c["signal"] == "scope:speed_scope_mech_rad_s")
+    assert judged["status"] == "pass" and judged["unit"] == "s" and "50000 S/s" in judged["detail"], judged
+    assert judged["value"] == pytest.approx(rise_capture, abs=2.1e-5)
+    assert abs(judged["value"] - rise_truth) < 1e-3, (judged["value"], rise_truth)
+    print(f"RESULT {rig}_rise_time_capture_criterion_s={judged['value']:.5f} test_s={rise_capture:.5f} "
+          f"plain_s={rise_truth:.5f} analyser_rate_hz={a['rate_hz_drive_clock']}")
 
 
 @pytest.mark.slow
