@@ -11,6 +11,7 @@ import math
 import queue
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import Callable, Iterable, Protocol
@@ -122,7 +123,10 @@ class UnitCheck:
     constant) reports the shaft's speed lag_s late, so the angles differ by up to lag_s x |speed| and the speeds by
     lag_s x |acceleration| — both allowed for, and the travel judged grows so that a 1.1 factor still shows. A sample
     whose reference reading is stale (`reference_age_s` more than `stale_s`: the bench stalled and read the dynamometer
-    once for several SYNCs) is not judged at all: its interval is left out of both angles."""
+    once for several SYNCs) is not judged at all: its interval is left out of both angles. A reading younger than that
+    still shows the shaft up to `skew_s` + its age before the sample's time; at first motion the drive's speed leads it
+    by that much (e35 under load: 2.09 rad/s reported, 0.002 rad/s read 20-30 ms earlier), so the gross test compares
+    the reading with the drive's speeds over that span (the nearest of them), and the angle test allows the age too."""
 
     moving_mech_rad_s: float = 0.5
     window_s: float = 1.0
@@ -149,7 +153,9 @@ class UnitCheck:
     missing: int = 0                     # of which a value was missing
     worst_excess: float = 0.0            # max of the angle test's |A_est - A_true| / allowance: > 1 disagrees
     max_speed: float = 0.0               # the fastest |true| judged
+    max_age: float = 0.0                 # the oldest reference reading judged (its age is allowed for, as lag is)
     done: bool = False
+    _recent: deque = field(default_factory=lambda: deque(maxlen=64))   # (t_s, drive speed): the lead span's samples
 
     def settings(self) -> dict[str, float]:
         return {"moving_mech_rad_s": self.moving_mech_rad_s, "window_s": self.window_s,
@@ -166,20 +172,23 @@ class UnitCheck:
                 "missing_samples": self.missing, "stale_reference_samples": self.skipped_stale,
                 "worst_angle_excess": round(self.worst_excess, 4),
                 "angle_est_rad": round(self._angle_est, 4), "angle_true_rad": round(self._angle_true, 4),
-                "max_speed_true_mech_rad_s": round(self.max_speed, 4)}
+                "max_speed_true_mech_rad_s": round(self.max_speed, 4),
+                "max_reference_age_s": round(self.max_age, 4)}
 
     def check(self, t_s: float, values: dict[str, float]) -> Trip | None:
         if self.done:
             return None
         est, true = values.get("speed_est_mech_rad_s"), values.get("speed_true_mech_rad_s")
         known = [abs(v) for v in (est, true) if v is not None and v == v]
+        if est is not None and est == est:
+            self._recent.append((t_s, est))
         if self._start is None:
             if not any(v >= self.moving_mech_rad_s for v in known):
                 self._last_t = t_s
                 return None
             self._start = t_s
         elapsed = t_s - self._start
-        travel = self.min_travel_rad + 2.0 * self.lag_s * self.max_speed / self.rel_tol
+        travel = self.min_travel_rad + 2.0 * (self.lag_s + self.max_age) * self.max_speed / self.rel_tol
         if elapsed > self.max_window_s or (elapsed > self.window_s and abs(self._angle_true) >= travel):
             self.done = True
             return None
@@ -207,14 +216,20 @@ class UnitCheck:
         self._last_true = true
         self._angle_est += est * dt
         self._angle_true += true * dt
+        age = max(0.0, values.get("reference_age_s", 0.0))
+        self.max_age = max(self.max_age, age)
         gap = abs(self._angle_est - self._angle_true)
         allowance = (self.rel_tol * max(abs(self._angle_est), abs(self._angle_true)) + self.angle_noise_rad
-                     + (self.skew_s + self.lag_s) * abs(true))
+                     + (self.skew_s + age + self.lag_s) * abs(true))
         excess = gap / allowance
         self.worst_excess = max(self.worst_excess, excess)
-        ratio = abs(est) / max(abs(true), 1e-3)
-        gross = (abs(est - true) > self.noise_mech_rad_s + self.lag_s * accel
-                 and (est * true < 0 or not 1.0 / self.gross_ratio <= ratio <= self.gross_ratio))
+        # the reading shows the shaft somewhere in the last skew_s + age: judge it against the drive's nearest speed
+        # of that span (lockstep, a fresh reading: this sample's alone)
+        since = t_s - self.skew_s - age - 1e-9
+        near = min((e for t_e, e in self._recent if t_e >= since), key=lambda e: abs(e - true), default=est)
+        ratio = abs(near) / max(abs(true), 1e-3)
+        gross = (abs(near - true) > self.noise_mech_rad_s + self.lag_s * accel
+                 and (near * true < 0 or not 1.0 / self.gross_ratio <= ratio <= self.gross_ratio))
         self._gross = self._gross + 1 if gross else 0
         self._bad = self._bad + 1 if excess > 1.0 else 0
         if self._bad < self.hold_samples and self._gross < self.gross_hold_samples:
@@ -224,8 +239,10 @@ class UnitCheck:
                 else f"angles since first motion {self._angle_est:.3f} rad (drive) and {self._angle_true:.3f} rad "
                      f"(reference), ratio {abs(self._angle_est) / max(abs(self._angle_true), 1e-6):.3g}, outside "
                      f"{self.rel_tol:.0%} + {self.angle_noise_rad:g} rad for {self._bad} SYNC periods")
+        what += f"; the reference reading {age * 1e3:.0f} ms old"
         return Trip("unit_mismatch", t_s, {"speed_est_mech_rad_s": est, "speed_true_mech_rad_s": true,
-                                           "angle_est_rad": self._angle_est, "angle_true_rad": self._angle_true},
+                                           "angle_est_rad": self._angle_est, "angle_true_rad": self._angle_true,
+                                           "reference_age_s": age},
                     f"unit mismatch at t={t_s:.4f} s: the drive reports {est:.3f} rad/s, the reference sensor "
                     f"{true:.3f} rad/s ({what}): check the drive's velocity unit, encoder resolution, gear ratio "
                     "and velocity_side in the record; or a lag: a drive filtering its velocity actual value (0x606C) "
