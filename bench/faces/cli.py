@@ -32,8 +32,9 @@ URL_RE = re.compile(r"^(rerun(\+https?)?|https?)://")
 
 def make_console(stderr: bool = False) -> Console:
     console = Console(stderr=stderr, highlight=False, soft_wrap=True)
-    if not console.is_terminal and "COLUMNS" not in os.environ:
-        console.width = 160   # logs and pipes: do not squeeze tables into 80 columns
+    if not console.is_terminal:     # logs and pipes: do not squeeze tables into 80 columns
+        columns = os.environ.get("COLUMNS", "")
+        console.width = int(columns) if columns.isdigit() else 160   # fixed now: rich reads COLUMNS live
     return console
 
 
