@@ -23,28 +23,14 @@ clipped (NaN in the record).
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import replace
 from typing import Any, Iterable, Mapping
 
 import numpy as np
 
+from bench.inputs.capture_names import _CAPTURE, is_capture_signal, split_capture_signal  # noqa: F401
 from bench.inputs.criteria import (KINDS, CriterionResult, CriterionSpec, Kind, Param, _Unusable, _Window,
                                    evaluate)
-
-_CAPTURE = re.compile(r"^([a-z][a-z0-9_]*):([a-z][a-z0-9_]*)$")
-
-
-def is_capture_signal(name: object) -> bool:
-    return isinstance(name, str) and _CAPTURE.match(name) is not None
-
-
-def split_capture_signal(name: str) -> tuple[str, str]:
-    m = _CAPTURE.match(name)
-    if m is None:
-        raise ValueError(f"not an instrument signal: {name!r}")
-    return m.group(1), m.group(2)
-
 
 def reads_capture(spec: CriterionSpec) -> bool:
     """True when the criterion reads an instrument's record (its signal or a signal parameter)."""

@@ -653,7 +653,7 @@ def parse_criteria(p: Problems, items: list[tuple[str, dict]], duration: float) 
 
 def known_signal(name: str) -> bool:
     """A telemetry signal, or an instrument's `<instrument>:<signal>` (bench.inputs.capture_criteria)."""
-    from bench.inputs.capture_criteria import is_capture_signal
+    from bench.inputs.capture_names import is_capture_signal
     return name in SIGNAL_NAMES or is_capture_signal(name)
 
 
@@ -732,5 +732,3 @@ def _criterion_params(p: Problems, item: dict, where: str, kind_name: str,
         ok = False
     return params if ok else None
 
-
-import bench.inputs.capture_criteria  # noqa: E402,F401  (registers its kinds; criteria on instruments' records)

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from bench.inputs.benchconfig import BenchConfig, drive_description, load_bench_config
 from bench.inputs.criteria import CriterionSpec, parse_criteria
+import bench.inputs.capture_criteria  # noqa: F401  (registers the kinds judged on instruments' records)
 from bench.inputs.drive_kind import check_drive_kind
 from bench.inputs.requirements import parse_requirements
 from drivers.contract.checks import Problems, find_repo_root, read_toml_with_bytes, resolve_path

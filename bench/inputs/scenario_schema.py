@@ -16,7 +16,9 @@ from typing import Any
 
 from bench.inputs import scenario as sc
 from bench.inputs.criteria import _CRITERION_KEYS, KINDS
+import bench.inputs.capture_criteria  # noqa: F401  (registers the kinds judged on instruments' records)
 from drivers.contract.signals import SIGNAL_NAMES
+from bench.inputs.capture_names import _CAPTURE
 
 SCHEMA_FILE = Path(__file__).with_name("schemas") / "scenario.schema.json"
 NUMBER = {"type": "number"}
@@ -36,17 +38,22 @@ def _tables_by_kind(keys_by_kind: dict[str, tuple[str, ...]]) -> dict[str, Any]:
         for kind, keys in keys_by_kind.items()]}}
 
 
+def _signal() -> dict[str, Any]:
+    """A telemetry signal, or an instrument's `<instrument>:<signal>` (bench.inputs.capture_names)."""
+    return {"anyOf": [{"enum": list(SIGNAL_NAMES)}, {"type": "string", "pattern": _CAPTURE.pattern}]}
+
+
 def _criterion(kind_name: str) -> dict[str, Any]:
     kind = KINDS[kind_name]
     params = {}
     for key, spec in kind.params.items():
-        params[key] = ({"enum": list(SIGNAL_NAMES)} if spec.type == "signal"
+        params[key] = (_signal() if spec.type == "signal"
                        else {"type": "boolean"} if spec.type == "bool" else NUMBER)
         if spec.help:
             params[key] = {**params[key], "description": spec.help}
     required = ["name", "kind", "signal", "window_s", "limit"] + [k for k, s in kind.params.items() if s.required]
     common = {"name": {"type": "string", "minLength": 1}, "kind": {"const": kind_name},
-              "signal": {"enum": list(SIGNAL_NAMES)},
+              "signal": _signal(),
               "window_s": {"type": "array", "items": TIME, "minItems": 2, "maxItems": 2},
               "limit": {"type": "number", "minimum": 0}, "known_gap": {"type": "string", "minLength": 1}}
     assert set(common) == set(_CRITERION_KEYS), "criteria.py's common keys changed: update the schema"

@@ -10,6 +10,7 @@ import numpy as np
 
 from bench.inputs.capture_criteria import judge_with_records
 from bench.inputs.criteria import CriterionResult, evaluate, incomplete_reason, time_axis, verdict as decide
+import bench.inputs.capture_criteria  # noqa: F401  (registers the kinds judged on instruments' records)
 
 
 @dataclass(frozen=True)
