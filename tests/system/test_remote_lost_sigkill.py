@@ -10,7 +10,6 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -18,6 +17,7 @@ import canopen
 import pytest
 
 from drivers.contract import cia402
+from tests.sim_process import read_endpoints, serve_sim
 
 REPO = Path(__file__).resolve().parents[2]
 EDS = REPO / "config/od/third-party/e35.eds"
@@ -81,37 +81,15 @@ max_duration_s = 120.0
 """
 
 
-def _serve(config: Path) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "sim_backend.serve", "--config", str(config)], cwd=REPO,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
-
-
-def _endpoints(proc: subprocess.Popen, timeout: float = 120.0) -> list[str]:
-    lines: list[str] = []
-
-    def read():
-        for line in proc.stdout:
-            lines.append(line.strip())
-            if line.startswith("ready"):
-                return
-
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
-    reader.join(timeout)
-    assert lines and lines[-1].startswith("ready"), f"no 'ready' line: {lines} {proc.poll()}"
-    return lines
-
-
 @pytest.mark.slow
 def test_sigkilled_after_remote_lost_the_drive_stops_itself(tmp_path):
     serve_cfg = tmp_path / "serve.toml"
     serve_cfg.write_text(SERVE)
-    server = _serve(serve_cfg)
+    server = serve_sim(serve_cfg)
     monitor = canopen.Network()
     bench_proc = None
     try:
-        lines = _endpoints(server)
+        lines = read_endpoints(server, timeout=120.0)
         can_port = next(l for l in lines if l.startswith("canopen ")).split(":")[2].split("/")[0]
         modbus_port = int(next(l for l in lines if l.startswith("modbus ")).split(":")[2].split()[0])
         bench = tmp_path / "bench.toml"
